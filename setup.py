@@ -1,0 +1,13 @@
+from setuptools import setup, find_packages
+
+setup(
+    name="rodsnes",
+    version="0.1.0",
+    description="Parallel Newton solver for Cosserat rods with frictionless self-contact (PETSc)",
+    packages=find_packages(include=["rodsnes", "rodsnes.*"]),
+    python_requires=">=3.9",
+    # petsc4py, mpi4py, h5py (MPI), meshio, scipy, matplotlib come from Debian packages
+    # (see tools/install_system.sh); only what Debian lacks is pulled from PyPI.
+    install_requires=["numpy", "pymetis", "typing_extensions"],
+    entry_points={"console_scripts": ["rodsnes = rodsnes.cli:main"]},
+)
