@@ -1,0 +1,208 @@
+"""Cosserat (Simo-Reissner) rod strain energy with quaternion-projection interpolation.
+
+Rotations: per node a unit quaternion q_a; inside an element (signs aligned so that
+q_a . q_0 >= 0)  p(s) = sum_a N_a(s) q_a,  R(s) = Rq(p)/|p|^2   (METHOD_NOTES.md,
+projection-based FE of Grohs-Hardering-Sander: objective and path-independent).
+Strains (slides "Strains measures"), with z = (p, p', r') in R^11:
+
+    v = R^T r'          = Rq(p)^T r' / |p|^2          (shear v1, v2; extension v3)
+    u = vee(R^T R')     = 2 vec(conj(p) * p') / |p|^2  (flexures u1, u2; twist u3)
+
+Both numerators are polynomials with constant coefficient tensors:
+    [Rq(p)^T r']_k = T_kijl p_i p_j r'_l,      vec(conj(p) * p')_k = A_kij p_i p'_j,
+so e(z) = (v, u) = Nz(z) / |p|^2 has closed-form first and second derivatives.
+
+Energy density (quadratic hyperelastic law, diagonal stiffness C = diag(EA.. see below)):
+    W = 1/2 (e - e0)^T C (e - e0),  C = diag(GA1, GA2, EA, EI1, EI2, GJ),
+    material stress resultants S = C (e - e0) = (R^T n, R^T m)  (slides "Constitutive relations").
+    W_z = De^T S,     W_zz = De^T C De + sum_k S_k D2e_k.
+Newton unknowns per node: (r_a, theta_a), q_a(theta) = qexp(theta_a) * q_a
+(R_a <- exp(theta_a^x) R_a); with B(q) = dq/dtheta at 0 = 1/2 [-qv^T; q0 I - qv^x]:
+    g_a  = (dE/dr_a, B(q_a)^T dE/dq_a)           (force balance, spatial moment balance)
+    H_ab = T_a^T (d2E/dy_a dy_b) T_b - delta_ab 1/4 (q_a . dE/dq_a) I_3 on the theta block,
+and the consistent derivative of the spatial residual adds -1/2 (g_a)_theta^x on that block.
+"""
+import numpy as np
+
+from . import fe, so3
+
+
+def _coefficient_tensors():
+    eps = np.zeros((3, 3, 3))
+    eps[0, 1, 2] = eps[1, 2, 0] = eps[2, 0, 1] = 1.0
+    eps[0, 2, 1] = eps[2, 1, 0] = eps[1, 0, 2] = -1.0
+    A = np.zeros((3, 4, 4))           # w_k = A_kij p_i p'_j = [p0 pv' - p0' pv - pv x pv']_k
+    T = np.zeros((3, 4, 4, 3))        # g_k = T_kijl p_i p_j r'_l = [Rq(p)^T r']_k
+    for k in range(3):
+        A[k, 0, 1 + k] += 1.0
+        A[k, 1 + k, 0] -= 1.0
+        A[k, 1:, 1:] -= eps[k]
+        T[k, 0, 0, k] += 1.0
+        for m in range(3):
+            T[k, 1 + m, 1 + m, k] -= 1.0
+            T[k, 1 + k, 1 + m, m] += 2.0
+            T[k, 0, 1 + m, :] -= 2.0 * eps[k, m, :]
+    T = 0.5 * (T + T.transpose(0, 2, 1, 3))
+    return A, T
+
+
+_A, _T = _coefficient_tensors()
+
+
+def strain_measures(p, dp, dr, derivatives=0):
+    """e = (v, u) at points with interpolated p (...,4), p' (...,4), r' (...,3).
+
+    derivatives=0: e (...,6); 1: (e, De (...,6,11)); 2: (e, De, D2e (...,6,11,11)).
+    """
+    n2 = np.einsum("...i,...i->...", p, p)
+    g = np.einsum("kijl,...i,...j,...l->...k", _T, p, p, dr)
+    w = np.einsum("kij,...i,...j->...k", _A, p, dp)
+    Nz = np.concatenate([g, 2.0 * w], axis=-1)
+    e = Nz / n2[..., None]
+    if derivatives == 0:
+        return e
+    shp = p.shape[:-1]
+    DN = np.zeros(shp + (6, 11))
+    DN[..., :3, 0:4] = 2.0 * np.einsum("kijl,...j,...l->...ki", _T, p, dr)
+    DN[..., :3, 8:11] = np.einsum("kijl,...i,...j->...kl", _T, p, p)
+    DN[..., 3:, 0:4] = 2.0 * np.einsum("kij,...j->...ki", _A, dp)
+    DN[..., 3:, 4:8] = 2.0 * np.einsum("kij,...i->...kj", _A, p)
+    Dn2 = np.zeros(shp + (11,))
+    Dn2[..., 0:4] = 2.0 * p
+    inv = 1.0 / n2
+    De = DN * inv[..., None, None] - Nz[..., :, None] * Dn2[..., None, :] * (inv**2)[..., None, None]
+    if derivatives == 1:
+        return e, De
+    D2N = np.zeros(shp + (6, 11, 11))
+    D2N[..., :3, 0:4, 0:4] = 2.0 * np.einsum("kijl,...l->...kij", _T, dr)
+    cross = 2.0 * np.einsum("kijl,...j->...kil", _T, p)
+    D2N[..., :3, 0:4, 8:11] = cross
+    D2N[..., :3, 8:11, 0:4] = np.swapaxes(cross, -1, -2)
+    D2N[..., 3:, 0:4, 4:8] = 2.0 * _A
+    D2N[..., 3:, 4:8, 0:4] = 2.0 * np.swapaxes(_A, -1, -2)
+    D2n2 = np.zeros((11, 11))
+    D2n2[0:4, 0:4] = 2.0 * np.eye(4)
+    outer = DN[..., :, :, None] * Dn2[..., None, None, :]
+    D2e = (D2N * inv[..., None, None, None]
+           - (outer + np.swapaxes(outer, -1, -2)) * (inv**2)[..., None, None, None]
+           - Nz[..., :, None, None] * D2n2 * (inv**2)[..., None, None, None]
+           + 2.0 * Nz[..., :, None, None] * (Dn2[..., None, :, None] * Dn2[..., None, None, :])
+           * (inv**3)[..., None, None, None])
+    return e, De, D2e
+
+
+def align_signs(qe):
+    """Flip element quaternions so that q_a . q_0 >= 0 (q and -q are the same rotation)."""
+    sgn = np.where(np.einsum("eai,ei->ea", qe, qe[:, 0, :]) < 0.0, -1.0, 1.0)
+    return qe * sgn[..., None]
+
+
+def B_matrix(q):
+    """dq/dtheta at theta = 0 for q(theta) = qexp(theta) * q:  1/2 [-qv^T; q0 I - qv^x]."""
+    B = np.zeros(q.shape[:-1] + (4, 3))
+    q0, qv = q[..., 0], q[..., 1:]
+    B[..., 0, :] = -0.5 * qv
+    B[..., 1:, :] = 0.5 * q0[..., None, None] * np.eye(3)
+    B[..., 1, 1] += 0.5 * qv[..., 2]
+    B[..., 1, 2] -= 0.5 * qv[..., 1]
+    B[..., 2, 0] -= 0.5 * qv[..., 2]
+    B[..., 2, 2] += 0.5 * qv[..., 0]
+    B[..., 3, 0] += 0.5 * qv[..., 1]
+    B[..., 3, 1] -= 0.5 * qv[..., 0]
+    return B
+
+
+class ElasticRod:
+    """Elastic energy term over a set of elements (vectorised over element x quad point).
+
+    stiffness: (GA1, GA2, EA, EI1, EI2, GJ); order p; nq Gauss points; element length h.
+    e0: (ne, nq, 6) stress-free strains (set with set_reference).
+    """
+
+    def __init__(self, order, nq, h, stiffness):
+        self.p = order
+        self.h = h
+        xi, w = fe.gauss_legendre(nq)
+        N, dN, _ = fe.lagrange(order, xi)
+        self.N = N
+        self.dN = dN * (2.0 / h)            # d/ds
+        self.wJ = w * (h / 2.0)
+        self.C = np.asarray(stiffness, dtype=float)
+        self.e0 = None
+        # G maps raw nodal dofs y_a = (q_a (4), x_a (3)) to z = (p, p', r') at each point
+        nn = order + 1
+        G = np.zeros((nq, 11, nn, 7))
+        for a in range(nn):
+            G[:, 0:4, a, 0:4] = N[:, a, None, None] * np.eye(4)
+            G[:, 4:8, a, 0:4] = self.dN[:, a, None, None] * np.eye(4)
+            G[:, 8:11, a, 4:7] = self.dN[:, a, None, None] * np.eye(3)
+        self.G = G.reshape(nq, 11, nn * 7)
+
+    def interpolate(self, qe, xe):
+        """(p, p', r') at the quadrature points of elements with nodal qe (ne,p+1,4), xe."""
+        qe = align_signs(qe)
+        p = np.einsum("qa,eai->eqi", self.N, qe)
+        dp = np.einsum("qa,eai->eqi", self.dN, qe)
+        dr = np.einsum("qa,eai->eqi", self.dN, xe)
+        return qe, p, dp, dr
+
+    def strains(self, qe, xe):
+        """Material strains e = (v, u) (ne, nq, 6) at the quadrature points."""
+        _, p, dp, dr = self.interpolate(qe, xe)
+        return strain_measures(p, dp, dr)
+
+    def set_reference(self, e0):
+        self.e0 = np.asarray(e0, dtype=float)
+
+    def energy(self, qe, xe, e0=None):
+        """E = sum_e sum_q wJ W(e - e0)."""
+        e0 = self.e0 if e0 is None else e0
+        de = self.strains(qe, xe) - e0
+        return 0.5 * np.einsum("q,eqk,k,eqk->", self.wJ, de, self.C, de)
+
+    def stress(self, qe, xe, e0=None):
+        """Material stress resultants S = C (e - e0) = (R^T n, R^T m) at quadrature points."""
+        e0 = self.e0 if e0 is None else e0
+        return (self.strains(qe, xe) - e0) * self.C
+
+    def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False):
+        """Element residuals (ne, p+1, 6) and tangents (ne, 6(p+1), 6(p+1)) in the
+        Newton unknowns (r, theta) per node, plus the energy of each element.
+
+        The residual seen by SNES at a trial increment theta is the spatial moment
+        F(theta) = J_l(theta)^{-T} grad f(theta) (f = E o exp chart), so its exact derivative
+        at theta = 0 is  H - 1/2 g_theta^x  on each node's theta-theta block (symmetric=False,
+        the default: the consistent Newton tangent).  symmetric=True returns the Hessian H of
+        the energy in the exponential chart (for inertia / stability: equal at equilibrium)."""
+        e0 = self.e0 if e0 is None else e0
+        qa, p, dp, dr = self.interpolate(qe, xe)
+        ne, nn = qe.shape[0], self.p + 1
+        if tangent:
+            e, De, D2e = strain_measures(p, dp, dr, derivatives=2)
+        else:
+            e, De = strain_measures(p, dp, dr, derivatives=1)
+        S = (e - e0) * self.C
+        energy = 0.5 * np.einsum("q,eqk,eqk->e", self.wJ, e - e0, S)
+        Wz = np.einsum("eqkz,eqk->eqz", De, S)
+        graw = np.einsum("q,qzy,eqz->ey", self.wJ, self.G, Wz).reshape(ne, nn, 7)
+        B = B_matrix(qa)                                   # (ne, nn, 4, 3)
+        vec = np.empty((ne, nn, 6))
+        vec[:, :, 0:3] = graw[:, :, 4:7]
+        vec[:, :, 3:6] = np.einsum("eaij,eai->eaj", B, graw[:, :, 0:4])
+        if not tangent:
+            return energy, vec, None
+        Wzz = np.einsum("eqkz,k,eqky->eqzy", De, self.C, De) + np.einsum("eqk,eqkzy->eqzy", S, D2e)
+        Hraw = np.einsum("q,qzi,eqzy,qyj->eij", self.wJ, self.G, Wzz, self.G)
+        Hraw = Hraw.reshape(ne, nn, 7, nn, 7)
+        # T_a: (r, theta) -> (q, x):  q block = B theta, x block = r
+        T = np.zeros((ne, nn, 7, 6))
+        T[:, :, 4:7, 0:3] = np.eye(3)
+        T[:, :, 0:4, 3:6] = B
+        H = np.einsum("eaim,eaibj,ebjn->eambn", T, Hraw, T)
+        chart = -0.25 * np.einsum("eai,eai->ea", qa, graw[:, :, 0:4])
+        idx = np.arange(3, 6)
+        for a in range(nn):
+            H[:, a, idx, a, idx] += chart[:, a, None]
+            if not symmetric:
+                H[:, a, 3:6, a, 3:6] -= 0.5 * so3.hat(vec[:, a, 3:6])
+        return energy, vec, H.reshape(ne, nn * 6, nn * 6)

@@ -1,0 +1,124 @@
+"""Rod meshes: nodes, elements and the reference (stress-free) and initial shapes.
+
+Natural numbering: node k sits at arclength s_k = k h / p (h = L / nelem, p = order);
+element e holds nodes e p + a, a = 0..p (modulo n for closed rods, whose last element
+wraps to node 0).  Frames: column k of R is the director d_{k+1}; d3 is the unit tangent.
+
+Shapes (all start at the origin):
+  straight  r(s) = (s, 0, 0),  d1 = e_y (in the x-y plane), d2 = e_z
+  arc       r(s) = rho (sin(s/rho), 1 - cos(s/rho), 0): tangent to +x, bending toward +y;
+            d1 = e_z x d3 (the principal normal, toward the centre), d2 = e_z
+  circle    the arc with rho = L/(2 pi), closed
+  helix     axis +x, radius a, pitch c (rise per turn), b = c/(2 pi), w = sqrt(a^2 + b^2):
+            r(s) = (b phi, a sin phi, a (1 - cos phi)), phi = s / w; Frenet frame
+            (d1 = principal normal, toward the axis; d2 = binormal), so u = (0, kappa, tau)
+            with kappa = a/w^2, tau = b/w^2.
+Imperfection A: open rods r += A sin(pi s/L) d1; closed rods r += A sin(4 pi s/L) d2
+(the out-of-plane two-wave mode in which a twisted ring writhes); frames are re-aligned
+with the perturbed tangent by the smallest rotation.
+Initial twist T turns: R_init(s) = R_ref(s) Rot_d3(2 pi T s / L) (right-handed about d3).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import so3
+
+
+@dataclass
+class RodMesh:
+    nelem: int
+    order: int
+    closed: bool
+    length: float
+    n_nodes: int
+    conn: np.ndarray        # (nelem, p+1) natural node ids
+    s_nodes: np.ndarray     # (n,) arclength of the nodes
+    x_ref: np.ndarray       # (n,3) stress-free centreline
+    q_ref: np.ndarray       # (n,4) stress-free frames (unit quaternions)
+    x_init: np.ndarray      # (n,3) initial configuration
+    q_init: np.ndarray      # (n,4)
+
+    @property
+    def h(self):
+        return self.length / self.nelem
+
+    def element_nodes_s(self):
+        """(nelem, p+1) arclength of each element's nodes (unwrapped for closed rods)."""
+        e = np.arange(self.nelem)[:, None]
+        a = np.arange(self.order + 1)[None, :]
+        return (e * self.order + a) * self.h / self.order
+
+
+def _shape(rod, s):
+    """Centreline r(s), tangent r'(s) and the base frame (before imperfection)."""
+    L = rod.length
+    z = np.zeros_like(s)
+    if rod.shape == "straight":
+        r = np.stack([s, z, z], axis=1)
+        t = np.tile([1.0, 0.0, 0.0], (len(s), 1))
+        R = so3.frame_from_tangent(t)
+    elif rod.shape in ("arc", "circle"):
+        rho = rod.arc_radius if rod.shape == "arc" else (rod.arc_radius or L / (2 * np.pi))
+        if rod.shape == "circle" and not rod.arc_radius:
+            rho = L / (2 * np.pi)
+        ph = s / rho
+        r = np.stack([rho * np.sin(ph), rho * (1 - np.cos(ph)), z], axis=1)
+        t = np.stack([np.cos(ph), np.sin(ph), z], axis=1)
+        R = so3.frame_from_tangent(t)
+    elif rod.shape == "helix":
+        a = rod.helix_radius
+        b = rod.helix_pitch / (2 * np.pi)
+        w = np.hypot(a, b)
+        ph = s / w
+        r = np.stack([b * ph, a * np.sin(ph), a * (1 - np.cos(ph))], axis=1)
+        t = np.stack([b * np.ones_like(ph), a * np.cos(ph), a * np.sin(ph)], axis=1) / w
+        nrm = np.stack([z, -np.sin(ph), np.cos(ph)], axis=1)  # toward the axis
+        R = np.stack([nrm, np.cross(t, nrm), t], axis=-1)
+    else:
+        raise ValueError(f"unknown shape {rod.shape}")
+    return r, t, R
+
+
+def _imperfect(rod, s, r, t, R):
+    A = getattr(rod, "imperfection", 0.0) or 0.0
+    if A == 0.0:
+        return r, R
+    L = rod.length
+    if rod.closed:
+        k = 4 * np.pi / L
+        d = R[:, :, 1]
+        f, df = np.sin(k * s), k * np.cos(k * s)
+    else:
+        k = np.pi / L
+        d = R[:, :, 0]
+        f, df = np.sin(k * s), k * np.cos(k * s)
+    # derivative of the director along s is neglected only in the tangent used to
+    # orient the frame (exact tangent not needed: the frame only has to be admissible)
+    r = r + A * f[:, None] * d
+    tn = t + A * df[:, None] * d
+    tn /= np.linalg.norm(tn, axis=1, keepdims=True)
+    # smallest rotation taking t to tn, applied to the frame
+    ax = np.cross(t, tn)
+    sn = np.linalg.norm(ax, axis=1)
+    c = np.sum(t * tn, axis=1)
+    ang = np.arctan2(sn, c)
+    rv = np.where(sn[:, None] > 1e-15, ax / np.maximum(sn, 1e-300)[:, None] * ang[:, None], 0.0)
+    R = so3.rot(so3.qexp(rv)) @ R
+    return r, R
+
+
+def build_mesh(rod):
+    """Nodes, elements, stress-free and initial shapes of ``rod`` (a scene.Rod)."""
+    p, ne, L = rod.order, rod.nelem, rod.length
+    n = ne * p if rod.closed else ne * p + 1
+    s = np.arange(n) * (L / (ne * p))
+    conn = (np.arange(ne)[:, None] * p + np.arange(p + 1)[None, :]) % n
+    r, t, R = _shape(rod, s)
+    r, R = _imperfect(rod, s, r, t, R)
+    q = so3.quat_from_rot(R)
+    turns = getattr(rod, "twist_turns", 0.0) or 0.0
+    phi = 2 * np.pi * turns * s / L
+    q_init = so3.qmul(q, so3.qexp(np.stack([0 * phi, 0 * phi, phi], axis=1)))
+    return RodMesh(nelem=ne, order=p, closed=rod.closed, length=L, n_nodes=n, conn=conn,
+                   s_nodes=s, x_ref=r, q_ref=q, x_init=r.copy(), q_init=q_init)

@@ -1,0 +1,153 @@
+"""Distribution of a rod over MPI ranks: METIS over the element graph, node ownership,
+PETSc numbering, ghost nodes, scatters and the Jacobian's block sparsity.
+
+Element graph: element e is adjacent to e-1 and e+1 (and across the wrap of a closed rod);
+pymetis partitions it (PETSc's Debian build has no METIS).  A node is owned by the rank of
+the lowest-numbered element that contains it.  PETSc numbering: nodes sorted by (owner, natural
+id), so each rank owns a contiguous range.  Local nodes = owned nodes, then ghosts (nodes of
+owned elements owned elsewhere).  Every rank keeps the O(n) maps natural <-> PETSc (a rod has at
+most millions of nodes: cheap, and it keeps contact-pair bookkeeping simple).
+"""
+import numpy as np
+from petsc4py import PETSc
+
+NDOF = 6  # per node: position r (3), rotation increment theta (3)
+
+
+def metis_parts(nelem, closed, nparts):
+    """Element -> rank with pymetis over the chain graph (contiguous pieces)."""
+    if nparts == 1:
+        return np.zeros(nelem, dtype=np.int64)
+    if nelem < nparts:
+        raise ValueError(f"-rod_nelem = {nelem} is smaller than the number of ranks {nparts}: "
+                         f"use at least {nparts} elements or fewer ranks")
+    import pymetis
+    e = np.arange(nelem)
+    nbrs = [e - 1, e + 1]
+    xadj = [0]
+    adj = []
+    for k in range(nelem):
+        row = [(k - 1) % nelem, (k + 1) % nelem] if closed else [j for j in (k - 1, k + 1) if 0 <= j < nelem]
+        row = sorted(set(row) - {k})
+        adj.extend(row)
+        xadj.append(len(adj))
+    del nbrs
+    _, parts = pymetis.part_graph(nparts, adjacency=pymetis.CSRAdjacency(
+        adj_starts=np.asarray(xadj), adjacent=np.asarray(adj)))
+    parts = np.asarray(parts, dtype=np.int64)
+    if len(np.unique(parts)) < nparts:  # METIS may leave a rank empty on tiny graphs
+        parts = (np.arange(nelem) * nparts) // nelem
+    return parts
+
+
+class Layout:
+    """Owned/ghost nodes of this rank, PETSc numbering and the communication objects."""
+
+    def __init__(self, comm, mesh, parts=None):
+        self.comm = comm
+        rank, size = comm.getRank(), comm.getSize()
+        self.mesh = mesh
+        ne, n = mesh.nelem, mesh.n_nodes
+        self.elem_owner = metis_parts(ne, mesh.closed, size) if parts is None else np.asarray(parts)
+        first_elem = np.full(n, ne, dtype=np.int64)
+        np.minimum.at(first_elem, mesh.conn.ravel(), np.repeat(np.arange(ne), mesh.conn.shape[1]))
+        self.node_owner = self.elem_owner[first_elem]
+        order = np.lexsort((np.arange(n), self.node_owner))      # sort by (owner, id)
+        self.nat2petsc = np.empty(n, dtype=np.int64)
+        self.nat2petsc[order] = np.arange(n)
+        self.petsc2nat = order
+        counts = np.bincount(self.node_owner, minlength=size)
+        self.starts = np.concatenate([[0], np.cumsum(counts)])
+        self.owned_elems = np.flatnonzero(self.elem_owner == rank)
+        self.owned_nodes = order[self.starts[rank]:self.starts[rank + 1]]   # natural ids
+        touched = np.unique(mesh.conn[self.owned_elems].ravel())
+        ghosts = np.setdiff1d(touched, self.owned_nodes)
+        self.ghost_nodes = ghosts[np.argsort(self.nat2petsc[ghosts])]
+        self.local_nodes = np.concatenate([self.owned_nodes, self.ghost_nodes])  # natural ids
+        self.n_owned = len(self.owned_nodes)
+        nat2local = np.full(n, -1, dtype=np.int64)
+        nat2local[self.local_nodes] = np.arange(len(self.local_nodes))
+        self.nat2local = nat2local
+        self.lconn = nat2local[mesh.conn[self.owned_elems]]
+        self.gconn = self.nat2petsc[mesh.conn[self.owned_elems]]   # PETSc block ids
+        self.n_global = n
+        # vectors and the scatter global -> local (owned + ghost)
+        self.x = self.create_vec()
+        self.xlocal = PETSc.Vec().createSeq(NDOF * len(self.local_nodes), bsize=NDOF, comm=PETSc.COMM_SELF)
+        is_from = PETSc.IS().createBlock(NDOF, self.nat2petsc[self.local_nodes].astype(PETSc.IntType),
+                                         comm=PETSc.COMM_SELF)
+        self.scatter = PETSc.Scatter().create(self.x, is_from, self.xlocal, None)
+
+    def create_vec(self):
+        v = PETSc.Vec().createMPI((NDOF * self.n_owned, NDOF * self.n_global), bsize=NDOF, comm=self.comm)
+        v.set(0.0)
+        return v
+
+    def to_local(self, X):
+        """Owned + ghost values of a global vector, as an (n_local, 6) array (a copy)."""
+        self.scatter.scatter(X, self.xlocal, addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        return self.xlocal.getArray(readonly=True).reshape(-1, NDOF).copy()
+
+    def add_to_global(self, local, F):
+        """F += sum over ranks of local (n_local, 6) contributions (reverse scatter-add)."""
+        self.xlocal.setArray(np.ascontiguousarray(local, dtype=float).ravel())
+        self.scatter.scatter(self.xlocal, F, addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+
+    def block_pattern(self, extra_pairs=None):
+        """d_nnz, o_nnz (per owned block row) of the element coupling (+ extra node groups).
+
+        extra_pairs: optional (m, k) arrays of natural node ids that are coupled all-to-all
+        (e.g. the nodes of a contact element pair)."""
+        groups = [self.mesh.conn]
+        if extra_pairs is not None and len(extra_pairs):
+            groups.append(np.asarray(extra_pairs))
+        rows, cols = [], []
+        for g in groups:
+            k = g.shape[1]
+            rows.append(np.repeat(g, k, axis=1).ravel())
+            cols.append(np.tile(g, (1, k)).ravel())
+        r = self.nat2petsc[np.concatenate(rows)]
+        c = self.nat2petsc[np.concatenate(cols)]
+        rank = self.comm.getRank()
+        lo, hi = self.starts[rank], self.starts[rank + 1]
+        keep = (r >= lo) & (r < hi)
+        code = np.unique(r[keep] * self.n_global + c[keep])
+        r, c = code // self.n_global, code % self.n_global
+        diag = (c >= lo) & (c < hi)
+        d_nnz = np.bincount(r[diag] - lo, minlength=hi - lo)
+        o_nnz = np.bincount(r[~diag] - lo, minlength=hi - lo)
+        return d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)
+
+    def create_matrix(self, extra_pairs=None):
+        d_nnz, o_nnz = self.block_pattern(extra_pairs)
+        J = PETSc.Mat().create(comm=self.comm)
+        J.setSizes(((NDOF * self.n_owned, NDOF * self.n_global),) * 2, bsize=NDOF)
+        J.setType(PETSc.Mat.Type.BAIJ)
+        J.setBlockSize(NDOF)
+        J.setPreallocationNNZ((d_nnz, o_nnz))
+        J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+        J.setFromOptions()
+        J.setUp()
+        return J
+
+    def gather_nodes(self, owned_values, root=0):
+        """Natural-ordered (n, ...) array of per-owned-node values on ``root`` (None elsewhere)."""
+        from mpi4py import MPI
+        comm = self.comm.tompi4py()
+        ids = comm.gather(self.owned_nodes, root=root)
+        vals = comm.gather(np.asarray(owned_values), root=root)
+        if comm.rank != root:
+            return None
+        out = np.empty((self.n_global,) + vals[0].shape[1:], dtype=vals[0].dtype)
+        for i, v in zip(ids, vals):
+            out[i] = v
+        return out
+
+    def allgather_nodes(self, owned_values):
+        comm = self.comm.tompi4py()
+        ids = comm.allgather(self.owned_nodes)
+        vals = comm.allgather(np.asarray(owned_values))
+        out = np.empty((self.n_global,) + vals[0].shape[1:], dtype=vals[0].dtype)
+        for i, v in zip(ids, vals):
+            out[i] = v
+        return out

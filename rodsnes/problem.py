@@ -1,0 +1,206 @@
+"""The discrete equilibrium problem: residual and Jacobian of the total energy over the
+owned elements, assembled across ranks, with Dirichlet rows (DESIGN.md "problem.py").
+
+State (DESIGN.md "state.py" lives here as RodState): nodal reference rotations q_ref for the
+local (owned + ghost) nodes, and the SNES vector X = (r, theta) per node, theta being the
+rotation increment about q_ref: R = exp(theta^x) R_ref.  SNES.setUpdate calls recentre():
+R_ref <- exp(theta^x) R_ref, theta <- 0 (PETSC_NOTES.md "Manifold update").
+
+Dirichlet rows: residual F_i = X_i - target_i, Jacobian row and column i zeroed with 1 on the
+diagonal (MatZeroRowsColumns).  Prescribed rotations are put into q_ref with theta_i = 0.
+Closed rods have no ends: node 0 is held fixed, which removes the six rigid-body modes without
+changing the equilibrium (the resultant of the internal forces of a free ring vanishes).
+"""
+import numpy as np
+from petsc4py import PETSc
+
+from . import elastic, fe, so3
+from .loads import Loads
+from .partition import NDOF
+
+
+class RodState:
+    """q_ref (local nodes) + X; snapshot/restore for rejected load steps."""
+
+    def __init__(self, layout, q_local, X):
+        self.layout = layout
+        self.q_ref = q_local.copy()
+        self.X = X
+
+    def snapshot(self):
+        return self.q_ref.copy(), self.X.copy()
+
+    def restore(self, snap):
+        self.q_ref[:] = snap[0]
+        snap[1].copy(self.X)
+
+    def recentre(self):
+        """Fold theta into the reference rotations: q_ref <- qexp(theta) * q_ref, theta <- 0."""
+        xl = self.layout.to_local(self.X)
+        th = xl[:, 3:6]
+        if np.any(th):
+            self.q_ref[:] = so3.qmul(so3.qexp(th), self.q_ref)
+            self.q_ref /= np.linalg.norm(self.q_ref, axis=1, keepdims=True)
+            with self.X as a:
+                a.reshape(-1, NDOF)[:, 3:6] = 0.0
+
+    def local_config(self, X=None):
+        """Positions (n_local,3) and rotations q (n_local,4) at the vector X (default: state)."""
+        xl = self.layout.to_local(self.X if X is None else X)
+        return xl[:, 0:3], so3.qmul(so3.qexp(xl[:, 3:6]), self.q_ref)
+
+
+class Constraints:
+    """Fixed dofs and prescribed end rotation (bc_end_turns), stepped with lambda."""
+
+    def __init__(self, bc, mesh, layout):
+        self.layout = layout
+        n = mesh.n_nodes
+        fixed = []                 # (natural node, component)
+        self.rotation_targets = []  # (natural node, callable lam -> q)
+        x_init, q_init = mesh.x_init, mesh.q_init
+        if mesh.closed:
+            fixed += [(0, c) for c in range(6)]
+            self.rotation_targets.append((0, lambda lam: q_init[0]))
+        else:
+            for node, kind in ((0, bc.start), (n - 1, bc.end)):
+                if kind in ("clamped", "pinned"):
+                    fixed += [(node, c) for c in range(3)]
+                if kind in ("clamped", "sliding"):
+                    fixed += [(node, c) for c in range(3, 6)]
+                if kind == "sliding":
+                    t = so3.rot(q_init[node])[:, 2]
+                    axis = int(np.argmax(np.abs(t)))
+                    if abs(abs(t[axis]) - 1.0) > 1e-10:
+                        raise ValueError("-bc_end sliding: the end tangent must lie along a coordinate "
+                                         f"axis (it is {t}); use -bc_end clamped or a straight rod")
+                    fixed += [(node, c) for c in range(3) if c != axis]
+            if bc.start == "clamped":
+                self.rotation_targets.append((0, lambda lam: q_init[0]))
+            if bc.end in ("clamped", "sliding"):
+                d3 = so3.rot(q_init[n - 1])[:, 2]
+                turns = bc.end_turns
+                self.rotation_targets.append(
+                    (n - 1, lambda lam: so3.qmul(so3.qexp(2 * np.pi * turns * lam * d3), q_init[n - 1])))
+        fixed = sorted(set(fixed))
+        nodes = np.array([f[0] for f in fixed], dtype=np.int64)
+        comps = np.array([f[1] for f in fixed], dtype=np.int64)
+        self.target = np.where(comps < 3, x_init[nodes, np.minimum(comps, 2)], 0.0)
+        gidx = NDOF * layout.nat2petsc[nodes] + comps
+        rank = layout.comm.getRank()
+        lo, hi = NDOF * layout.starts[rank], NDOF * layout.starts[rank + 1]
+        own = (gidx >= lo) & (gidx < hi)
+        self.rows_global = gidx[own].astype(PETSc.IntType)
+        self.rows_local = (gidx[own] - lo).astype(np.int64)
+        self.target_own = self.target[own]
+        self.is_rows = PETSc.IS().createGeneral(self.rows_global, comm=layout.comm)
+
+    def apply(self, lam, state):
+        """Put the prescribed values at load factor lam into the state."""
+        lay = self.layout
+        for node, fun in self.rotation_targets:
+            li = lay.nat2local[node]
+            if li >= 0:
+                state.q_ref[li] = fun(lam)
+        with state.X as a:
+            a[self.rows_local] = np.where(self.rows_local % NDOF < 3, self.target_own, 0.0)
+
+
+class RodProblem:
+    """Residual, Jacobian and energy of the rod at load factor ``lam`` (set by the solver)."""
+
+    def __init__(self, scene, mesh, layout, contact=None):
+        self.scene, self.mesh, self.layout = scene, mesh, layout
+        rod = scene.rod
+        nq = fe.quadrature_points(rod.quadrature, rod.order)
+        self.nq = nq
+        stiff = (rod.GA1, rod.GA2, rod.EA, rod.EI1, rod.EI2, rod.GJ)
+        self.elastic = elastic.ElasticRod(rod.order, nq, mesh.h, stiff)
+        lconn = layout.lconn
+        own = layout.owned_elems
+        if rod.kappa0 is not None:
+            e0 = np.zeros((len(own), nq, 6))
+            e0[..., 2] = 1.0
+            e0[..., 3:6] = rod.kappa0
+        else:
+            conn = mesh.conn[own]
+            e0 = self.elastic.strains(mesh.q_ref[conn], mesh.x_ref[conn])
+        self.e0_base = e0
+        self.elastic.set_reference(e0.copy())
+        self.load_twist = getattr(scene.loads, "twist_turns", 0.0) or 0.0
+        self.loads = Loads(scene.loads, mesh, layout, nq)
+        self.constraints = Constraints(scene.bc, mesh, layout)
+        X = layout.create_vec()
+        q_local = mesh.q_init[layout.local_nodes]
+        with X as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] = mesh.x_init[layout.owned_nodes]
+            a[:, 3:6] = 0.0
+        self.state = RodState(layout, q_local, X)
+        self.contact = contact
+        self.lam = 0.0
+        self.J = layout.create_matrix(contact.extra_pattern() if contact is not None else None)
+        self.F = layout.create_vec()
+        self.lconn = lconn
+        self.stats = {}
+
+    # -- load factor ------------------------------------------------------------------
+    def set_load(self, lam):
+        """Set lambda: prescribed motions into the state, intrinsic twist ramp into e0."""
+        self.lam = float(lam)
+        self.constraints.apply(self.lam, self.state)
+        if self.load_twist:
+            e0 = self.e0_base.copy()
+            e0[..., 5] -= self.lam * 2 * np.pi * self.load_twist / self.mesh.length
+            self.elastic.set_reference(e0)
+
+    # -- SNES callbacks ---------------------------------------------------------------
+    def residual(self, snes, X, F):
+        r, q = self.state.local_config(X)
+        energy, vec, _ = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=False)
+        Floc = np.zeros((len(r), NDOF))
+        np.add.at(Floc, self.lconn, vec)
+        self.loads.add_residual(self.lam, r, q, Floc)
+        if self.contact is not None:
+            self.contact.add_residual(r, Floc)
+        F.set(0.0)
+        self.layout.add_to_global(Floc, F)
+        xa = X.getArray(readonly=True)
+        with F as fa:
+            c = self.constraints
+            fa[c.rows_local] = xa[c.rows_local] - np.where(c.rows_local % NDOF < 3, c.target_own, 0.0)
+
+    def jacobian(self, snes, X, J, P):
+        r, q = self.state.local_config(X)
+        _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True)
+        P.zeroEntries()
+        g = self.layout.gconn.astype(PETSc.IntType)
+        P.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
+        lg = self.layout.nat2petsc[self.layout.local_nodes]
+        for i, j, B in self.loads.add_jacobian_blocks(self.lam, q):
+            P.setValuesBlocked([lg[i]], [lg[j]], B, addv=PETSc.InsertMode.ADD)
+        if self.contact is not None:
+            self.contact.add_jacobian(r, P)
+        P.assemble()
+        P.zeroRowsColumns(self.constraints.is_rows, 1.0)
+        if J != P:
+            J.assemble()
+
+    def update(self, snes, its):
+        self.state.recentre()
+
+    # -- diagnostics --------------------------------------------------------------------
+    def energy(self):
+        """Total potential energy (elastic + conservative loads + contact), all ranks."""
+        r, q = self.state.local_config()
+        E = self.elastic.energy(q[self.lconn], r[self.lconn])
+        E += self.loads.potential(self.lam, r)
+        if self.contact is not None:
+            E += self.contact.energy(r)
+        return self.layout.comm.tompi4py().allreduce(E)
+
+    def owned_fields(self):
+        """Per owned node: positions (n,3), directors (n,3,3), and nodal strains/stresses."""
+        r, q = self.state.local_config()
+        no = self.layout.n_owned
+        return {"positions": r[:no].copy(), "directors": so3.rot(q[:no])}

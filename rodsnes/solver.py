@@ -1,0 +1,102 @@
+"""Newton on R^3 x SO(3) with PETSc SNES, and load stepping in lambda with cut-back.
+
+SNES (newtonls) sees X = (r, theta); SNES.setUpdate re-centres the rotations before every
+Newton step (slides "Newton method on C_a": (r, R) <- (r + eta, exp(theta^x) R)).  Defaults
+(each overridable from the options database): full Newton steps (-snes_linesearch_type basic),
+a direct solve -ksp_type preonly -pc_type lu with MUMPS, -snes_rtol 1e-10, -snes_atol scaled
+by the rod's force scale EI/L^2 (a relative tolerance alone never converges a step that starts
+at equilibrium), -snes_max_it 40.  A load step that fails is cut back (halved) and retried from
+the last converged state; successful steps grow the increment again (x1.5) up to the nominal one.
+"""
+import time
+
+import numpy as np
+from petsc4py import PETSc
+
+from .partition import NDOF
+
+
+def _default(opts, name, value):
+    if not opts.hasName(name):
+        opts.setValue(name, value)
+
+
+class StepResult:
+    def __init__(self, lam, converged, its, reason, fnorm, history, seconds):
+        self.lam, self.converged, self.its, self.reason = lam, converged, its, reason
+        self.fnorm, self.history, self.seconds = fnorm, history, seconds
+
+
+class NewtonSolver:
+    def __init__(self, problem, force_scale):
+        self.problem = problem
+        comm = problem.layout.comm
+        opts = PETSc.Options()
+        _default(opts, "snes_linesearch_type", "basic")
+        _default(opts, "snes_rtol", "1e-10")
+        _default(opts, "snes_atol", repr(1e-11 * force_scale))
+        _default(opts, "snes_stol", "1e-16")
+        _default(opts, "snes_max_it", "40")
+        _default(opts, "ksp_type", "preonly")
+        _default(opts, "pc_type", "lu")
+        if "mumps" in PETSc.Sys.getVersionInfo().get("version", "") or True:
+            _default(opts, "pc_factor_mat_solver_type", "mumps")
+        snes = PETSc.SNES().create(comm=comm)
+        snes.setType("newtonls")
+        snes.setFunction(problem.residual, problem.F)
+        snes.setJacobian(problem.jacobian, problem.J)
+        snes.setUpdate(problem.update)
+        snes.setConvergenceHistory(length=1000, reset=True)
+        snes.setFromOptions()
+        self.snes = snes
+        self.total_its = 0
+
+    def solve_at(self, lam):
+        """Solve at load factor lam from the current state; returns a StepResult."""
+        p = self.problem
+        t0 = time.perf_counter()
+        p.set_load(lam)
+        self.snes.setConvergenceHistory(length=1000, reset=True)
+        try:
+            self.snes.solve(None, p.state.X)
+            reason = self.snes.getConvergedReason()
+        except PETSc.Error:
+            reason = -100
+        hist, _ = self.snes.getConvergenceHistory()
+        its = self.snes.getIterationNumber()
+        p.state.recentre()
+        ok = reason > 0 and np.all(np.isfinite(hist))
+        fnorm = float(hist[-1]) if len(hist) else float("nan")
+        return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
+
+    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None):
+        """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
+
+        on_step(result) is called after every converged step (write output there)."""
+        p = self.problem
+        nominal = (1.0 - lam0) / steps
+        lam, dlam = lam0, nominal
+        cutbacks = 0
+        results = []
+        while lam < 1.0 - 1e-14:
+            target = min(1.0, lam + dlam)
+            snap = p.state.snapshot()
+            res = self.solve_at(target)
+            if res.converged:
+                lam = target
+                self.total_its += res.its
+                results.append(res)
+                if on_step is not None:
+                    on_step(res)
+                cutbacks = 0
+                dlam = min(nominal, 1.5 * dlam)
+            else:
+                p.state.restore(snap)
+                p.set_load(lam)
+                cutbacks += 1
+                if on_fail is not None:
+                    on_fail(res, dlam)
+                dlam *= 0.5
+                if cutbacks > max_cutbacks or dlam < min_step:
+                    return results, False
+        return results, True
