@@ -206,3 +206,14 @@ class ElasticRod:
             if not symmetric:
                 H[:, a, 3:6, a, 3:6] -= 0.5 * so3.hat(vec[:, a, 3:6])
         return energy, vec, H.reshape(ne, nn * 6, nn * 6)
+
+
+def strains_at_nodes(order, h, qe, xe):
+    """Material strains e = (v, u) (ne, p+1, 6) evaluated at each element's own nodes."""
+    xi = fe.reference_nodes(order)
+    N, dN, _ = fe.lagrange(order, xi)
+    qa = align_signs(qe)
+    p = np.einsum("qa,eai->eqi", N, qa)
+    dp = np.einsum("qa,eai->eqi", dN * (2.0 / h), qa)
+    dr = np.einsum("qa,eai->eqi", dN * (2.0 / h), xe)
+    return strain_measures(p, dp, dr)

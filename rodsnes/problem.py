@@ -143,6 +143,7 @@ class RodProblem:
         self.F = layout.create_vec()
         self.lconn = lconn
         self.stats = {}
+        self._e0_nodes = None
 
     # -- load factor ------------------------------------------------------------------
     def set_load(self, lam):
@@ -200,7 +201,43 @@ class RodProblem:
         return self.layout.comm.tompi4py().allreduce(E)
 
     def owned_fields(self):
-        """Per owned node: positions (n,3), directors (n,3,3), and nodal strains/stresses."""
+        """Per owned node: positions (n,3), directors (n,3,3), material strains strain_v,
+        strain_u, and spatial stress resultants force_n = R C_v (v - v0), moment_m = R C_u (u - u0)
+        (strains evaluated at the element nodes and averaged over the elements sharing a node)."""
         r, q = self.state.local_config()
         no = self.layout.n_owned
-        return {"positions": r[:no].copy(), "directors": so3.rot(q[:no])}
+        R = so3.rot(q[:no])
+        e = nodal_average(self.layout, self.lconn, elastic.strains_at_nodes(
+            self.mesh.order, self.mesh.h, q[self.lconn], r[self.lconn]))
+        if self._e0_nodes is None:
+            conn = self.mesh.conn[self.layout.owned_elems]
+            if self.scene.rod.kappa0 is not None:
+                e0 = np.zeros((len(conn), conn.shape[1], 6))
+                e0[..., 2] = 1.0
+                e0[..., 3:6] = self.scene.rod.kappa0
+            else:
+                e0 = elastic.strains_at_nodes(self.mesh.order, self.mesh.h, self.mesh.q_ref[conn],
+                                              self.mesh.x_ref[conn])
+            self._e0_nodes = nodal_average(self.layout, self.lconn, e0)
+        e0 = self._e0_nodes.copy()
+        if self.load_twist:
+            e0[:, 5] -= self.lam * 2 * np.pi * self.load_twist / self.mesh.length
+        S = (e - e0) * self.elastic.C
+        return {"positions": r[:no].copy(), "directors": R,
+                "strain_v": e[:, 0:3], "strain_u": e[:, 3:6],
+                "force_n": np.einsum("nij,nj->ni", R, S[:, 0:3]),
+                "moment_m": np.einsum("nij,nj->ni", R, S[:, 3:6])}
+
+
+def nodal_average(layout, lconn, elem_values):
+    """Average element-node values (ne, p+1, 6) over the elements sharing each node, across
+    ranks; returns (n_owned, 6)."""
+    nl = len(layout.local_nodes)
+    acc = np.zeros((nl, NDOF))
+    cnt = np.zeros((nl, NDOF))
+    np.add.at(acc, lconn, elem_values)
+    np.add.at(cnt, lconn, 1.0)
+    A, Cn = layout.create_vec(), layout.create_vec()
+    layout.add_to_global(acc, A)
+    layout.add_to_global(cnt, Cn)
+    return (A.getArray(readonly=True) / Cn.getArray(readonly=True)).reshape(-1, NDOF)

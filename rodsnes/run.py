@@ -1,0 +1,148 @@
+"""One rodsnes run: build everything from a Scene, step the load, write results.
+
+Files (DIR = -output_dir): result.h5 (one group per converged step, flushed per step),
+rod.xdmf (+ rod.h5, ParaView), summary.json (rewritten atomically after every step, so a
+failed or killed run leaves the last converged state described on disk).
+"""
+import os
+import time
+
+import numpy as np
+from petsc4py import PETSc
+
+from . import mesh as rodmesh
+from . import output, partition, so3
+from .partition import NDOF
+from .problem import RodProblem
+from .solver import NewtonSolver
+
+
+class Run:
+    def __init__(self, scene, comm):
+        self.t_start = time.perf_counter()
+        self.scene, self.comm = scene, comm
+        self.mpi = comm.tompi4py()
+        self.rank = comm.getRank()
+        self.mesh = rodmesh.build_mesh(scene.rod)
+        self.layout = partition.Layout(comm, self.mesh)
+        self.contact = None
+        if scene.contact.enabled:
+            from .contact_term import ContactTerm
+            self.contact = ContactTerm(scene, self.mesh, self.layout)
+        self.problem = RodProblem(scene, self.mesh, self.layout, contact=self.contact)
+        rod = scene.rod
+        L = rod.length
+        ld = scene.loads
+        self.force_scale = (max(rod.EI1, rod.EI2) / L**2 + np.linalg.norm(ld.end_force)
+                            + np.linalg.norm(ld.end_moment) / L + np.linalg.norm(ld.gravity) * L)
+        self.solver = NewtonSolver(self.problem, self.force_scale)
+        self.outdir = scene.output.dir
+        self.quiet = scene.output.quiet
+        self.step = 0
+        self.lam0 = 0.0
+        self.history = []
+        meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
+                "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
+        append = False
+        if scene.output.restart:
+            self._restart(scene.output.restart)
+            append = os.path.abspath(scene.output.restart) == os.path.abspath(self.outdir)
+        if self.rank == 0:
+            os.makedirs(self.outdir, exist_ok=True)
+        self.mpi.Barrier()
+        self.writer = output.ResultWriter(self.outdir, self.mpi, self.mesh.n_nodes, meta, append=append)
+        self.dofs = NDOF * self.mesh.n_nodes
+
+    # ------------------------------------------------------------------------------
+    def _restart(self, rdir):
+        """Resume from the last converged step of an earlier run in rdir."""
+        last = output.read_step(rdir, -1)
+        lay = self.layout
+        st = self.problem.state
+        pos, dirs = np.asarray(last["positions"]), np.asarray(last["directors"])
+        if pos.shape[0] != self.mesh.n_nodes:
+            from .scene import SceneError
+            raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
+                             f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
+        st.q_ref[:] = so3.quat_from_rot(dirs[lay.local_nodes])
+        with st.X as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] = pos[lay.owned_nodes]
+            a[:, 3:6] = 0.0
+        self.lam0 = float(last["attrs"]["load"])
+        self.step = int(last["step"])
+        self.problem.set_load(self.lam0)
+
+    def _tip(self, fields):
+        if self.mesh.closed:
+            return None
+        return self.layout.allgather_nodes(fields["positions"])[-1]
+
+    def _write(self, res):
+        p = self.problem
+        fields = p.owned_fields()
+        energy = p.energy()
+        attrs = {"load": p.lam, "energy": energy,
+                 "newton_iterations": 0 if res is None else res.its,
+                 "residual_norm": 0.0 if res is None else res.fnorm}
+        qp = {}
+        if self.contact is not None:
+            attrs.update(self.contact.summary())
+            qp = self.contact.qp_fields()
+        self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
+                               qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
+        self.last_fields = fields
+        self.last_energy = energy
+        return energy
+
+    def summary(self, converged, failed_reason=None):
+        s = {"case": self.scene.output.case_name, "converged": bool(converged),
+             "load": self.problem.lam, "energy": self.last_energy,
+             "newton_iterations": self.solver.total_its, "load_steps": len(self.history),
+             "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
+             "ranks": self.comm.getSize(), "steps": self.history}
+        tip = self._tip(self.last_fields)
+        if tip is not None:
+            s["tip_position"] = tip.tolist()
+        if failed_reason is not None:
+            s["failure"] = failed_reason
+        if self.contact is not None:
+            s["contact"] = self.contact.summary()
+        return s
+
+    def _log(self, res, energy):
+        if self.quiet or self.rank != 0:
+            return
+        extra = ""
+        if self.contact is not None:
+            extra = f"  min_gap {self.contact.last_min_gap:+.3e}"
+        print(f"step {self.step:4d}  load {res.lam:.6f}  its {res.its:3d}  |F| {res.fnorm:9.3e}  "
+              f"E {energy:+.6e}{extra}  {res.seconds:7.2f} s", flush=True)
+
+    def execute(self):
+        if not self.scene.output.restart:
+            self.problem.set_load(0.0)
+            self._write(None)
+        ld = self.scene.loads
+
+        def on_step(res):
+            self.step += 1
+            energy = self._write(res)
+            self.history.append({"load": res.lam, "newton_iterations": res.its,
+                                 "residual_norm": res.fnorm, "seconds": res.seconds})
+            self._log(res, energy)
+            output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
+
+        def on_fail(res, dlam):
+            if not self.quiet and self.rank == 0:
+                print(f"  load {res.lam:.6f} not reached (SNES reason {res.reason}, {res.its} its): "
+                      f"cutting the increment {dlam:.3e} in half", flush=True)
+
+        results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail)
+        reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
+                                  f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
+        output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))
+        self.writer.close()
+        if self.rank == 0 and not self.quiet:
+            print(("converged" if ok else "FAILED: " + reason) + f"; results in {self.outdir}", flush=True)
+        return ok
