@@ -38,6 +38,8 @@ class RodMesh:
     q_ref: np.ndarray       # (n,4) stress-free frames (unit quaternions)
     x_init: np.ndarray      # (n,3) initial configuration
     q_init: np.ndarray      # (n,4)
+    x_perfect: np.ndarray   # (n,3) reference shape without the imperfection
+    q_perfect: np.ndarray   # (n,4)
 
     @property
     def h(self):
@@ -114,11 +116,12 @@ def build_mesh(rod):
     n = ne * p if rod.closed else ne * p + 1
     s = np.arange(n) * (L / (ne * p))
     conn = (np.arange(ne)[:, None] * p + np.arange(p + 1)[None, :]) % n
-    r, t, R = _shape(rod, s)
-    r, R = _imperfect(rod, s, r, t, R)
+    r0, t, R0 = _shape(rod, s)
+    r, R = _imperfect(rod, s, r0, t, R0)
     q = so3.quat_from_rot(R)
     turns = getattr(rod, "twist_turns", 0.0) or 0.0
     phi = 2 * np.pi * turns * s / L
     q_init = so3.qmul(q, so3.qexp(np.stack([0 * phi, 0 * phi, phi], axis=1)))
     return RodMesh(nelem=ne, order=p, closed=rod.closed, length=L, n_nodes=n, conn=conn,
-                   s_nodes=s, x_ref=r, q_ref=q, x_init=r.copy(), q_init=q_init)
+                   s_nodes=s, x_ref=r, q_ref=q, x_init=r.copy(), q_init=q_init,
+                   x_perfect=r0, q_perfect=so3.quat_from_rot(R0))

@@ -19,6 +19,23 @@ from .loads import Loads
 from .partition import NDOF
 
 
+def reference_strains(rod, mesh, conn, strains):
+    """Stress-free strains e0 = (v_hat, u_hat) at the points where ``strains(q, x)`` evaluates.
+
+    Without -rod_kappa0: the strains of the reference shape (stress-free as built).  With it:
+    v_hat = (0, 0, 1), u_hat = kappa0, plus the strain change that the imperfection makes to
+    the reference shape (so an imperfect, naturally straight rod is imperfect when unloaded)."""
+    e = strains(mesh.q_ref[conn], mesh.x_ref[conn])
+    if rod.kappa0 is None:
+        return e
+    e0 = np.zeros_like(e)
+    e0[..., 2] = 1.0
+    e0[..., 3:6] = rod.kappa0
+    if rod.imperfection:
+        e0 += e - strains(mesh.q_perfect[conn], mesh.x_perfect[conn])
+    return e0
+
+
 class RodState:
     """q_ref (local nodes) + X; snapshot/restore for rejected load steps."""
 
@@ -118,13 +135,7 @@ class RodProblem:
         self.elastic = elastic.ElasticRod(rod.order, nq, mesh.h, stiff)
         lconn = layout.lconn
         own = layout.owned_elems
-        if rod.kappa0 is not None:
-            e0 = np.zeros((len(own), nq, 6))
-            e0[..., 2] = 1.0
-            e0[..., 3:6] = rod.kappa0
-        else:
-            conn = mesh.conn[own]
-            e0 = self.elastic.strains(mesh.q_ref[conn], mesh.x_ref[conn])
+        e0 = reference_strains(rod, mesh, mesh.conn[own], self.elastic.strains)
         self.e0_base = e0
         self.elastic.set_reference(e0.copy())
         self.load_twist = getattr(scene.loads, "twist_turns", 0.0) or 0.0
@@ -210,14 +221,8 @@ class RodProblem:
         e = nodal_average(self.layout, self.lconn, elastic.strains_at_nodes(
             self.mesh.order, self.mesh.h, q[self.lconn], r[self.lconn]))
         if self._e0_nodes is None:
-            conn = self.mesh.conn[self.layout.owned_elems]
-            if self.scene.rod.kappa0 is not None:
-                e0 = np.zeros((len(conn), conn.shape[1], 6))
-                e0[..., 2] = 1.0
-                e0[..., 3:6] = self.scene.rod.kappa0
-            else:
-                e0 = elastic.strains_at_nodes(self.mesh.order, self.mesh.h, self.mesh.q_ref[conn],
-                                              self.mesh.x_ref[conn])
+            at_nodes = lambda q, x: elastic.strains_at_nodes(self.mesh.order, self.mesh.h, q, x)  # noqa: E731
+            e0 = reference_strains(self.scene.rod, self.mesh, self.mesh.conn[self.layout.owned_elems], at_nodes)
             self._e0_nodes = nodal_average(self.layout, self.lconn, e0)
         e0 = self._e0_nodes.copy()
         if self.load_twist:

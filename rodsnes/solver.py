@@ -47,9 +47,38 @@ class NewtonSolver:
         snes.setJacobian(problem.jacobian, problem.J)
         snes.setUpdate(problem.update)
         snes.setConvergenceHistory(length=1000, reset=True)
+        snes.setConvergenceTest(self._converged)
         snes.setFromOptions()
         self.snes = snes
+        rod = problem.scene.rod
+        # roundoff floor of the residual: strains of size ~1 (v3 = 1) times the largest
+        # stiffness, summed over the nodes; a residual at this level is as converged as the
+        # arithmetic allows (DIVERGED_MAX_IT there would reject a correct equilibrium).
+        stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
+        self.floor = 100 * np.finfo(float).eps * stiff * np.sqrt(problem.mesh.n_nodes)
+        self.divtol = 1e12
+        self.f0 = None
         self.total_its = 0
+
+    def _converged(self, snes, it, norms):
+        """|F| <= max(atol, roundoff floor) -> CONVERGED_FNORM_ABS; |F| <= rtol |F_0| ->
+        CONVERGED_FNORM_RELATIVE; NaN, blow-up beyond 1e12 |F_0|, or max_it -> diverged."""
+        fnorm = norms[2]
+        R = PETSc.SNES.ConvergedReason
+        if not np.isfinite(fnorm):
+            return R.DIVERGED_FNORM_NAN
+        if it == 0:
+            self.f0 = fnorm
+        atol, rtol, _, maxit = snes.getTolerances()
+        if fnorm <= max(atol, self.floor):
+            return R.CONVERGED_FNORM_ABS
+        if it > 0 and fnorm <= rtol * self.f0:
+            return R.CONVERGED_FNORM_RELATIVE
+        if fnorm > self.divtol * self.f0:
+            return R.DIVERGED_DTOL
+        if it >= maxit:
+            return R.DIVERGED_MAX_IT
+        return R.CONVERGED_ITERATING
 
     def solve_at(self, lam):
         """Solve at load factor lam from the current state; returns a StepResult."""

@@ -1,0 +1,936 @@
+"""Read and validate every rodsnes option from the PETSc options database.
+
+A scene is a PETSc options file (``cases/*.opts``); every value can be
+overridden on the command line (the last occurrence wins, as usual in PETSc).
+All rodsnes options live in ONE table, :class:`O`: its attribute names are the
+option names (without the leading dash), and reading, :func:`help_text` and
+:func:`check_unknown_options` are all derived from it.
+
+Conventions used by the derived quantities (circular cross-section of radius r,
+director d3 = tangent, d1/d2 the section axes):
+
+    A  = pi r^2            cross-section area
+    I  = pi r^4 / 4        second moment of area about d1 and about d2
+    J  = pi r^4 / 2        polar moment (torsion constant of a circle)
+    G  = E / (2 (1 + nu))  shear modulus from Young's modulus and Poisson's ratio
+    nu = E / (2 G) - 1     Poisson's ratio when G is given instead
+    k  = 6 (1 + nu) / (7 + 6 nu)   Timoshenko's shear coefficient of a circle
+    EA = E A,  GA1 = GA2 = k G A,  EI1 = EI2 = E I,  GJ = G J
+
+Any stiffness given directly (``-rod_EA``, ``-rod_GA``, ``-rod_EI`` or
+``-rod_EI1``/``-rod_EI2``, ``-rod_GJ``) replaces the derived value of that
+stiffness only.
+
+Every problem is reported as a :class:`SceneError` whose message names the
+option(s) involved and the accepted range or the fix.  Checks are collected,
+so one run reports all independent mistakes at once (one per line).
+"""
+import difflib
+import math
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import PurePath
+from typing import Optional, Tuple
+
+import numpy as np
+
+__all__ = ["SceneError", "Rod", "BC", "Loads", "Contact", "Output", "Scene",
+           "O", "OPTIONS", "read_scene", "help_text", "check_unknown_options"]
+
+
+class SceneError(Exception):
+    """A user-facing problem with the scene options.
+
+    ``str(err)`` is the message to print (one problem per line); ``err.options``
+    is the tuple of option names (with dash) it concerns.
+    """
+
+    def __init__(self, message, options=()):
+        super().__init__(message)
+        self.options = tuple(options)
+
+
+# ----------------------------------------------------------------------------
+# The option table
+# ----------------------------------------------------------------------------
+REAL, INT, BOOL, STR, CHOICE, VEC3 = "real", "int", "bool", "string", "choice", "vec3"
+
+SECTIONS = {
+    "rod": "Rod: length, cross-section and material",
+    "shape": "Rod: reference shape",
+    "disc": "Discretisation",
+    "bc": "Boundary conditions",
+    "load": "Loads and load stepping",
+    "contact": "Self-contact",
+    "output": "Output and restart",
+    "analysis": "Analysis",
+}
+
+
+class _Range:
+    """An interval written like "(0,inf)", "[0,inf)", "(-1,0.5]", "[1,4]"."""
+
+    def __init__(self, text):
+        t = text.replace(" ", "")
+        self.text = text
+        self.lo_closed, self.hi_closed = t[0] == "[", t[-1] == "]"
+        lo, hi = t[1:-1].split(",")
+        self.lo, self.hi = float(lo), float(hi)
+
+    def __contains__(self, x):
+        above = x >= self.lo if self.lo_closed else x > self.lo
+        below = x <= self.hi if self.hi_closed else x < self.hi
+        return above and below
+
+    def describe(self, integer=False):
+        lo_inf, hi_inf = math.isinf(self.lo), math.isinf(self.hi)
+        if hi_inf and not lo_inf:
+            return "must be %s %s" % (">=" if self.lo_closed else ">", _fmt(self.lo))
+        if lo_inf and not hi_inf:
+            return "must be %s %s" % ("<=" if self.hi_closed else "<", _fmt(self.hi))
+        if integer and self.lo_closed and self.hi_closed:
+            return "must be in %d..%d" % (self.lo, self.hi)
+        return "must be in %s%s, %s%s" % ("[" if self.lo_closed else "(", _fmt(self.lo),
+                                          _fmt(self.hi), "]" if self.hi_closed else ")")
+
+
+class Opt:
+    """One rodsnes option: type, default, help, section, accepted range.
+
+    The name is the attribute name in :class:`O` (set by ``__set_name__``), so
+    it is written exactly once.  ``shown`` is the default as printed by
+    :func:`help_text` when it is derived rather than a constant; ``note`` is the
+    explanation appended to range errors; ``metavar`` is the value form
+    (e.g. "fx,fy,fz").
+    """
+
+    def __init__(self, kind, default, help, section, rng=None, choices=(),
+                 shown=None, note=None, metavar=None):
+        self.kind, self.default, self.help, self.section = kind, default, help, section
+        self.rng = _Range(rng) if rng else None
+        self.choices = tuple(choices)
+        self.shown, self.note, self.metavar = shown, note, metavar
+        self.name = None
+
+    def __set_name__(self, owner, name):
+        self.name = name
+
+    @property
+    def flag(self):
+        """The option as typed: ``-`` + name."""
+        return "-" + self.name
+
+    def __repr__(self):
+        return "Opt(%s)" % self.flag
+
+    def example(self):
+        """An example of a valid value (for error messages)."""
+        if self.kind == VEC3:
+            return "0,0,1"
+        if self.kind == CHOICE:
+            return self.choices[0]
+        if self.kind == BOOL:
+            return "true"
+        if self.kind in (REAL, INT) and self.default is not None:
+            return _fmt(self.default) if self.kind == REAL else str(self.default)
+        return {REAL: "1.5", INT: "4", STR: "NAME"}[self.kind]
+
+    def shown_default(self):
+        if self.shown is not None:
+            return self.shown
+        d = self.default
+        if self.kind == BOOL:
+            return "true" if d else "false"
+        if self.kind == REAL:
+            return _fmt_petsc(d)
+        if self.kind == VEC3:
+            return ",".join(_fmt_petsc(x) for x in d)
+        return str(d)
+
+
+class O:
+    """THE rodsnes option table (attribute name = option name, no dash)."""
+    # --- rod: length, cross-section, material -------------------------------
+    rod_length = Opt(REAL, 1.0, "rod length L (arclength of the centreline)", "rod",
+                     rng="(0,inf)", note="the rod's length, in length units")
+    rod_radius = Opt(REAL, 0.01, "cross-section radius r (circular section)", "rod",
+                     rng="(0,inf)", note="the rod's cross-section radius, in length units")
+    rod_youngs = Opt(REAL, 1e6, "Young's modulus E", "rod", rng="(0,inf)",
+                     note="Young's modulus, force per area")
+    rod_shear = Opt(REAL, None, "shear modulus G (give this or -rod_poisson, not both)", "rod",
+                    rng="(0,inf)", shown="E/(2(1+nu))", note="shear modulus, force per area")
+    rod_poisson = Opt(REAL, 0.5, "Poisson's ratio nu: G = E/(2(1+nu))", "rod",
+                      rng="(-1,0.5]", note="Poisson's ratio of an isotropic material")
+    rod_shear_coefficient = Opt(REAL, None, "Timoshenko shear coefficient k: GA = k G A", "rod",
+                                rng="(0,inf)", shown="6(1+nu)/(7+6nu)",
+                                note="shear correction factor, about 0.9 for a circle")
+    rod_EA = Opt(REAL, None, "axial stiffness EA (replaces E pi r^2)", "rod",
+                 rng="(0,inf)", shown="E A", note="a stiffness")
+    rod_GA = Opt(REAL, None, "shear stiffness GA, both directions (replaces k G pi r^2)", "rod",
+                 rng="(0,inf)", shown="k G A", note="a stiffness")
+    rod_EI = Opt(REAL, None, "bending stiffness EI about d1 and d2 (replaces E pi r^4/4)", "rod",
+                 rng="(0,inf)", shown="E I", note="a stiffness")
+    rod_EI1 = Opt(REAL, None, "bending stiffness about d1 (not with -rod_EI)", "rod",
+                  rng="(0,inf)", shown="E I", note="a stiffness")
+    rod_EI2 = Opt(REAL, None, "bending stiffness about d2 (not with -rod_EI)", "rod",
+                  rng="(0,inf)", shown="E I", note="a stiffness")
+    rod_GJ = Opt(REAL, None, "torsional stiffness GJ (replaces G pi r^4/2)", "rod",
+                 rng="(0,inf)", shown="G J", note="a stiffness")
+    rod_kappa0 = Opt(VEC3, None, "intrinsic curvature and twist u_hat "
+                     "(default: the strains of the reference shape, i.e. stress-free)", "rod",
+                     shown="reference shape", metavar="k1,k2,k3")
+    # --- reference shape --------------------------------------------------------
+    rod_shape = Opt(CHOICE, "straight", "reference centreline", "shape",
+                    choices=("straight", "arc", "circle", "helix"))
+    rod_arc_radius = Opt(REAL, None, "radius R of an arc (give R or -rod_arc_angle) or circle "
+                         "(default L/(2 pi))", "shape", rng="(0,inf)", shown="none",
+                         note="radius of the reference arc")
+    rod_arc_angle = Opt(REAL, None, "opening angle of an arc in degrees, L = R angle", "shape",
+                        rng="(0,360]", shown="none",
+                        note="an open arc spans at most 360 degrees; "
+                             "for a closed ring use -rod_shape circle")
+    rod_helix_radius = Opt(REAL, None, "helix radius (distance of the centreline from the axis)",
+                           "shape", rng="(0,inf)", shown="none", note="radius of the helix")
+    rod_helix_pitch = Opt(REAL, None, "helix pitch, rise per turn (negative: left-handed); "
+                          "the helix has arclength L", "shape", shown="none")
+    rod_closed = Opt(BOOL, False, "closed ring (needs -rod_shape circle, which implies it)",
+                     "shape", shown="false (true for circle)")
+    rod_twist_turns = Opt(REAL, 0.0, "initial twist of the director frame about the tangent, "
+                          "in turns, uniform along s (whole turns on a closed rod)", "shape")
+    rod_imperfection = Opt(REAL, 0.0, "imperfection a: reference centreline displaced by "
+                           "a sin(pi s/L) along d1 (closed rods: a sin(4 pi s/L) along d2, "
+                           "the writhing mode), length units", "shape")
+    # --- discretisation ---------------------------------------------------------
+    rod_nelem = Opt(INT, 16, "number of finite elements", "disc", rng="[1,inf)",
+                    note="number of elements along the rod")
+    rod_order = Opt(INT, 3, "polynomial degree p of the Lagrange elements", "disc",
+                    rng="[1,4]", note="element polynomial degree")
+    rod_quadrature = Opt(CHOICE, "reduced", "Gauss rule: full (p+1 points) or reduced (p points)",
+                         "disc", choices=("full", "reduced"))
+    # --- boundary conditions ----------------------------------------------------
+    bc_start = Opt(CHOICE, "clamped", "support of the end s = 0", "bc",
+                   choices=("clamped", "pinned", "free"), shown="clamped (free on a closed rod)")
+    bc_end = Opt(CHOICE, "free", "support of the end s = L", "bc",
+                 choices=("clamped", "pinned", "free", "sliding"))
+    bc_end_turns = Opt(REAL, 0.0, "turns imposed on the end s = L about its tangent "
+                       "(end clamped or sliding)", "bc")
+    # --- loads ------------------------------------------------------------------
+    load_end_force = Opt(VEC3, (0.0, 0.0, 0.0), "force at the end s = L", "load",
+                         metavar="fx,fy,fz")
+    load_end_force_follower = Opt(BOOL, False, "the end force turns with the end cross-section "
+                                  "(follower load)", "load")
+    load_end_moment = Opt(VEC3, (0.0, 0.0, 0.0), "moment at the end s = L", "load",
+                          metavar="mx,my,mz")
+    load_gravity = Opt(VEC3, (0.0, 0.0, 0.0), "distributed load, force per unit length", "load",
+                       metavar="gx,gy,gz")
+    load_twist_turns = Opt(REAL, 0.0, "excess link put in by lowering the natural twist: "
+                           "u_hat_3 -= lambda 2 pi T / L (turns over the whole rod; rings too)",
+                           "load")
+    load_steps = Opt(INT, 1, "number of load increments (load factor 0 -> 1)", "load",
+                     rng="[1,inf)", note="number of load steps")
+    load_max_cutbacks = Opt(INT, 10, "times a failed increment may be halved", "load",
+                            rng="[0,inf)", note="number of step halvings")
+    load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
+                        rng="(0,1]", note="a fraction of the full load")
+    # --- contact ----------------------------------------------------------------
+    contact = Opt(BOOL, False, "enable frictionless self-contact", "contact")
+    contact_penalty = Opt(REAL, None, "penalty stiffness", "contact", rng="(0,inf)",
+                          shown="automatic", note="contact penalty stiffness")
+    contact_radius = Opt(REAL, None, "contact radius (distance of closest approach / 2)",
+                         "contact", rng="(0,inf)", shown="rod radius",
+                         note="radius of the contact tube, in length units")
+    contact_exclusion = Opt(REAL, None, "arclength below which point pairs are never in contact",
+                            "contact", rng="[0,inf)", shown="automatic",
+                            note="an arclength, in length units")
+    contact_quadrature = Opt(INT, None, "points per element for the contact integral", "contact",
+                             rng="[1,inf)", shown="order+2",
+                             note="quadrature points per element")
+    # --- output -----------------------------------------------------------------
+    output_dir = Opt(STR, None, "output directory", "output", shown="out/<case name>",
+                     metavar="DIR")
+    quiet = Opt(BOOL, False, "no progress output", "output")
+    restart = Opt(STR, None, "restart from the state saved in DIR", "output", shown="none",
+                  metavar="DIR")
+    case_name = Opt(STR, None, "case name (default: basename of the last -options_file under a "
+                    "cases/ directory, else of the last -options_file, else 'default')",
+                    "output", shown="from -options_file", metavar="NAME")
+    # --- analysis ---------------------------------------------------------------
+    stability = Opt(BOOL, False, "report the inertia of the tangent at each converged step",
+                    "analysis")
+
+
+OPTIONS = tuple(v for v in vars(O).values() if isinstance(v, Opt))
+"""All rodsnes options in table order."""
+
+RODSNES_PREFIXES = ("rod_", "bc_", "load_", "contact", "output_", "restart", "quiet",
+                    "case_", "stability")
+"""An option starting with one of these must be in :data:`OPTIONS`."""
+
+PETSC_PREFIXES = (
+    "snes_", "ksp_", "pc_", "mat_", "vec_", "log_", "options_", "info", "malloc", "help",
+    "version", "on_error", "sf_", "dm_", "petscpartitioner_", "viewer_", "draw_", "mpi_",
+    "fp_trap", "no_signal_handler", "start_in_debugger", "debugger", "check_", "objects_",
+    "memory_", "saws", "python", "use_gpu", "device", "citations", "skip_petscrc", "history",
+    "viewer", "tao_", "ts_", "is_", "ao_", "pf_", "random_", "matload_", "matmatmult_",
+    "matptap_", "bv_", "eps_", "st_", "svd_", "nep_", "pep_", "mfn_", "ds_", "fn_", "rg_")
+"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc."""
+
+
+# ----------------------------------------------------------------------------
+# Scene dataclasses
+# ----------------------------------------------------------------------------
+@dataclass(eq=False)  # holds numpy arrays: compare fields, not objects
+class Rod:
+    """Rod geometry, stiffness and discretisation.
+
+    Stiffnesses (see the module docstring): EA = E pi r^2, GA1 = GA2 = k G pi r^2,
+    EI1 = EI2 = E pi r^4/4, GJ = G pi r^4/2, each replaced by its direct option
+    if given.  ``youngs``/``shear_modulus``/``poisson``/``shear_coefficient`` are
+    None when they entered no stiffness (all stiffnesses they would determine
+    were given directly).  Shape fields that do not apply to ``shape`` are None:
+    arc_radius/arc_angle_deg are set for 'arc' and 'circle' (L = R angle),
+    helix_radius/helix_pitch for 'helix'.
+    """
+    length: float
+    radius: float
+    EA: float
+    GA1: float
+    GA2: float
+    EI1: float
+    EI2: float
+    GJ: float
+    kappa0: Optional[np.ndarray]
+    shape: str
+    arc_radius: Optional[float]
+    arc_angle_deg: Optional[float]
+    helix_radius: Optional[float]
+    helix_pitch: Optional[float]
+    closed: bool
+    twist_turns: float
+    imperfection: float
+    nelem: int
+    order: int
+    quadrature: str
+    youngs: Optional[float]
+    shear_modulus: Optional[float]
+    poisson: Optional[float]
+    shear_coefficient: Optional[float]
+
+    @property
+    def area(self):
+        """A = pi r^2."""
+        return math.pi * self.radius ** 2
+
+    @property
+    def C_shear_stretch(self):
+        """diag(GA1, GA2, EA): stiffness of the strains (v1, v2, v3) in the director frame."""
+        return np.diag([self.GA1, self.GA2, self.EA])
+
+    @property
+    def C_bend_twist(self):
+        """diag(EI1, EI2, GJ): stiffness of the curvatures (u1, u2, u3) in the director frame."""
+        return np.diag([self.EI1, self.EI2, self.GJ])
+
+    @property
+    def arc_angle(self):
+        """Arc opening angle in radians (L / arc_radius), None unless arc/circle."""
+        return None if self.arc_angle_deg is None else math.radians(self.arc_angle_deg)
+
+    @property
+    def helix_turns(self):
+        """Number of helix turns: L / sqrt((2 pi R)^2 + pitch^2); None unless helix."""
+        if self.helix_radius is None:
+            return None
+        return self.length / math.hypot(2 * math.pi * self.helix_radius, self.helix_pitch)
+
+
+@dataclass
+class BC:
+    """Supports of s = 0 (start) and s = L (end); end_turns: imposed end rotation in turns."""
+    start: str
+    end: str
+    end_turns: float
+
+
+@dataclass(eq=False)  # holds numpy arrays: compare fields, not objects
+class Loads:
+    """Loads at load factor 1, applied in ``steps`` equal increments of the load factor."""
+    end_force: np.ndarray
+    end_force_follower: bool
+    end_moment: np.ndarray
+    gravity: np.ndarray
+    steps: int
+    max_cutbacks: int
+    min_step: float
+    twist_turns: float = 0.0
+
+
+@dataclass
+class Contact:
+    """Self-contact settings; None means automatic (radius None = the rod radius)."""
+    enabled: bool
+    penalty: Optional[float]
+    radius: Optional[float]
+    exclusion: Optional[float]
+    quadrature: int
+
+
+@dataclass
+class Output:
+    dir: str
+    quiet: bool
+    restart: Optional[str]
+    case_name: str
+
+
+@dataclass(eq=False)  # holds numpy arrays: compare fields, not objects
+class Scene:
+    """Everything read from the options database.
+
+    ``given`` is the sorted tuple of option names (no dash) explicitly present.
+    """
+    rod: Rod
+    bc: BC
+    loads: Loads
+    contact: Contact
+    output: Output
+    stability: bool = False
+    given: Tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def contact_radius(self):
+        """The effective contact radius: -contact_radius, else the rod radius."""
+        return self.contact.radius if self.contact.radius is not None else self.rod.radius
+
+    def describe(self):
+        """A short multi-line human-readable summary (for the log header)."""
+        r = self.rod
+        shape = r.shape
+        if r.shape in ("arc", "circle"):
+            shape += " R=%g angle=%gdeg" % (r.arc_radius, r.arc_angle_deg)
+        elif r.shape == "helix":
+            shape += " R=%g pitch=%g (%.3g turns)" % (r.helix_radius, r.helix_pitch, r.helix_turns)
+        lines = [
+            "case %s -> %s" % (self.output.case_name, self.output.dir),
+            "rod L=%g r=%g %s%s twist=%g turns" % (r.length, r.radius, shape,
+                                                  " closed" if r.closed else "", r.twist_turns),
+            "stiffness EA=%g GA=%g,%g EI=%g,%g GJ=%g" % (r.EA, r.GA1, r.GA2, r.EI1, r.EI2, r.GJ),
+            "mesh %d elements of order %d, %s quadrature" % (r.nelem, r.order, r.quadrature),
+            "bc start=%s end=%s end_turns=%g" % (self.bc.start, self.bc.end, self.bc.end_turns),
+            "loads F=%s%s M=%s g=%s in %d steps" % (
+                _fmt_vec(self.loads.end_force), " (follower)" if self.loads.end_force_follower
+                else "", _fmt_vec(self.loads.end_moment), _fmt_vec(self.loads.gravity),
+                self.loads.steps),
+            "contact %s" % ("on, radius %g" % self.contact_radius if self.contact.enabled
+                            else "off"),
+        ]
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------
+# Formatting and parsing helpers
+# ----------------------------------------------------------------------------
+def _fmt(x):
+    return "%g" % x
+
+
+def _fmt_petsc(x):
+    """Reals as PETSc prints them: 1 -> '1.', 0.01 -> '0.01', 1e6 -> '1e+06'."""
+    s = "%g" % x
+    return s if any(c in s for c in ".eEn") else s + "."
+
+
+def _fmt_vec(v):
+    return ",".join(_fmt(x) for x in v)
+
+
+_TRUE = ("", "1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+
+
+def _parse_real(s):
+    x = float(s)
+    if not math.isfinite(x):
+        raise ValueError("not a finite number")
+    return x
+
+
+def _parse(opt, s):
+    """Parse the raw string ``s`` of ``opt``; ValueError(problem) if malformed."""
+    t = s.strip()
+    if opt.kind == BOOL:
+        if t.lower() in _TRUE:
+            return True
+        if t.lower() in _FALSE:
+            return False
+        raise ValueError("not a true/false value (use %s alone, or %s true / %s false; "
+                         "1/0, yes/no, on/off are accepted too)" % ((opt.flag,) * 3))
+    if t == "":
+        raise ValueError("given without a value (expected e.g. %s %s)" % (opt.flag, opt.example()))
+    if opt.kind == REAL:
+        try:
+            return _parse_real(t)
+        except ValueError:
+            raise ValueError("not a real number (expected e.g. %s %s)"
+                             % (opt.flag, opt.example())) from None
+    if opt.kind == INT:
+        try:
+            return int(t)
+        except ValueError:
+            pass
+        try:
+            x = float(t)
+        except ValueError:
+            x = None
+        if x is not None and math.isfinite(x) and x == int(x):
+            return int(x)
+        raise ValueError("not an integer (expected e.g. %s %s)" % (opt.flag, opt.example()))
+    if opt.kind == CHOICE:
+        if t.lower() in opt.choices:
+            return t.lower()
+        close = difflib.get_close_matches(t.lower(), opt.choices, n=1)
+        hint = " (did you mean %s?)" % close[0] if close else ""
+        raise ValueError("not an accepted value; accepted: %s%s" % (", ".join(opt.choices), hint))
+    if opt.kind == VEC3:
+        parts = [p.strip() for p in t.split(",")]
+        form = "three comma-separated numbers %s, e.g. %s %s" % (opt.metavar, opt.flag,
+                                                                  opt.example())
+        if len(parts) != 3:
+            raise ValueError("expected %s; got %d value%s"
+                             % (form, len(parts), "" if len(parts) == 1 else "s"))
+        try:
+            return np.array([_parse_real(p) for p in parts], dtype=float)
+        except ValueError:
+            raise ValueError("expected %s; not all are finite numbers" % form) from None
+    return t  # STR
+
+
+def _default_options():
+    from petsc4py import PETSc
+    return PETSc.Options()
+
+
+class _Reader:
+    """Reads every option of the table once; parse problems are collected."""
+
+    def __init__(self, options):
+        self.values, self.raw, self.errors = {}, {}, []
+        for opt in OPTIONS:
+            if not options.hasName(opt.name):
+                self.values[opt] = opt.default
+                continue
+            s = options.getString(opt.name, "")
+            s = "" if s is None else str(s)
+            self.raw[opt] = s
+            try:
+                self.values[opt] = _parse(opt, s)
+            except ValueError as e:
+                shown = "%s = %s" % (opt.flag, s) if s.strip() else opt.flag
+                self.errors.append((shown + ": " + str(e), opt.flag))
+                self.values[opt] = None
+
+    def given(self, opt):
+        return opt in self.raw
+
+
+class _Checks:
+    """Collects problems; raise_if_any() raises them all in one SceneError."""
+
+    def __init__(self, reader):
+        self.r = reader
+        self.msgs, self.opts = [], []
+
+    def __getitem__(self, opt):
+        return self.r.values[opt]
+
+    def given(self, opt):
+        return self.r.given(opt)
+
+    def show(self, opt, value=None):
+        """'-opt = raw' for given options, '-opt = value' (the default) otherwise."""
+        if self.given(opt) and self.r.raw[opt].strip():
+            return "%s = %s" % (opt.flag, self.r.raw[opt].strip())
+        v = self[opt] if value is None else value
+        if isinstance(v, np.ndarray):
+            v = _fmt_vec(v)
+        elif isinstance(v, float):
+            v = _fmt(v)
+        return "%s = %s" % (opt.flag, v)
+
+    def fail(self, msg, *opts):
+        self.msgs.append(msg)
+        self.opts.extend(o.flag for o in opts)
+
+    def raise_if_any(self):
+        if self.msgs:
+            raise SceneError("\n".join(self.msgs), self.opts)
+
+
+def _close(a, b, rtol=1e-6):
+    return abs(a - b) <= rtol * max(abs(a), abs(b))
+
+
+# ----------------------------------------------------------------------------
+# Case name
+# ----------------------------------------------------------------------------
+def _case_name_from_argv(argv):
+    """Basename (without .opts) of the last ``-options_file X`` whose path lies
+    under a directory called ``cases``; else of the last ``-options_file``;
+    else 'default'."""
+    files = [argv[i + 1] for i in range(len(argv) - 1) if argv[i] == "-options_file"]
+    in_cases = [f for f in files if "cases" in PurePath(f).parent.parts]
+    pick = in_cases[-1] if in_cases else (files[-1] if files else None)
+    if pick is None:
+        return "default"
+    name = os.path.basename(pick.rstrip("/"))
+    if name.endswith(".opts"):
+        name = name[:-len(".opts")]
+    return name or "default"
+
+
+# ----------------------------------------------------------------------------
+# read_scene
+# ----------------------------------------------------------------------------
+def read_scene(argv=None, options=None):
+    """Read, derive and validate the scene.
+
+    ``options``: a petsc4py ``PETSc.Options()`` (default: the global database);
+    ``argv``: the command line (default ``sys.argv``), used only to derive the
+    case name.  Raises :class:`SceneError` listing every problem found.
+    Does not check for unknown options: call :func:`check_unknown_options`.
+    Every option of the table is read (so PETSc counts it as used), whether or
+    not it applies (e.g. -rod_helix_radius with -rod_shape straight is ignored).
+    """
+    if options is None:
+        options = _default_options()
+    if argv is None:
+        argv = sys.argv
+    reader = _Reader(options)
+    if reader.errors:
+        raise SceneError("\n".join(m for m, _ in reader.errors), [f for _, f in reader.errors])
+    c = _Checks(reader)
+
+    # 1. every option on its own: range checks from the table
+    for opt in OPTIONS:
+        v = c[opt]
+        if opt.rng is None or v is None or not c.given(opt):
+            continue
+        if v not in opt.rng:
+            note = " (%s)" % opt.note if opt.note else ""
+            c.fail("%s: %s%s" % (c.show(opt), opt.rng.describe(opt.kind == INT), note), opt)
+    c.raise_if_any()
+
+    # 2. combinations and derived quantities
+    rod, material = _rod(c)
+    bc = _bc(c, rod)
+    loads = _loads(c, rod, bc)
+    contact = _contact(c, rod)
+    output = _output(c, argv)
+    c.raise_if_any()
+    rod = Rod(**rod, **material)
+    return Scene(rod=rod, bc=bc, loads=loads, contact=contact, output=output,
+                 stability=bool(c[O.stability]),
+                 given=tuple(sorted(o.name for o in reader.raw)))
+
+
+def _rod(c):
+    L, r = c[O.rod_length], c[O.rod_radius]
+    if r >= L / 2:
+        c.fail("%s with %s: the radius must be well below half the length (a rod is slender; "
+               "check the units of both)" % (c.show(O.rod_radius), c.show(O.rod_length)),
+               O.rod_radius, O.rod_length)
+
+    # --- material and stiffness
+    E = c[O.rod_youngs]
+    shear_given = c.given(O.rod_shear)
+    if shear_given and c.given(O.rod_poisson):
+        c.fail("%s and %s: give the shear modulus or Poisson's ratio, not both "
+               "(G = E/(2(1+nu)))" % (c.show(O.rod_shear), c.show(O.rod_poisson)),
+               O.rod_shear, O.rod_poisson)
+    if c.given(O.rod_EI) and (c.given(O.rod_EI1) or c.given(O.rod_EI2)):
+        both = [o for o in (O.rod_EI1, O.rod_EI2) if c.given(o)]
+        c.fail("%s together with %s: give -rod_EI (both axes) or -rod_EI1/-rod_EI2, not both"
+               % (c.show(O.rod_EI), " and ".join(c.show(o) for o in both)), O.rod_EI, *both)
+    if shear_given:
+        G = c[O.rod_shear]
+        nu = E / (2.0 * G) - 1.0            # nu = E/(2G) - 1
+    else:
+        nu = c[O.rod_poisson]
+        G = E / (2.0 * (1.0 + nu))          # G = E/(2(1+nu))
+    k_given = c.given(O.rod_shear_coefficient)
+    k = c[O.rod_shear_coefficient] if k_given else 6.0 * (1.0 + nu) / (7.0 + 6.0 * nu)
+    A = math.pi * r ** 2
+    I = math.pi * r ** 4 / 4.0
+    J = math.pi * r ** 4 / 2.0
+    EI = c[O.rod_EI] if c.given(O.rod_EI) else None
+
+    def direct(opt, derived):
+        return c[opt] if c.given(opt) else derived
+
+    EA = direct(O.rod_EA, E * A)
+    GA = direct(O.rod_GA, k * G * A)
+    EI1 = direct(O.rod_EI1, EI if EI is not None else E * I)
+    EI2 = direct(O.rod_EI2, EI if EI is not None else E * I)
+    GJ = direct(O.rod_GJ, G * J)
+    ei1_direct = c.given(O.rod_EI1) or EI is not None
+    ei2_direct = c.given(O.rod_EI2) or EI is not None
+
+    # which material constants actually entered a stiffness
+    k_used = not c.given(O.rod_GA)
+    G_used = k_used or not c.given(O.rod_GJ)
+    nu_used = (G_used and not shear_given) or (k_used and not k_given)
+    E_used = (not (c.given(O.rod_EA) and ei1_direct and ei2_direct)) or nu_used
+    if shear_given and nu_used and not (-1.0 < nu <= 0.5):
+        c.fail("%s with %s implies Poisson's ratio nu = E/(2G) - 1 = %.4g, outside (-1, 0.5] "
+               "(an isotropic material has G >= E/3); for a non-isotropic section give "
+               "-rod_shear_coefficient or the shear stiffness -rod_GA directly"
+               % (c.show(O.rod_shear), c.show(O.rod_youngs), nu), O.rod_shear, O.rod_youngs)
+    material = dict(youngs=float(E) if E_used else None,
+                    shear_modulus=float(G) if G_used else None,
+                    poisson=float(nu) if nu_used else None,
+                    shear_coefficient=float(k) if k_used else None)
+
+    # --- reference shape
+    shape = c[O.rod_shape]
+    closed_given = c.given(O.rod_closed)
+    arc_R = arc_deg = hel_R = hel_p = None
+    if closed_given and c[O.rod_closed] and shape != "circle":
+        c.fail("-rod_closed with %s: a closed rod needs -rod_shape circle" % c.show(O.rod_shape),
+               O.rod_closed, O.rod_shape)
+    if shape == "circle":
+        if closed_given and not c[O.rod_closed]:
+            c.fail("%s with -rod_shape circle: a circle is a closed ring; for an open ring use "
+                   "-rod_shape arc -rod_arc_angle 360" % c.show(O.rod_closed),
+                   O.rod_closed, O.rod_shape)
+        arc_R, arc_deg = L / (2.0 * math.pi), 360.0
+        if c.given(O.rod_arc_radius) and not _close(c[O.rod_arc_radius], arc_R):
+            c.fail("%s with %s and -rod_shape circle: a closed ring of length L has radius "
+                   "L/(2 pi) = %.10g; drop -rod_arc_radius or change -rod_length"
+                   % (c.show(O.rod_arc_radius), c.show(O.rod_length), arc_R),
+                   O.rod_arc_radius, O.rod_length)
+        if c.given(O.rod_arc_angle) and not _close(c[O.rod_arc_angle], 360.0):
+            c.fail("%s with -rod_shape circle: a circle spans 360 degrees; drop -rod_arc_angle"
+                   % c.show(O.rod_arc_angle), O.rod_arc_angle, O.rod_shape)
+    elif shape == "arc":
+        R_given, a_given = c.given(O.rod_arc_radius), c.given(O.rod_arc_angle)
+        if not (R_given or a_given):
+            c.fail("-rod_shape arc needs -rod_arc_radius R or -rod_arc_angle DEG "
+                   "(the other follows from -rod_length = R * angle)",
+                   O.rod_shape, O.rod_arc_radius, O.rod_arc_angle)
+        elif R_given and a_given:
+            R, deg = c[O.rod_arc_radius], c[O.rod_arc_angle]
+            if not _close(R * math.radians(deg), L):
+                c.fail("%s and %s are inconsistent with %s: R * angle = %.6g, not L; give only "
+                       "one of -rod_arc_radius and -rod_arc_angle"
+                       % (c.show(O.rod_arc_radius), c.show(O.rod_arc_angle), c.show(O.rod_length),
+                          R * math.radians(deg)), O.rod_arc_radius, O.rod_arc_angle, O.rod_length)
+            arc_R, arc_deg = L / math.radians(deg), deg
+        elif R_given:
+            arc_R = c[O.rod_arc_radius]
+            arc_deg = math.degrees(L / arc_R)
+            if arc_deg > 360.0 * (1 + 1e-12):
+                c.fail("%s with %s makes an arc of %.6g degrees > 360: an open arc spans at most "
+                       "a full turn; for a closed ring use -rod_shape circle"
+                       % (c.show(O.rod_arc_radius), c.show(O.rod_length), arc_deg),
+                       O.rod_arc_radius, O.rod_length)
+        else:
+            arc_deg = c[O.rod_arc_angle]
+            arc_R = L / math.radians(arc_deg)
+    elif shape == "helix":
+        missing = [o for o in (O.rod_helix_radius, O.rod_helix_pitch) if not c.given(o)]
+        if missing:
+            c.fail("-rod_shape helix needs %s (radius and rise per turn; the helix has arclength "
+                   "-rod_length)" % " and ".join(o.flag for o in missing), O.rod_shape, *missing)
+        else:
+            hel_R, hel_p = c[O.rod_helix_radius], c[O.rod_helix_pitch]
+            if hel_p == 0.0:
+                c.fail("%s: the pitch must be nonzero (negative: left-handed); a helix of zero "
+                       "pitch is a circle (-rod_shape circle)" % c.show(O.rod_helix_pitch),
+                       O.rod_helix_pitch)
+    if arc_R is not None and arc_R <= r:
+        c.fail("%s with %s: the reference arc radius %.6g is not larger than the rod radius, so "
+               "the rod would fold through itself; use a larger radius (or a longer rod)"
+               % (c.show(O.rod_radius), c.show(O.rod_length), arc_R),
+               O.rod_radius, O.rod_arc_radius)
+    if hel_R is not None and hel_p:
+        cpitch = hel_p / (2.0 * math.pi)
+        kappa = hel_R / (hel_R ** 2 + cpitch ** 2)        # helix curvature R/(R^2 + c^2)
+        if kappa * r >= 1.0:
+            c.fail("%s, %s with %s: helix curvature %.6g exceeds 1/radius, so the rod would fold "
+                   "through itself" % (c.show(O.rod_helix_radius), c.show(O.rod_helix_pitch),
+                                       c.show(O.rod_radius), kappa),
+                   O.rod_helix_radius, O.rod_helix_pitch, O.rod_radius)
+    closed = shape == "circle"
+    twist = c[O.rod_twist_turns]
+    if closed and abs(twist - round(twist)) > 1e-9:
+        c.fail("%s on a closed ring: the director frame must close up, so the twist must be a "
+               "whole number of turns" % c.show(O.rod_twist_turns), O.rod_twist_turns)
+    if closed and c[O.rod_nelem] * c[O.rod_order] < 3:
+        c.fail("%s, %s: a closed ring needs at least 3 nodes (nelem * order >= 3)"
+               % (c.show(O.rod_nelem), c.show(O.rod_order)), O.rod_nelem, O.rod_order)
+    kappa0 = c[O.rod_kappa0]
+    rod = dict(length=float(L), radius=float(r), EA=float(EA), GA1=float(GA), GA2=float(GA),
+               EI1=float(EI1), EI2=float(EI2), GJ=float(GJ),
+               kappa0=None if kappa0 is None else np.array(kappa0, dtype=float),
+               shape=shape, arc_radius=_f(arc_R), arc_angle_deg=_f(arc_deg),
+               helix_radius=_f(hel_R), helix_pitch=_f(hel_p), closed=closed,
+               twist_turns=float(twist), imperfection=float(c[O.rod_imperfection]),
+               nelem=int(c[O.rod_nelem]), order=int(c[O.rod_order]),
+               quadrature=c[O.rod_quadrature])
+    return rod, material
+
+
+def _f(x):
+    return None if x is None else float(x)
+
+
+def _bc(c, rod):
+    closed = rod["closed"]
+    if closed:
+        for opt in (O.bc_start, O.bc_end):
+            if c.given(opt) and c[opt] != "free":
+                c.fail("%s on a closed ring: a closed rod has no ends (the solver removes the "
+                       "rigid-body motion itself); drop %s" % (c.show(opt), opt.flag), opt)
+        start, end = "free", "free"
+    else:
+        start, end = c[O.bc_start], c[O.bc_end]
+    turns = c[O.bc_end_turns]
+    if turns != 0.0:
+        if closed:
+            c.fail("%s on a closed ring: a ring has no end to turn; give the twist with "
+                   "-rod_twist_turns (whole turns)" % c.show(O.bc_end_turns), O.bc_end_turns)
+        elif end in ("pinned", "free"):
+            c.fail("%s with -bc_end %s: nothing to turn (the end rotates freely); use -bc_end "
+                   "clamped or sliding" % (c.show(O.bc_end_turns), end), O.bc_end_turns, O.bc_end)
+    return BC(start=start, end=end, end_turns=float(turns))
+
+
+def _loads(c, rod, bc):
+    F = np.array(c[O.load_end_force], dtype=float)
+    M = np.array(c[O.load_end_moment], dtype=float)
+    g = np.array(c[O.load_gravity], dtype=float)
+    if rod["closed"]:
+        for opt, v in ((O.load_end_force, F), (O.load_end_moment, M)):
+            if np.any(v != 0.0):
+                c.fail("%s on a closed ring: a closed rod has no end to load" % c.show(opt), opt)
+    else:
+        if np.any(F != 0.0) and bc.end in ("clamped", "pinned"):
+            c.fail("%s with -bc_end %s: the end cannot move, so the force does nothing; use "
+                   "-bc_end free or sliding" % (c.show(O.load_end_force), bc.end),
+                   O.load_end_force, O.bc_end)
+        if np.any(M != 0.0) and bc.end == "clamped":
+            c.fail("%s with -bc_end clamped: the end cannot turn, so the moment does nothing; use "
+                   "-bc_end free or pinned (or -bc_end_turns to turn it)"
+                   % c.show(O.load_end_moment), O.load_end_moment, O.bc_end)
+    unsupported = rod["closed"] or (bc.start == "free" and bc.end == "free")
+    if unsupported and np.any(g != 0.0):
+        where = "a closed ring" if rod["closed"] else "-bc_start free and -bc_end free"
+        c.fail("%s on %s: nothing supports the rod, so there is no static equilibrium; "
+               "%s" % (c.show(O.load_gravity), where,
+                                   "drop -load_gravity" if rod["closed"]
+                                   else "support an end (-bc_start clamped)"),
+               O.load_gravity, O.bc_start)
+    if unsupported and not rod["closed"] and (np.any(F != 0.0) or np.any(M != 0.0)):
+        c.fail("end load with -bc_start free and -bc_end free: nothing balances it, so there is "
+               "no static equilibrium; support the start (-bc_start clamped or pinned)",
+               O.load_end_force, O.load_end_moment, O.bc_start)
+    return Loads(end_force=F, end_force_follower=bool(c[O.load_end_force_follower]),
+                 end_moment=M, gravity=g, steps=int(c[O.load_steps]),
+                 max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
+                 twist_turns=float(c[O.load_twist_turns]))
+
+
+def _contact(c, rod):
+    enabled = bool(c[O.contact])
+    rc = _f(c[O.contact_radius])
+    q = c[O.contact_quadrature]
+    if enabled and rod["helix_radius"] is not None and rod["helix_pitch"]:
+        rcontact = rc if rc is not None else rod["radius"]
+        if abs(rod["helix_pitch"]) < 2.0 * rcontact:
+            c.fail("%s with contact radius %g: neighbouring turns interpenetrate in the reference "
+                   "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
+                   % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
+    return Contact(enabled=enabled, penalty=_f(c[O.contact_penalty]), radius=rc,
+                   exclusion=_f(c[O.contact_exclusion]),
+                   quadrature=int(q) if q is not None else rod["order"] + 2)
+
+
+def _output(c, argv):
+    if c.given(O.case_name):
+        name = c[O.case_name]
+        if "/" in name or name in (".", ".."):
+            c.fail("%s: a case name is a plain name, not a path (it names out/<case name>)"
+                   % c.show(O.case_name), O.case_name)
+    else:
+        name = _case_name_from_argv(list(argv))
+    out = c[O.output_dir] if c.given(O.output_dir) else os.path.join("out", name)
+    restart = c[O.restart]
+    if restart is not None and not os.path.exists(restart):
+        c.fail("%s: no such directory (give the output directory of an earlier run)"
+               % c.show(O.restart), O.restart)
+    return Output(dir=out, quiet=bool(c[O.quiet]), restart=restart, case_name=name)
+
+
+# ----------------------------------------------------------------------------
+# help and unknown options
+# ----------------------------------------------------------------------------
+def help_text():
+    """PETSc-style listing of every rodsnes option, grouped by section:
+    ``  -rod_length <1.>: rod length L ...``."""
+    lines = []
+    for key, title in SECTIONS.items():
+        opts = [o for o in OPTIONS if o.section == key]
+        if not opts:
+            continue
+        lines.append("%s %s" % (title, "-" * max(3, 72 - len(title))))
+        for o in opts:
+            s = "  %s <%s>: %s" % (o.flag, o.shown_default(), o.help)
+            if o.kind == CHOICE:
+                s += " (one of) " + " ".join(o.choices)
+            elif o.kind == VEC3:
+                s += " (as %s)" % o.metavar
+            lines.append(s)
+    return "\n".join(lines) + "\n"
+
+
+def _or_list(items):
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " or " + items[-1]
+
+
+def _suggest(word, names, n=3, cutoff=0.6, spread=0.1):
+    """Closest names (difflib), keeping only those nearly as close as the best."""
+    close = difflib.get_close_matches(word, names, n=n, cutoff=cutoff)
+    if not close:
+        return []
+    ratio = [difflib.SequenceMatcher(None, word, m).ratio() for m in close]
+    return [m for m, q in zip(close, ratio) if q >= ratio[0] - spread]
+
+
+def check_unknown_options(options=None):
+    """Raise SceneError if the database holds an option that is neither a
+    rodsnes option nor starts with a known PETSc prefix (any option starting
+    with a rodsnes prefix must be a rodsnes option).  All unknown options are
+    listed, one per line in alphabetical order, with the closest rodsnes options
+    as suggestions.  Option names are compared case-insensitively, as PETSc does."""
+    if options is None:
+        options = _default_options()
+    known = {o.name.lower(): o.name for o in OPTIONS}
+    msgs, bad = [], []
+    for name in sorted(options.getAll(), key=str.lower):
+        low = name.lower()
+        if low in known:
+            continue
+        if not low.startswith(RODSNES_PREFIXES) and low.startswith(PETSC_PREFIXES):
+            continue
+        close = _suggest(low.lstrip("-"), list(known))
+        if close:
+            hint = ": did you mean %s?" % _or_list(["-" + known[k] for k in close])
+        elif low.startswith(RODSNES_PREFIXES):
+            hint = ": not a rodsnes option (run with -help to list them)"
+        else:
+            hint = ": neither a rodsnes nor a PETSc option (run with -help to list them)"
+        msgs.append("unknown option -%s%s" % (name, hint))
+        bad.append("-" + name)
+    if msgs:
+        raise SceneError("\n".join(msgs), bad)

@@ -1,0 +1,78 @@
+"""Shared test helpers: run a scene from a cases/*.opts file with overrides, in-process."""
+import os
+import shlex
+import tempfile
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def read_opts_file(path):
+    """Options file -> list of (name, value) pairs (PETSc syntax: '-name value', '#' comments)."""
+    pairs = []
+    with open(path) as fh:
+        for line in fh:
+            line = line.split("#", 1)[0].strip()
+            if not line:
+                continue
+            tok = shlex.split(line)
+            name = tok[0].lstrip("-")
+            pairs.append((name, " ".join(tok[1:]) if len(tok) > 1 else None))
+    return pairs
+
+
+def clear_options():
+    opts = PETSc.Options()
+    for k in list(opts.getAll().keys()):
+        opts.delValue(k)
+
+
+def set_options(case=None, **overrides):
+    """Fill the options database from cases/<case>.opts and keyword overrides
+    (rod_nelem=8; a value of True means a bare flag)."""
+    clear_options()
+    opts = PETSc.Options()
+    pairs = read_opts_file(os.path.join(ROOT, "cases", case + ".opts")) if case else []
+    for k, v in pairs:
+        opts.setValue(k, v if v is not None else "")
+    for k, v in overrides.items():
+        if v is True:
+            opts.setValue(k, "")
+        elif v is False or v is None:
+            if opts.hasName(k):
+                opts.delValue(k)
+        else:
+            opts.setValue(k, str(v))
+    return opts
+
+
+def run_case(case=None, comm=None, outdir=None, **overrides):
+    """Run a scene in-process on ``comm`` (default COMM_WORLD); returns the finished Run."""
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene, check_unknown_options
+    comm = PETSc.COMM_WORLD if comm is None else comm
+    if outdir is None:
+        mpi = comm.tompi4py()
+        outdir = mpi.bcast(tempfile.mkdtemp(prefix="rodsnes_test_") if mpi.rank == 0 else None)
+    overrides.setdefault("output_dir", outdir)
+    overrides.setdefault("quiet", True)
+    opts = set_options(case, **overrides)
+    check_unknown_options(opts)
+    scene = read_scene(["rodsnes"], opts)
+    run = Run(scene, comm)
+    run.ok = run.execute()
+    return run
+
+
+def gathered_positions(run):
+    return run.layout.allgather_nodes(run.last_fields["positions"])
+
+
+@pytest.fixture(autouse=True)
+def _fresh_options():
+    clear_options()
+    yield
+    clear_options()

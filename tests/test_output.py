@@ -1,0 +1,295 @@
+"""rodsnes.output: result.h5 round trip, restart after a partial step, summary.json, XDMF, MPI-IO."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import textwrap
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # the package may not be pip-installed yet
+    sys.path.insert(0, str(ROOT))
+
+from rodsnes import output  # noqa: E402
+from rodsnes.so3 import frame_from_tangent  # noqa: E402
+
+N = 17          # nodes
+NQ = 24         # quadrature points
+META = dict(case_name="fake", closed=False, length=2.0, radius=0.05, nelem=8, order=2,
+            E=np.float64(1e6), nu=0.3, note=None, options={"-rod_nelem": 8})
+
+
+def fake_step(k, n=N, nq=NQ, closed=False):
+    """Deterministic step data: a rod bending in the x-y plane with k, fields with known values."""
+    L = META["length"]
+    s = np.arange(n) * L / (n if closed else n - 1)
+    ang = 0.4 * k * s
+    pos = np.stack([s * np.cos(ang), s * np.sin(ang), 0.01 * k * s**2], axis=1)
+    R = frame_from_tangent(np.gradient(pos, axis=0))
+    node = dict(positions=pos, directors=R,
+                strain_v=np.stack([0 * s, 0 * s, 1 + 1e-3 * k + 0 * s], axis=1),
+                strain_u=np.stack([0.1 * k + s, -s, 0.5 * k + 0 * s], axis=1),
+                force_n=np.outer(s, [1.0, 2.0, 3.0]) * k,
+                moment_m=np.outer(np.cos(s), [0.0, 0.0, 1.0]) * k)
+    qs = (np.arange(nq) + 0.5) * L / nq
+    qp = dict(qp_s=qs, gap=np.sin(qs) - 0.1 * k, contact_force=np.maximum(0.1 * k - np.sin(qs), 0.0))
+    attrs = dict(load=np.float64(0.5 * k), energy=np.float32(k * 1.5), newton_iterations=np.int64(4 + k),
+                 residual_norm=10.0 ** (-9 - k), writhe=0.01 * k, link=np.int32(2))
+    return attrs, node, qp
+
+
+def write_run(outdir, comm=None, steps=3, node_ids=None, qp_ids=None, n=N, nq=NQ, **kw):
+    node_ids = np.arange(n) if node_ids is None else np.asarray(node_ids)
+    qp_ids = np.arange(nq) if qp_ids is None else np.asarray(qp_ids)
+    w = output.ResultWriter(outdir, comm, n, META, **kw)
+    for k in range(steps):
+        attrs, node, qp = fake_step(k, n, nq)
+        w.write_step(k, attrs, node_ids, {a: v[node_ids] for a, v in node.items()},
+                     qp_owned=qp_ids, qp_fields={a: v[qp_ids] for a, v in qp.items()}, n_qp=nq)
+    w.close()
+    return w
+
+
+def check_steps(outdir, steps=3, n=N, nq=NQ):
+    assert output.read_steps(outdir) == list(range(steps))
+    meta = output.read_meta(outdir)
+    assert meta["format"] == "rodsnes-result-1" and meta["last_step"] == steps - 1
+    assert meta["n_nodes"] == n and meta["closed"] is False and meta["length"] == 2.0
+    assert meta["case_name"] == "fake" and meta["nelem"] == 8 and meta["order"] == 2
+    assert json.loads(meta["options"]) == {"-rod_nelem": 8} and meta["E"] == 1e6
+    for k in range(steps):
+        attrs, node, qp = fake_step(k, n, nq)
+        got = output.read_step(outdir, k)
+        assert got["step"] == k
+        for a, v in attrs.items():
+            assert got["attrs"][a] == v, a
+        assert set(got["node_fields"]) == set(node) and set(got["qp_fields"]) == set(qp)
+        for a, v in {**node, **qp}.items():
+            assert got[a].dtype == np.float64
+            np.testing.assert_array_equal(got[a], v, err_msg=a)
+    assert output.read_step(outdir)["step"] == steps - 1
+    assert output.read_step(outdir, -2)["step"] == steps - 2
+
+
+def test_roundtrip_scrambled_ownership(tmp_path):
+    rng = np.random.default_rng(1)
+    write_run(tmp_path, node_ids=rng.permutation(N), qp_ids=rng.permutation(NQ))
+    check_steps(tmp_path)
+    with h5py.File(tmp_path / "result.h5", "r") as f:
+        d = f["steps/00001/positions"]
+        assert d.attrs["centering"] == "node" and "global frame" in d.attrs["description"]
+        assert f["steps/00001/gap"].attrs["centering"] == "qp"
+
+
+def test_validation(tmp_path):
+    with pytest.raises(ValueError, match="radius"):
+        output.ResultWriter(tmp_path, None, N, {k: v for k, v in META.items() if k != "radius"})
+    w = output.ResultWriter(tmp_path, None, N, META)
+    attrs, node, _ = fake_step(0)
+    with pytest.raises(ValueError, match="next is 0"):
+        w.write_step(-1, attrs, np.arange(N), node)
+    with pytest.raises(ValueError, match="residual_norm"):
+        w.write_step(0, {"load": 0.0, "energy": 0.0, "newton_iterations": 0}, np.arange(N), node)
+    ids = np.arange(N)
+    ids[3] = 4  # node 3 missing, node 4 twice
+    with pytest.raises(ValueError, match="1 missing, 1 duplicated"):
+        w.write_step(0, attrs, ids, node)
+    with pytest.raises(ValueError, match="directors"):
+        w.write_step(0, attrs, np.arange(N), {"positions": node["positions"]})
+    with pytest.raises(ValueError, match="rows"):
+        w.write_step(0, attrs, np.arange(N), {**node, "positions": node["positions"][:-1]})
+    assert output.read_steps(tmp_path) == []
+    w.write_step(0, attrs, np.arange(N), node)
+    with pytest.raises(ValueError, match="next is 1"):
+        w.write_step(2, attrs, np.arange(N), node)
+
+
+def _partial_step(outdir, step):
+    """What a run killed while writing `step` leaves: a group without the last_step update."""
+    with h5py.File(Path(outdir) / "result.h5", "a") as f:
+        g = f.create_group(f"steps/{step:05d}")
+        g.create_dataset("positions", data=np.full((N, 3), np.nan))
+
+
+def test_append_drops_partial_step(tmp_path):
+    write_run(tmp_path, steps=2)
+    _partial_step(tmp_path, 2)
+    assert output.read_steps(tmp_path) == [0, 1]   # readers ignore the partial group
+    assert output.read_step(tmp_path)["step"] == 1
+    w = output.ResultWriter(tmp_path, None, N, META, append=True)
+    assert w.last_step == 1
+    with h5py.File(tmp_path / "result.h5", "r") as f:
+        assert "00002" not in f["steps"]
+    attrs, node, qp = fake_step(2)
+    w.write_step(2, attrs, np.arange(N), node, np.arange(NQ), qp)
+    check_steps(tmp_path, 3)
+    with pytest.raises(ValueError, match="nodes"):
+        output.ResultWriter(tmp_path, None, N + 1, META, append=True)
+    with pytest.raises(FileNotFoundError):
+        output.ResultWriter(tmp_path / "nothing", None, N, META, append=True)
+
+
+@pytest.mark.parametrize("where", ["before_commit", "mid_datasets"])
+def test_killed_run_keeps_earlier_steps(tmp_path, where):
+    """A process SIGKILLed while writing step 2 leaves steps 0, 1 readable and restartable."""
+    hook = {
+        "before_commit": "output.ResultWriter._commit = lambda self, f, step: (f.flush(), die()) "
+                         "if step == 2 else orig_commit(self, f, step)",
+        "mid_datasets": "output.ResultWriter._dataset = staticmethod(lambda g, kind, name, *a: die() "
+                        "if g.name.endswith('00002') and name == 'strain_u' else orig_dataset(g, kind, name, *a))",
+    }[where]
+    script = textwrap.dedent(f"""
+        import os, signal, sys
+        sys.path[:0] = [{str(ROOT)!r}, {str(Path(__file__).parent)!r}]
+        from rodsnes import output
+        import test_output as t
+        def die():
+            os.kill(os.getpid(), signal.SIGKILL)
+        orig_commit = output.ResultWriter._commit
+        orig_dataset = output.ResultWriter._dataset
+        {hook}
+        t.write_run({str(tmp_path)!r}, steps=3)
+    """)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert res.returncode == -9, res.stderr
+    assert output.read_steps(tmp_path) == [0, 1]
+    check_steps(tmp_path, 2)
+    # the XDMF view of the killed run is complete for the committed steps
+    import meshio
+    with meshio.xdmf.TimeSeriesReader(str(tmp_path / "rod.xdmf")) as r:
+        assert r.num_steps == 2
+    w = output.ResultWriter(tmp_path, None, N, META, append=True)
+    attrs, node, qp = fake_step(2)
+    w.write_step(2, attrs, np.arange(N), node, np.arange(NQ), qp)
+    check_steps(tmp_path, 3)
+
+
+def test_summary_json(tmp_path):
+    summary = dict(converged=np.bool_(True), load=np.float64(1.0), energy=np.float32(2.5),
+                   tip_position=np.array([1.0, 2.0, 3.0]), newton_iterations=np.int64(17),
+                   load_steps=np.int32(4), wall_time_s=1.25, dofs=np.int64(102), ranks=2,
+                   residual_norm=float("nan"), history=[(np.int8(1), np.float16(0.5))])
+    output.write_summary(tmp_path, None, summary)
+    text = (tmp_path / "summary.json").read_text()
+    got = json.loads(text)  # strict JSON (no NaN token)
+    assert "NaN" not in text
+    assert got["converged"] is True and got["tip_position"] == [1.0, 2.0, 3.0]
+    assert got["newton_iterations"] == 17 and got["energy"] == 2.5 and got["residual_norm"] is None
+    assert got["history"] == [[1, 0.5]]
+    assert output.read_summary(tmp_path) == got
+    assert sorted(os.listdir(tmp_path)) == ["summary.json"]  # no temporary file left
+
+
+def test_new_run_removes_stale_outputs(tmp_path):
+    write_run(tmp_path, steps=2)
+    output.write_summary(tmp_path, None, {"converged": True})
+    output.ResultWriter(tmp_path, None, N, META)   # a new run in the same directory
+    assert not (tmp_path / "summary.json").exists() and not (tmp_path / "rod.xdmf").exists()
+    assert output.read_steps(tmp_path) == []
+
+
+def test_qp_to_nodes_nearest_and_periodic():
+    qs = np.array([0.9, 0.1, 0.5])          # unsorted on purpose
+    vals = np.array([9.0, 1.0, 5.0])
+    nodes = np.array([0.0, 0.29, 0.31, 0.69, 0.99])
+    np.testing.assert_array_equal(output.qp_to_nodes(qs, vals, nodes), [1, 1, 5, 5, 9])
+    # on a ring of length 1, s = 0.0 is 0.1 from the qp at 0.9 and 0.1 from 0.1: tie -> either;
+    # s = 0.02 is nearer 0.1 (0.08) than 0.9 (0.12); s = 0.97 nearer 0.9 (0.07) than 0.1 (0.13)
+    np.testing.assert_array_equal(output.qp_to_nodes(qs, vals, [0.02, 0.97, 0.96], period=1.0), [1, 9, 9])
+    np.testing.assert_array_equal(output.qp_to_nodes([0.1, 0.8], [1.0, 8.0], [0.98], period=1.0), [1.0])
+
+
+def test_xdmf_time_series(tmp_path):
+    import meshio
+    write_run(tmp_path)
+    assert sorted(os.listdir(tmp_path)) == ["result.h5", "rod.h5", "rod.xdmf"]  # no tmp left over
+    xml = (tmp_path / "rod.xdmf").read_text()
+    assert 'NodesPerElement="2"' in xml and "rod.h5:/" in xml
+    with meshio.xdmf.TimeSeriesReader(str(tmp_path / "rod.xdmf")) as r:
+        points, cells = r.read_points_cells()
+        assert r.num_steps == 3
+        np.testing.assert_array_equal(points, fake_step(0)[1]["positions"])
+        assert cells[0].type == "line" and len(cells[0].data) == N - 1
+        np.testing.assert_array_equal(cells[0].data[:, 1] - cells[0].data[:, 0], 1)
+        for k in range(3):
+            t, pd, _ = r.read_data(k)
+            attrs, node, qp = fake_step(k)
+            assert t == attrs["load"]
+            assert set(pd) == {"displacement", "d1", "d2", "d3", "strain_v", "strain_u", "force_n",
+                               "moment_m", "gap", "contact_force"}
+            np.testing.assert_allclose(pd["displacement"] + points, node["positions"], rtol=0, atol=1e-15)
+            for j in range(3):
+                np.testing.assert_array_equal(pd[f"d{j + 1}"], node["directors"][:, :, j])
+            np.testing.assert_array_equal(pd["strain_u"], node["strain_u"])
+            s_nodes = np.arange(N) * META["length"] / (N - 1)
+            nearest = np.argmin(np.abs(qp["qp_s"][None, :] - s_nodes[:, None]), axis=1)
+            np.testing.assert_array_equal(pd["gap"], qp["gap"][nearest])
+
+
+def test_xdmf_closed_ring_and_non_monotone_load(tmp_path):
+    import meshio
+    meta = dict(META, closed=True)
+    w = output.ResultWriter(tmp_path, None, N, meta)
+    for k, load in enumerate([0.0, 1.0, 0.5]):   # unloading: time falls back to the step index
+        attrs, node, _ = fake_step(k, closed=True)
+        w.write_step(k, dict(attrs, load=load), np.arange(N), node)
+    with meshio.xdmf.TimeSeriesReader(str(tmp_path / "rod.xdmf")) as r:
+        _, cells = r.read_points_cells()
+        assert len(cells[0].data) == N and list(cells[0].data[-1]) == [N - 1, 0]
+        assert [r.read_data(k)[0] for k in range(3)] == [0.0, 1.0, 2.0]
+    assert "step index" in (tmp_path / "rod.xdmf").read_text()
+
+
+# --------------------------------------------------------------------------- MPI
+@pytest.mark.mpi
+@pytest.mark.parametrize("parallel_io,n,nq,layout", [(None, N, NQ, "interleaved"), (False, N, NQ, "interleaved"),
+                                                     (None, 401, 600, "interleaved"), (None, N, NQ, "last_owns_all"),
+                                                     (False, N, NQ, "last_owns_all")])
+def test_mpi_interleaved_matches_serial(parallel_io, n, nq, layout):
+    """Each rank owns an interleaved subset of nodes (and qps, reversed); the file equals the serial one.
+    (401 nodes: > 64 runs per rank, so MPI-IO uses point selections instead of hyperslabs;
+    last_owns_all: the other ranks own nothing and still take part in the collective writes.)"""
+    from mpi4py import MPI
+    comm = MPI.COMM_WORLD
+    base = comm.bcast(tempfile.mkdtemp(prefix="rodsnes_mpi_") if comm.rank == 0 else None, root=0)
+    try:
+        par, ser = os.path.join(base, "par"), os.path.join(base, "ser")
+        if layout == "interleaved":
+            node_ids = np.arange(comm.rank, n, comm.size)
+            qp_ids = np.arange(comm.rank, nq, comm.size)[::-1]
+        else:
+            last = comm.rank == comm.size - 1
+            node_ids = np.arange(n if last else 0)
+            qp_ids = np.arange(nq if last else 0)
+        w = write_run(par, comm, node_ids=node_ids, qp_ids=qp_ids, n=n, nq=nq, parallel_io=parallel_io)
+        assert w.parallel == (comm.size > 1 and h5py.get_config().mpi and parallel_io is None)
+        comm.Barrier()
+        ok = None
+        if comm.rank == 0:
+            try:
+                write_run(ser, n=n, nq=nq)
+                check_steps(par, n=n, nq=nq)
+                with h5py.File(os.path.join(par, "result.h5"), "r") as fp, \
+                        h5py.File(os.path.join(ser, "result.h5"), "r") as fs:
+                    assert dict(fp.attrs).keys() == dict(fs.attrs).keys()
+                    for k in range(3):
+                        gp, gs = fp[f"steps/{k:05d}"], fs[f"steps/{k:05d}"]
+                        assert sorted(gp) == sorted(gs)
+                        assert dict(gp.attrs) == dict(gs.attrs)
+                        for name in gs:
+                            np.testing.assert_array_equal(gp[name][()], gs[name][()], err_msg=name)
+                ok = True
+            except BaseException as exc:  # report on every rank, never hang the others
+                ok = repr(exc)
+        ok = comm.bcast(ok, root=0)
+        assert ok is True, ok
+    finally:
+        comm.Barrier()
+        if comm.rank == 0:
+            shutil.rmtree(base, ignore_errors=True)
