@@ -110,8 +110,9 @@ def default_penalty(EI, eps, penetration=0.01):
 # --------------------------------------------------------------------------------------------
 # geometry helpers
 # --------------------------------------------------------------------------------------------
-_NSAMP_BOUNDS = 33
+_NSAMP_BOUNDS = 65
 _LAMBDA2 = {}
+_NS_BOUNDS = {}
 
 
 def _lambda2(order):
@@ -135,8 +136,9 @@ def element_bounds(x_elem):
     p = n1 - 1
     if ne == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    xs = np.linspace(-1.0, 1.0, _NSAMP_BOUNDS)
-    Ns = fe.lagrange(p, xs)[0]
+    if p not in _NS_BOUNDS:
+        _NS_BOUNDS[p] = fe.lagrange(p, np.linspace(-1.0, 1.0, _NSAMP_BOUNDS))[0]
+    Ns = _NS_BOUNDS[p]
     pts = np.einsum("ma,ead->emd", Ns, x)
     c = 0.5 * (pts.min(axis=1) + pts.max(axis=1))
     rs = np.linalg.norm(pts - c[:, None, :], axis=2).max(axis=1)
@@ -223,6 +225,21 @@ def _monomial_matrix(order):
     return np.linalg.inv(V)
 
 
+def _monomials(order, xi):
+    """xi^k, d/dxi xi^k, d2/dxi2 xi^k for k = 0..p: three (len(xi), p+1) arrays."""
+    xi = np.asarray(xi, dtype=float)
+    k = np.arange(order + 1)
+    pw = np.empty((len(xi), order + 1))
+    pw[:, 0] = 1.0
+    for j in range(1, order + 1):
+        pw[:, j] = pw[:, j - 1] * xi
+    pw1 = np.zeros_like(pw)
+    pw1[:, 1:] = k[1:] * pw[:, :-1]
+    pw2 = np.zeros_like(pw)
+    pw2[:, 2:] = (k[2:] * (k[2:] - 1)) * pw[:, :-2]
+    return pw, pw1, pw2
+
+
 # --------------------------------------------------------------------------------------------
 # the kernel
 # --------------------------------------------------------------------------------------------
@@ -280,23 +297,19 @@ class ContactKernel:
     # -- projection -------------------------------------------------------------------------
     def _fgh(self, x, A, P):
         """phi = |r(x) - P|^2/2 and its first two xi-derivatives; A (M, p+1, 3) monomials."""
-        k = np.arange(self.p + 1)
-        pw = x[:, None] ** k
+        pw, pw1, pw2 = _monomials(self.p, x)
         r = np.einsum("mk,mkd->md", pw, A)
-        pw1 = np.zeros_like(pw)
-        pw1[:, 1:] = k[1:] * x[:, None] ** (k[1:] - 1)
         r1 = np.einsum("mk,mkd->md", pw1, A)
-        pw2 = np.zeros_like(pw)
-        if self.p >= 2:
-            pw2[:, 2:] = k[2:] * (k[2:] - 1) * x[:, None] ** (k[2:] - 2)
         r2 = np.einsum("mk,mkd->md", pw2, A)
         D = r - P
         return 0.5 * np.einsum("md,md->m", D, D), np.einsum("md,md->m", D, r1), \
             np.einsum("md,md->m", r1, r1) + np.einsum("md,md->m", D, r2)
 
     def _f(self, x, A, P):
-        pw = x[:, None] ** np.arange(self.p + 1)
-        D = np.einsum("mk,mkd->md", pw, A) - P
+        D = A[:, self.p].copy()
+        for j in range(self.p - 1, -1, -1):
+            D = D * x[:, None] + A[:, j]
+        D -= P
         return 0.5 * np.einsum("md,md->m", D, D)
 
     def project(self, P, A, lo, hi):
@@ -314,8 +327,10 @@ class ContactKernel:
         ns = self.nsamp
         tt = np.linspace(0.0, 1.0, ns)
         X = lo[:, None] + (hi - lo)[:, None] * tt[None, :]
-        pw = X[:, :, None] ** np.arange(self.p + 1)
-        D = np.einsum("msk,mkd->msd", pw, A) - P[:, None, :]
+        D = np.repeat(A[:, self.p][:, None, :], ns, axis=1)          # Horner
+        for j in range(self.p - 1, -1, -1):
+            D = D * X[:, :, None] + A[:, j][:, None, :]
+        D -= P[:, None, :]
         F = 0.5 * np.einsum("msd,msd->ms", D, D)
         left = np.concatenate([np.full((M, 1), np.inf), F[:, :-1]], axis=1)
         right = np.concatenate([F[:, 1:], np.full((M, 1), np.inf)], axis=1)
@@ -433,10 +448,24 @@ class ContactKernel:
             return out
         pr_o, pr_q, pr_m = P_o[sel_pq], P_q[sel_pq], P_m[sel_pq]
         pr_lo, pr_hi = lo[sel_pq, sel_slot], hi[sel_pq, sel_slot]
-        xi, f = self.project(rs[pr_o, pr_q], A_pool[pr_m], pr_lo, pr_hi)
+        pt = pr_o * nqc + pr_q
+
+        # prune (exactly): a slot whose element's bounding sphere is farther from the slave point
+        # than some admissible point (a slot end) of another slot cannot hold the minimum
+        P = rs[pr_o, pr_q]
+        cen, rad = element_bounds(pool_x)
+        lb = np.linalg.norm(P - cen[pr_m], axis=1) - rad[pr_m]
+        kk = np.arange(p + 1)
+        ub = np.minimum(
+            np.linalg.norm(np.einsum("mk,mkd->md", pr_lo[:, None] ** kk, A_pool[pr_m]) - P, axis=1),
+            np.linalg.norm(np.einsum("mk,mkd->md", pr_hi[:, None] ** kk, A_pool[pr_m]) - P, axis=1))
+        best_ub = np.full(no * nqc, np.inf)
+        np.minimum.at(best_ub, pt, ub)
+        keep = lb <= best_ub[pt] * (1.0 + 1e-9) + 1e-300
+        pr_o, pr_q, pr_m, pr_lo, pr_hi, pt = (a[keep] for a in (pr_o, pr_q, pr_m, pr_lo, pr_hi, pt))
+        xi, f = self.project(P[keep], A_pool[pr_m], pr_lo, pr_hi)
 
         # global minimum per slave point (ties, e.g. a shared node: the first one only)
-        pt = pr_o * nqc + pr_q
         order = np.lexsort((f, pt))
         keep = np.ones(len(order), dtype=bool)
         keep[1:] = pt[order][1:] != pt[order][:-1]
@@ -444,7 +473,7 @@ class ContactKernel:
         b_o, b_q, b_m, b_xi = pr_o[best], pr_q[best], pr_m[best], xi[best]
         b_int = (b_xi > pr_lo[best]) & (b_xi < pr_hi[best])
 
-        Nm, dNm, d2Nm = fe.lagrange(p, b_xi)
+        Nm, dNm, d2Nm = (m @ self.C for m in _monomials(p, b_xi))   # = fe.lagrange(p, b_xi)
         xm = pool_x[b_m]
         r_m = np.einsum("na,nad->nd", Nm, xm)
         Dv = rs[b_o, b_q] - r_m

@@ -13,9 +13,11 @@ Shapes (all start at the origin):
             r(s) = (b phi, a sin phi, a (1 - cos phi)), phi = s / w; Frenet frame
             (d1 = principal normal, toward the axis; d2 = binormal), so u = (0, kappa, tau)
             with kappa = a/w^2, tau = b/w^2.
-Imperfection A: open rods r += A sin(pi s/L) d1; closed rods r += A sin(4 pi s/L) d2
-(the out-of-plane two-wave mode in which a twisted ring writhes); frames are re-aligned
-with the perturbed tangent by the smallest rotation.
+Imperfection A: the first buckling mode of the supports, along d1 for open rods:
+A (1 - cos(pi s/2L)) for a clamped-free rod (cantilever column), A (1 - cos(2 pi s/L))/2 for
+clamped-clamped, A sin(pi s/L) otherwise; closed rods r += A sin(4 pi s/L) d2 (the out-of-plane
+two-wave mode in which a twisted ring writhes).  Frames follow the perturbed tangent by the
+smallest rotation.
 Initial twist T turns: R_init(s) = R_ref(s) Rot_d3(2 pi T s / L) (right-handed about d3).
 """
 from dataclasses import dataclass
@@ -82,7 +84,24 @@ def _shape(rod, s):
     return r, t, R
 
 
-def _imperfect(rod, s, r, t, R):
+def _imperfection_mode(rod, bc, s):
+    """Shape f(s) and slope f'(s) of the imperfection (see the module docstring)."""
+    L = rod.length
+    ends = (getattr(bc, "start", None), getattr(bc, "end", None))
+    if ends == ("clamped", "free") or ends == ("free", "clamped"):
+        k = np.pi / (2 * L)
+        f, df = 1 - np.cos(k * s), k * np.sin(k * s)
+        if ends[0] == "free":
+            f, df = 1 - np.cos(k * (L - s)), -k * np.sin(k * (L - s))
+        return f, df
+    if ends == ("clamped", "clamped"):
+        k = 2 * np.pi / L
+        return (1 - np.cos(k * s)) / 2, k * np.sin(k * s) / 2
+    k = np.pi / L
+    return np.sin(k * s), k * np.cos(k * s)
+
+
+def _imperfect(rod, s, r, t, R, bc=None):
     A = getattr(rod, "imperfection", 0.0) or 0.0
     if A == 0.0:
         return r, R
@@ -92,9 +111,8 @@ def _imperfect(rod, s, r, t, R):
         d = R[:, :, 1]
         f, df = np.sin(k * s), k * np.cos(k * s)
     else:
-        k = np.pi / L
         d = R[:, :, 0]
-        f, df = np.sin(k * s), k * np.cos(k * s)
+        f, df = _imperfection_mode(rod, bc, s)
     # derivative of the director along s is neglected only in the tangent used to
     # orient the frame (exact tangent not needed: the frame only has to be admissible)
     r = r + A * f[:, None] * d
@@ -110,14 +128,15 @@ def _imperfect(rod, s, r, t, R):
     return r, R
 
 
-def build_mesh(rod):
-    """Nodes, elements, stress-free and initial shapes of ``rod`` (a scene.Rod)."""
+def build_mesh(rod, bc=None):
+    """Nodes, elements, stress-free and initial shapes of ``rod`` (a scene.Rod); ``bc`` (a
+    scene.BC) selects the imperfection mode of open rods."""
     p, ne, L = rod.order, rod.nelem, rod.length
     n = ne * p if rod.closed else ne * p + 1
     s = np.arange(n) * (L / (ne * p))
     conn = (np.arange(ne)[:, None] * p + np.arange(p + 1)[None, :]) % n
     r0, t, R0 = _shape(rod, s)
-    r, R = _imperfect(rod, s, r0, t, R0)
+    r, R = _imperfect(rod, s, r0, t, R0, bc)
     q = so3.quat_from_rot(R)
     turns = getattr(rod, "twist_turns", 0.0) or 0.0
     phi = 2 * np.pi * turns * s / L

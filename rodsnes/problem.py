@@ -51,6 +51,19 @@ class RodState:
         self.q_ref[:] = snap[0]
         snap[1].copy(self.X)
 
+    def predict(self, prev, ratio):
+        """Secant predictor along the load path: from the converged state n (current, theta = 0)
+        and the previous converged state ``prev`` (a snapshot), move to
+        r + ratio (r_n - r_{n-1}),  theta = ratio log(R_n R_{n-1}^T)."""
+        q_prev, X_prev = prev
+        no = self.layout.n_owned
+        psi = so3.qlog(so3.qmul(self.q_ref[:no], so3.qconj(q_prev[:no])))
+        xp = X_prev.getArray(readonly=True).reshape(-1, NDOF)
+        with self.X as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] += ratio * (a[:, 0:3] - xp[:, 0:3])
+            a[:, 3:6] = ratio * psi
+
     def recentre(self):
         """Fold theta into the reference rotations: q_ref <- qexp(theta) * q_ref, theta <- 0."""
         xl = self.layout.to_local(self.X)
@@ -182,14 +195,15 @@ class RodProblem:
             c = self.constraints
             fa[c.rows_local] = xa[c.rows_local] - np.where(c.rows_local % NDOF < 3, c.target_own, 0.0)
 
-    def jacobian(self, snes, X, J, P):
+    def jacobian(self, snes, X, J, P, symmetric=False):
         r, q = self.state.local_config(X)
-        _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True)
+        _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True,
+                                             symmetric=symmetric)
         P.zeroEntries()
         g = self.layout.gconn.astype(PETSc.IntType)
         P.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
         lg = self.layout.nat2petsc[self.layout.local_nodes]
-        for i, j, B in self.loads.add_jacobian_blocks(self.lam, q):
+        for i, j, B in ([] if symmetric else self.loads.add_jacobian_blocks(self.lam, q)):
             P.setValuesBlocked([lg[i]], [lg[j]], B, addv=PETSc.InsertMode.ADD)
         if self.contact is not None:
             self.contact.add_jacobian(r, P)

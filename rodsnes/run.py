@@ -23,7 +23,7 @@ class Run:
         self.scene, self.comm = scene, comm
         self.mpi = comm.tompi4py()
         self.rank = comm.getRank()
-        self.mesh = rodmesh.build_mesh(scene.rod)
+        self.mesh = rodmesh.build_mesh(scene.rod, scene.bc)
         self.layout = partition.Layout(comm, self.mesh)
         self.contact = None
         if scene.contact.enabled:
@@ -35,7 +35,7 @@ class Run:
         ld = scene.loads
         self.force_scale = (max(rod.EI1, rod.EI2) / L**2 + np.linalg.norm(ld.end_force)
                             + np.linalg.norm(ld.end_moment) / L + np.linalg.norm(ld.gravity) * L)
-        self.solver = NewtonSolver(self.problem, self.force_scale)
+        self.solver = NewtonSolver(self.problem, self.force_scale, check_stability=scene.stability)
         self.outdir = scene.output.dir
         self.quiet = scene.output.quiet
         self.step = 0
@@ -85,6 +85,8 @@ class Run:
         attrs = {"load": p.lam, "energy": energy,
                  "newton_iterations": 0 if res is None else res.its,
                  "residual_norm": 0.0 if res is None else res.fnorm}
+        if res is not None and hasattr(res, "negative_eigenvalues"):
+            attrs["negative_eigenvalues"] = res.negative_eigenvalues
         qp = {}
         if self.contact is not None:
             attrs.update(self.contact.summary())
@@ -130,13 +132,17 @@ class Run:
             energy = self._write(res)
             self.history.append({"load": res.lam, "newton_iterations": res.its,
                                  "residual_norm": res.fnorm, "seconds": res.seconds})
+            if hasattr(res, "negative_eigenvalues"):
+                self.history[-1]["negative_eigenvalues"] = res.negative_eigenvalues
             self._log(res, energy)
             output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
 
         def on_fail(res, dlam):
             if not self.quiet and self.rank == 0:
-                print(f"  load {res.lam:.6f} not reached (SNES reason {res.reason}, {res.its} its): "
-                      f"cutting the increment {dlam:.3e} in half", flush=True)
+                why = ("it lands on a less stable equilibrium" if res.reason == "stability"
+                       else f"SNES reason {res.reason}, {res.its} its")
+                print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
+                      f"{dlam:.3e} in half", flush=True)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail)
         reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "

@@ -199,8 +199,9 @@ class O:
     rod_twist_turns = Opt(REAL, 0.0, "initial twist of the director frame about the tangent, "
                           "in turns, uniform along s (whole turns on a closed rod)", "shape")
     rod_imperfection = Opt(REAL, 0.0, "imperfection a: reference centreline displaced by "
-                           "a sin(pi s/L) along d1 (closed rods: a sin(4 pi s/L) along d2, "
-                           "the writhing mode), length units", "shape")
+                           "the first buckling mode of the supports, amplitude a along d1 "
+                           "(cantilever a(1-cos(pi s/2L)), else a sin(pi s/L); closed rods: "
+                           "a sin(4 pi s/L) along d2, the writhing mode), length units", "shape")
     # --- discretisation ---------------------------------------------------------
     rod_nelem = Opt(INT, 16, "number of finite elements", "disc", rng="[1,inf)",
                     note="number of elements along the rod")
@@ -229,6 +230,8 @@ class O:
                            "load")
     load_steps = Opt(INT, 1, "number of load increments (load factor 0 -> 1)", "load",
                      rng="[1,inf)", note="number of load steps")
+    load_predictor = Opt(BOOL, True, "start each load step from the secant predictor through "
+                         "the last two converged states", "load")
     load_max_cutbacks = Opt(INT, 10, "times a failed increment may be halved", "load",
                             rng="[0,inf)", note="number of step halvings")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",

@@ -3,10 +3,16 @@
 SNES (newtonls) sees X = (r, theta); SNES.setUpdate re-centres the rotations before every
 Newton step (slides "Newton method on C_a": (r, R) <- (r + eta, exp(theta^x) R)).  Defaults
 (each overridable from the options database): full Newton steps (-snes_linesearch_type basic),
-a direct solve -ksp_type preonly -pc_type lu with MUMPS, -snes_rtol 1e-10, -snes_atol scaled
-by the rod's force scale EI/L^2 (a relative tolerance alone never converges a step that starts
-at equilibrium), -snes_max_it 40.  A load step that fails is cut back (halved) and retried from
+a direct solve -ksp_type preonly -pc_type lu with MUMPS, -snes_max_it 40, and the convergence
+test of _converged: |F| below rtol (1e-10) times the force scale EI/L^2 + |loads|, or below the
+roundoff floor of the residual (3 eps x largest stiffness x L/h_node x sqrt(nodes)), or below -snes_atol.  A load step that fails is cut back (halved) and retried from
 the last converged state; successful steps grow the increment again (x1.5) up to the nominal one.
+Each step starts from the secant predictor through the last two converged states
+(-load_predictor 0: from the last state), which keeps Newton on the branch it was following
+near limit and bifurcation points.  With -stability, every converged step also counts the
+negative eigenvalues of the energy Hessian (stability.py); a step that arrives at a less stable
+equilibrium than it left is cut back too, so the load path stays on the stable branch (a genuine
+loss of stability that survives all cut-backs is accepted and reported per step).
 """
 import time
 
@@ -28,7 +34,7 @@ class StepResult:
 
 
 class NewtonSolver:
-    def __init__(self, problem, force_scale):
+    def __init__(self, problem, force_scale, check_stability=False):
         self.problem = problem
         comm = problem.layout.comm
         opts = PETSc.Options()
@@ -51,18 +57,24 @@ class NewtonSolver:
         snes.setFromOptions()
         self.snes = snes
         rod = problem.scene.rod
-        # roundoff floor of the residual: strains of size ~1 (v3 = 1) times the largest
-        # stiffness, summed over the nodes; a residual at this level is as converged as the
+        # roundoff floor of the residual: strains of size ~1 (v3 = 1), differentiated over a
+        # node spacing, times the largest stiffness, summed over the nodes; a residual at this level is as converged as the
         # arithmetic allows (DIVERGED_MAX_IT there would reject a correct equilibrium).
         stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
-        self.floor = 100 * np.finfo(float).eps * stiff * np.sqrt(problem.mesh.n_nodes)
+        m = problem.mesh
+        nodes_per_length = m.nelem * m.order
+        self.floor = 3 * np.finfo(float).eps * stiff * nodes_per_length * np.sqrt(m.n_nodes)
         self.divtol = 1e12
+        self.force_scale = force_scale
+        self.predictor = PETSc.Options().getBool("load_predictor", True)
+        self.check_stability = check_stability
         self.f0 = None
         self.total_its = 0
 
     def _converged(self, snes, it, norms):
-        """|F| <= max(atol, roundoff floor) -> CONVERGED_FNORM_ABS; |F| <= rtol |F_0| ->
-        CONVERGED_FNORM_RELATIVE; NaN, blow-up beyond 1e12 |F_0|, or max_it -> diverged."""
+        """|F| <= max(atol, roundoff floor) -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
+        CONVERGED_FNORM_RELATIVE (relative to the problem's force scale, not to |F_0|, which the
+        load-step predictor can inflate by orders of magnitude); NaN, blow-up beyond 1e12 |F_0|, or max_it -> diverged."""
         fnorm = norms[2]
         R = PETSc.SNES.ConvergedReason
         if not np.isfinite(fnorm):
@@ -72,7 +84,7 @@ class NewtonSolver:
         atol, rtol, _, maxit = snes.getTolerances()
         if fnorm <= max(atol, self.floor):
             return R.CONVERGED_FNORM_ABS
-        if it > 0 and fnorm <= rtol * self.f0:
+        if it > 0 and fnorm <= rtol * self.force_scale:
             return R.CONVERGED_FNORM_RELATIVE
         if fnorm > self.divtol * self.f0:
             return R.DIVERGED_DTOL
@@ -92,6 +104,7 @@ class NewtonSolver:
         except PETSc.Error:
             reason = -100
         hist, _ = self.snes.getConvergenceHistory()
+        self.last_history = np.array(hist)
         its = self.snes.getIterationNumber()
         p.state.recentre()
         ok = reason > 0 and np.all(np.isfinite(hist))
@@ -107,11 +120,26 @@ class NewtonSolver:
         lam, dlam = lam0, nominal
         cutbacks = 0
         results = []
+        prev = None            # (snapshot, lambda) of the previous converged step
+        nneg = 0               # negative eigenvalues of the last converged step (-stability)
         while lam < 1.0 - 1e-14:
             target = min(1.0, lam + dlam)
             snap = p.state.snapshot()
+            if prev is not None and self.predictor:
+                p.state.predict(prev[0], (target - lam) / (lam - prev[1]))
             res = self.solve_at(target)
+            if res.converged and self.check_stability:
+                from .stability import negative_eigenvalues
+                res.negative_eigenvalues = negative_eigenvalues(p)
+                if (res.negative_eigenvalues > nneg and cutbacks < max_cutbacks
+                        and 0.5 * dlam >= min_step):
+                    # the step landed on a less stable equilibrium than the one it left: the
+                    # path turned near a limit/bifurcation point; retry with a shorter step
+                    res.converged = False
+                    res.reason = "stability"
             if res.converged:
+                nneg = getattr(res, "negative_eigenvalues", 0)
+                prev = (snap, lam)
                 lam = target
                 self.total_its += res.its
                 results.append(res)

@@ -243,7 +243,11 @@ def twist(x, d1, closed=True):
     rotation R_k taking t_k to t_{k+1} (rotation about t_k x t_{k+1}), and the signed angle
         phi_k = atan2( t_{k+1} . (R_k u_k x u_{k+1}),  R_k u_k . u_{k+1} )  in (-pi, pi]
     is the twist increment (positive = right-handed about the tangent).  Tw = sum phi_k / 2pi
-    over all vertices of a closed polygon, over the interior vertices of an open one.
+    over all vertices of a closed polygon.  For an open rod (``closed=False``) the sum runs
+    over the interior vertices plus the two end half-edges (the angle from d1 at the first
+    node to u_0 about t_0, and from u_last to d1 at the last node), so that Tw is the
+    rotation of d1 from the first node to the last (exactly n for a straight rod whose end
+    director is turned n turns).
     Requires d1 to turn by less than pi per edge (otherwise the count is ambiguous).
     """
     x, d1 = _as_curve(x, d1, closed)
@@ -253,11 +257,17 @@ def twist(x, d1, closed=True):
         a, b, ua, ub = t, t[k1], u, u[k1]
     else:
         a, b, ua, ub = t[:-1], t[1:], u[:-1], u[1:]
-    if len(a) == 0:
-        return 0.0
     Pu = _transport(a, b, ua)
     phi = np.arctan2(_dot(b, _cross(Pu, ub)), _dot(Pu, ub))
-    return float(np.sum(phi) / TWO_PI)
+    tot = np.sum(phi)
+    if not closed:
+        # the two end half-edges: from d1 at the first node to u_0 about t_0, and from
+        # u_last to d1 at the last node about t_last (each d1 projected normal to its edge)
+        for tk, v0, v1 in ((t[0], d1[0], u[0]), (t[-1], u[-1], d1[-1])):
+            v0 = v0 - np.dot(v0, tk) * tk
+            v1 = v1 - np.dot(v1, tk) * tk
+            tot += np.arctan2(np.dot(tk, np.cross(v0, v1)), np.dot(v0, v1))
+    return float(tot / TWO_PI)
 
 
 def default_ribbon_width(x, closed=True):

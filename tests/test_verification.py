@@ -1,0 +1,102 @@
+"""Equilibria against exact solutions (shared/REFERENCES.md), Newton's quadratic convergence,
+and one versus two ranks."""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+from scipy.optimize import brentq
+from scipy.special import ellipk
+
+from conftest import gathered_positions, run_case
+
+
+def tip(run):
+    return gathered_positions(run)[-1]
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("f, exact", [(0.25, (0.636620, 0.636620)), (0.5, (0.0, 0.636620)),
+                                      (0.75, (-0.212207, 0.212207)), (1.0, (0.0, 0.0))])
+def test_rollup_tip_in_one_load_step(f, exact):
+    """Simo & Vu-Quoc: M = f 2 pi EI/L rolls the rod into an arc of curvature M/EI."""
+    run = run_case("rollup", load_end_moment=f"0,0,{f * 2 * np.pi * 100 / 10!r}")
+    assert run.ok and run.problem.lam == 1.0 and len(run.history) == 1
+    x = tip(run) / 10.0
+    assert np.hypot(x[0] - exact[0], x[1] - exact[1]) < 2e-6     # table has 6 digits
+    assert abs(x[2]) < 1e-12
+    k = f * 2 * np.pi / 10
+    # the whole centreline lies on the exact circle x = sin(ks)/k, y = (1 - cos ks)/k
+    X = gathered_positions(run)
+    s = run.mesh.s_nodes
+    ex = np.stack([np.sin(k * s) / k, (1 - np.cos(k * s)) / k], 1)
+    assert np.abs(X[:, :2] - ex).max() < 2e-5 * 10        # 8 cubic elements per circle
+
+
+def test_rollup_two_turns_in_one_step_converges_quadratically():
+    run = run_case("rollup_two_turns")
+    assert run.ok and len(run.history) == 1
+    assert np.linalg.norm(tip(run)) < 1e-6            # tip back at the clamp after 2 turns
+    h = np.array(run.solver.last_history)
+    assert len(h) <= 8
+    # quadratic convergence: once in the basin, each residual is below C |F_prev|^2
+    rel = h / h[0]
+    tail = [(rel[i], rel[i + 1]) for i in range(len(rel) - 1) if rel[i] < 1e-2 and rel[i + 1] > 1e-13]
+    assert tail, rel
+    for a, b in tail:
+        assert b < 50 * a**2, rel
+
+
+@pytest.mark.parametrize("lam, ref", [(1, (0.056433, 0.301721, 0.461352)),
+                                      (2, (0.160642, 0.493457, 0.781750)),
+                                      (5, (0.387628, 0.713792, 1.215368)),
+                                      (10, (0.554996, 0.810609, 1.430286))])
+def test_mattiasson_cantilever(lam, ref):
+    run = run_case("mattiasson", load_end_force=f"0,{-lam},0", rod_EA=1e7, rod_GA=1e7,
+                   rod_nelem=16, load_steps=max(1, lam // 2))
+    assert run.ok
+    x = tip(run)
+    u, v = 1.0 - x[0], -x[1]
+    R = run.last_fields["directors"]
+    d3_tip = run.layout.allgather_nodes(R)[-1][:, 2]
+    alpha = -np.arctan2(d3_tip[1], d3_tip[0])
+    # 6-digit reference values; extensibility P/EA <= 1e-6
+    assert abs(u - ref[0]) < 3e-6 and abs(v - ref[1]) < 3e-6 and abs(alpha - ref[2]) < 3e-6
+
+
+def test_euler_column_buckles_at_the_critical_load_onto_the_elastica():
+    """Clamped-free column, P = 1.2 P_cr: tip rotation alpha from 1.2 = (2K(k)/pi)^2, k = sin(alpha/2)
+    and tip deflection delta/L = 2k/K(k); below P_cr the column stays nearly straight."""
+    run = run_case("euler")
+    assert run.ok
+    k = np.sqrt(brentq(lambda m: (2 * ellipk(m) / np.pi) ** 2 - 1.2, 1e-9, 0.99))
+    x = tip(run)
+    assert abs(abs(x[1]) - 2 * k / ellipk(k * k)) < 2e-3       # imperfection 1e-3 L
+    below = run_case("euler", load_end_force=f"{-0.8 * np.pi**2 / 4!r},0,0")
+    assert below.ok and abs(tip(below)[1]) < 5 * 1e-3
+    assert abs(tip(below)[1]) > 1e-3                          # amplified imperfection
+
+
+def test_force_free_helix_stays_put():
+    """The helix with C g = B t under the axial moment B w is an equilibrium: the discrete
+    solution moves only by the discretisation error, which falls at least as h^3."""
+    errs = []
+    for ne in (12, 24, 48):
+        run = run_case("helix", rod_nelem=ne)
+        assert run.ok
+        errs.append(np.abs(gathered_positions(run) - run.mesh.x_init).max())
+    assert errs[-1] < 1e-6 * 2.0
+    assert errs[0] / errs[1] > 7 and errs[1] / errs[2] > 7, errs
+
+
+@pytest.mark.mpi
+def test_two_ranks_match_one_rank_open_and_closed():
+    """The same scene on COMM_WORLD and on COMM_SELF (under mpirun -n 2: 2 ranks vs 1)."""
+    for case, extra in (("mattiasson", dict(load_end_force="0,-5,0", rod_nelem=9, load_steps=2)),
+                        ("michell", dict(load_twist_turns=1.2, load_steps=3, rod_nelem=11))):
+        par = run_case(case, **extra)
+        Xp = gathered_positions(par)
+        ser = run_case(case, comm=PETSc.COMM_SELF,
+                       outdir=par.outdir + f"_serial{PETSc.COMM_WORLD.getRank()}", **extra)
+        Xs = gathered_positions(ser)
+        assert par.ok and ser.ok
+        assert np.abs(Xp - Xs).max() < 1e-9
+        assert [h["newton_iterations"] for h in par.history] == [h["newton_iterations"] for h in ser.history]
