@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 SYS_PYTHON := /usr/bin/python3
 NP ?= 2
-CASE ?= cases/plectoneme.opts
+CASE ?= cases/mattiasson.opts
 MPIRUN := mpirun -n $(NP) --bind-to none
 export OMPI_ALLOW_RUN_AS_ROOT := 1
 export OMPI_ALLOW_RUN_AS_ROOT_CONFIRM := 1
@@ -26,14 +26,14 @@ demo: install
 	$(MPIRUN) $(VENV)/bin/rodsnes -options_file $(CASE)
 
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider tests
-	$(MPIRUN) tools/mpi_rank0_output.sh $(PY) -m pytest -q -p no:cacheprovider -m mpi tests
+	$(PY) -m pytest -q -p no:cacheprovider --color=no tests
+	$(MPIRUN) tools/mpi_rank0_output.sh $(PY) -m pytest -q -p no:cacheprovider --color=no -m mpi tests
 
 test-serial: install
-	$(PY) -m pytest -q -p no:cacheprovider tests
+	$(PY) -m pytest -q -p no:cacheprovider --color=no tests
 
 test-mpi: install
-	$(MPIRUN) tools/mpi_rank0_output.sh $(PY) -m pytest -q -p no:cacheprovider -m mpi tests
+	$(MPIRUN) tools/mpi_rank0_output.sh $(PY) -m pytest -q -p no:cacheprovider --color=no -m mpi tests
 
 clean:
 	rm -rf out .pytest_cache

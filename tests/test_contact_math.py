@@ -92,17 +92,6 @@ def hairpin(p, nelem, leg=1.0, rho=0.075):
     return X, Lg
 
 
-def fd_gradient(f, X, step):
-    G = np.zeros_like(X)
-    for i in range(X.shape[0]):
-        for j in range(3):
-            Xp, Xm = X.copy(), X.copy()
-            Xp[i, j] += step
-            Xm[i, j] -= step
-            G[i, j] = (f(Xp) - f(Xm)) / (2 * step)
-    return G
-
-
 def rel(a, b):
     return np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300)
 
@@ -227,14 +216,15 @@ def test_circle_no_false_contact(p):
             assert np.allclose(ds, rod.delta, atol=1e-9)
     # the check is sharp: a too small exclusion or a non-periodic exclusion creates contact
     X, L = circle(p, 24, 1.1 * EPS)
-    assert Rod(X, p, True, L, delta=0.5 * np.pi * EPS).eval(X, Rod(X, p, True, L, delta=0.5 * np.pi * EPS).pairs(X))["gap"].max() > 0.3 * EPS
+    small = Rod(X, p, True, L, delta=0.5 * np.pi * EPS)
+    assert small.eval(X, small.pairs(X))["gap"].max() > 0.3 * EPS
     Xo = np.concatenate([X, X[:1]])        # same curve as an open rod: the two ends touch
     ro = Rod(Xo, p, False, L)
     go = ro.eval(Xo, ro.pairs(Xo))["gap"]
     assert go[0, 0] > 1.5 * EPS and go[-1, -1] > 1.5 * EPS
 
 
-@pytest.mark.parametrize("p", [1, 2, 4])
+@pytest.mark.parametrize("p", [1, 2, 3, 4])
 def test_closed_wraparound_stadium(p):
     """Closed stadium; node 0 in the middle of a straight: contacts across the wrap are found,
     and the exclusion is periodic (the neighbours across s = 0 = L are excluded)."""
@@ -429,31 +419,54 @@ def test_tangent_is_residual_derivative_helix(p):
         assert np.any(~out["interior"])         # polygon: some closest points at vertices
 
 
-def test_tangent_without_closest_point_motion_is_wrong():
-    """Sanity: dropping the implicit (sbar-motion) term breaks the FD check on curved contact."""
+def test_tangent_formula_of_the_docstring_and_slide_sign():
+    """Rebuild the tangent from the documented formula: it matches finite differences; without
+    the closest-point motion term, or with the slides' sign |r'|^2 + r''.(r(s) - r(sbar)) in its
+    denominator, it does not."""
     p = 3
     rod, X = helix_config(p, seed=5)
     pairs = rod.pairs(X)
     K, out = rod.tangent(X, pairs)
     k = rod.k
     v = np.random.default_rng(0).standard_normal(X.shape)
-    dR = (rod.residual(X + 1e-6 * v, pairs) - rod.residual(X - 1e-6 * v, pairs)) / 2e-6
-    # rebuild K with the point-to-point formula only
+    dR = ((rod.residual(X + 1e-6 * v, pairs) - rod.residual(X - 1e-6 * v, pairs)) / 2e-6).ravel()
     nodes = rod._nodes(out)
     dof = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), -1)
-    Kb = np.zeros_like(K)
     eps, mu = k.eps, k.mu
-    Nm = fe.lagrange(p, out["xi"])[0]
+    Nm, dNm, d2Nm = fe.lagrange(p, out["xi"])
+    xm = X[rod.conn[out["active"][:, 1]]]
+    t, r2 = np.einsum("na,nad->nd", dNm, xm), np.einsum("na,nad->nd", d2Nm, xm)
     Nt = np.concatenate([k.Nq[out["qp"]], -Nm], axis=1)
     nu = out["normal"]
     dd = out["gap"][out["active"][:, 0], out["qp"]]
     g = 2 * eps - dd
-    wJ = k.wq[out["qp"]] * k.h / 2 * mu
+    D = g[:, None] * nu
+    wJmu = k.wq[out["qp"]] * k.h / 2 * mu
     A3 = (2 * eps / g)[:, None, None] * nu[:, :, None] * nu[:, None, :] - (dd / g)[:, None, None] * np.eye(3)
-    mat = np.einsum("na,nb,nij->naibj", Nt, Nt, A3 * wJ[:, None, None]).reshape(len(nodes), dof.shape[1], -1)
-    np.add.at(Kb, (dof[:, :, None], dof[:, None, :]), mat)
-    assert rel(K @ v.ravel(), dR.ravel()) < 1e-5
-    assert rel(Kb @ v.ravel(), dR.ravel()) > 1e-3
+    Kpp = np.einsum("na,nb,nij->naibj", Nt, Nt, A3 * wJmu[:, None, None])
+    c = np.concatenate([-k.Nq[out["qp"]][:, :, None] * t[:, None, :],
+                        Nm[:, :, None] * t[:, None, :] - dNm[:, :, None] * D[:, None, :]], axis=1)
+    cc = np.einsum("nai,nbj->naibj", c, c)
+    inter = out["interior"].astype(float)
+    assert inter.mean() > 0.7
+
+    def assemble(mat):
+        M = np.zeros_like(K)
+        np.add.at(M, (dof[:, :, None], dof[:, None, :]), mat.reshape(len(nodes), dof.shape[1], -1))
+        return M
+
+    def with_k(kk):
+        fac = inter * wJmu * dd / (g * kk)
+        return assemble(Kpp + fac[:, None, None, None, None] * cc)
+
+    tt = np.einsum("nd,nd->n", t, t)
+    K_doc = with_k(tt - np.einsum("nd,nd->n", D, r2))
+    K_slide = with_k(tt + np.einsum("nd,nd->n", D, r2))
+    K_fixed = assemble(Kpp)
+    assert rel(K_doc, K) < 1e-12
+    assert rel(K @ v.ravel(), dR) < 1e-5
+    assert rel(K_slide @ v.ravel(), dR) > 1e-3
+    assert rel(K_fixed @ v.ravel(), dR) > 1e-3
 
 
 @pytest.mark.parametrize("p", [2, 3])

@@ -100,3 +100,22 @@ def test_two_ranks_match_one_rank_open_and_closed():
         assert par.ok and ser.ok
         assert np.abs(Xp - Xs).max() < 1e-9
         assert [h["newton_iterations"] for h in par.history] == [h["newton_iterations"] for h in ser.history]
+
+
+@pytest.mark.mpi
+def test_michell_twisted_ring_loses_stability_at_sqrt3_B_over_C():
+    """A ring of a naturally straight isotropic rod (nu = 0: B/C = 1) with excess twist T turns
+    is a stable circle for T < sqrt(3) = 1.7321 and an unstable one beyond (negative
+    eigenvalues of the energy Hessian: the writhing modes)."""
+    from rodsnes.stability import negative_eigenvalues
+    counts = {}
+    for T in (1.5, 1.70, 1.76, 2.5):
+        run = run_case("michell", load_twist_turns=T, load_steps=4, rod_nelem=16,
+                       rod_imperfection=0 if T != 1.5 else 1e-4)   # perfect ring: sharp threshold
+        assert run.ok
+        counts[T] = negative_eigenvalues(run.problem)
+        if T == 1.5:
+            X = gathered_positions(run)
+            assert np.abs(X[:, 2]).max() < 30 * 1e-4      # circular up to the amplified imperfection
+    assert counts[1.5] == 0 and counts[1.70] == 0
+    assert counts[1.76] >= 1 and counts[2.5] >= 1, counts
