@@ -1,0 +1,59 @@
+"""The command line as a batch user meets it: exit codes, messages, files on disk."""
+import json
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def rodsnes(*args, tmp):
+    env = dict(os.environ)
+    for k in list(env):          # a serial subprocess must not inherit mpirun's rank variables
+        if k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_")):
+            del env[k]
+    return subprocess.run([sys.executable, "-m", "rodsnes", *args, "-output_dir", str(tmp)],
+                          cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
+
+
+def test_misspelled_option_names_the_closest_valid_one(tmp_path):
+    p = rodsnes("-options_file", "cases/rollup.opts", "-rod_lenght", "3", tmp=tmp_path)
+    assert p.returncode == 2
+    assert "unknown option -rod_lenght: did you mean -rod_length?" in p.stderr
+    assert not (tmp_path / "result.h5").exists()
+
+
+def test_negative_radius_is_refused_with_the_option_name(tmp_path):
+    p = rodsnes("-options_file", "cases/rollup.opts", "-rod_radius", "-1", tmp=tmp_path)
+    assert p.returncode == 2 and "-rod_radius" in p.stderr and "> 0" in p.stderr
+
+
+def test_converged_run_writes_summary_and_steps(tmp_path):
+    p = rodsnes("-options_file", "cases/rollup.opts", tmp=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "step    1  load 1.000000" in p.stdout
+    s = json.loads((tmp_path / "summary.json").read_text())
+    for key in ("converged", "load", "energy", "tip_position", "newton_iterations", "load_steps",
+                "wall_time_s", "dofs", "ranks"):
+        assert key in s
+    assert s["converged"] and s["load"] == 1.0 and s["dofs"] == 6 * 25
+    assert np.linalg.norm(s["tip_position"]) < 1e-5
+    with h5py.File(tmp_path / "result.h5", "r") as f:
+        assert sorted(f["steps"]) == ["00000", "00001"]
+        assert f["steps/00001"].attrs["load"] == 1.0
+        assert f["steps/00001/directors"].shape == (25, 3, 3)
+
+
+def test_failed_load_path_keeps_the_last_converged_step(tmp_path):
+    # two Newton iterations are not enough for lambda = 10 in one step, even after one cut-back
+    p = rodsnes("-options_file", "cases/mattiasson.opts", "-load_steps", "4", "-snes_max_it", "3",
+                "-load_max_cutbacks", "1", tmp=tmp_path)
+    assert p.returncode == 3
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["converged"] is False and "failure" in s
+    with h5py.File(tmp_path / "result.h5", "r") as f:
+        last = f.attrs["last_step"]
+        assert f[f"steps/{last:05d}"].attrs["load"] == s["load"] < 1.0
