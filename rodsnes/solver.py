@@ -116,7 +116,7 @@ class NewtonSolver:
 
         on_step(result) is called after every converged step (write output there)."""
         p = self.problem
-        nominal = (1.0 - lam0) / steps
+        nominal = 1.0 / steps      # the same load grid when a run is restarted from lam0
         lam, dlam = lam0, nominal
         cutbacks = 0
         results = []
