@@ -7,7 +7,7 @@ frictionless self contact", slides "Gap function", "Closest point", "Penalized e
     I(s)  = { sigma in [0, L] : dist(s, sigma) >= delta }                        (exclusion set)
             dist = |s - sigma| (open rod),  min(|s - sigma|, L - |s - sigma|) (closed rod)
     E_c   = (mu/2) int_0^L <d(s)>^2 ds,     <x> = max(x, 0)                      (penalty energy)
-    f_c   = mu <d(s)> nu(s),  nu = (r(s) - r(sbar)) / |r(s) - r(sbar)|           (line force on s)
+    f_c   = mu <d(s)> nu(s),  nu = (r(s) - r(sbar)) / |r(s) - r(sbar)|           (slave line force)
 
 Discretisation.  Lagrange elements of order p (rodsnes.fe): element e spans s in [e h, (e+1) h],
 h = L / nelem, s = e h + (xi + 1) h / 2, with nodes x_e (p+1, 3).  The slave points are the nqc
@@ -22,7 +22,9 @@ minimise phi(xi) = |x_m(xi) - r(s)|^2 / 2 by a safeguarded Newton iteration (sta
 discrete local minimum of 4p+1 equispaced samples; steps limited to one sample spacing; clamped to
 the slot; backtracking on phi), vectorised over all (slave point, candidate, slot, start).  The
 global minimum over candidates is kept; a closest point shared by two elements (a node) is thus
-counted once.
+counted once.  Before projecting, slots are pruned exactly: a slot whose element's bounding
+sphere is farther from the slave point than an admissible slot end of another candidate cannot
+hold the minimum.  Cost: O(#pairs * nqc) vectorised work, no Python loop over elements or points.
 
 Bounding spheres (``element_bounds``).  For a Lagrange curve r(xi) the sampled points r(xi_j)
 (spacing Dxi) lie in a ball B(c, R_s); linear interpolation between samples stays in it
@@ -61,6 +63,9 @@ Formulas used (per slave Gauss point in contact, d > 0; "x" = the 2(p+1) nodal p
   exclusion boundary) xibar is fixed and the last term is absent (point-to-point distance).  If
   k <= 0 (degenerate projection: the slave point at a centre of curvature of the master curve) the
   last term is also dropped.  Since E_c uses <d>^2, energy and residual are C^1 / C^0 across d = 0.
+  E_c is not C^2 where the closest point jumps between candidates or where a slave point crosses
+  the exclusion boundary; a closest point that lands exactly on a node where the curve is smooth
+  (C^1) is treated as a bound (measure-zero set; the interior formula applies a hair away).
 
 Sign conventions of the outputs: ``vec`` is dE_c/dx (the residual, i.e. minus the contact force on
 the nodes); the caller adds both the slave and the master block (node ids may repeat when the two
@@ -92,19 +97,23 @@ def default_exclusion(eps):
 
 
 def default_penalty(EI, eps, penetration=0.01):
-    """mu = EI / (2 * penetration * eps^4) = 50 EI / eps^4 for 1 % penetration of the diameter 2 eps.
+    """mu = EI / (4 * penetration * eps^4) = 25 EI / eps^4 for 1 % penetration of the diameter 2 eps.
 
-    Estimate of a typical tight-contact line force: the line force balances the shear force
-    gradient, f = |n'| ~ |m''| = EI |kappa''|.  In a tight contact (plectoneme strands, a loop
-    pulled tight, a rod wrapped on itself) the curvature changes by O(1/eps) over an arclength
-    O(eps) (the contact zone cannot be shorter than the exclusion length pi eps), so
-    f ~ EI / eps^3.  The penalty law f_c = mu <d> then gives a penetration d = f / mu; asking
-    d = penetration * 2 eps yields mu = EI / (2 penetration eps^4).  The contact stiffness per
-    unit length, mu, is then ~50x the bending stiffness of a rod piece of length eps (EI / eps^4):
-    stiff enough to be accurate, soft enough to keep Newton's linear systems well conditioned.
-    Raise it (smaller ``penetration``) for lower-tension, longer contacts where f << EI/eps^3.
+    Typical tight-contact line force: m' + r' x n = 0 gives |n_perp| ~ |m'| and the line force
+    balances the shear-force gradient, f = |n'| ~ |m''| = EI |kappa''|.  In a tight contact
+    (plectoneme strands, a loop pulled tight, a rod wrapped on itself) the curvature changes by
+    O(1/eps) over an arclength O(eps) (a contact zone is not shorter than the exclusion length
+    pi eps), so f ~ EI / eps^3.
+    Penalty law: the slave point s carries f_c = mu <d>, and, E_c being an integral over all of
+    [0, L], the strand it touches is itself slave of s's strand with the same penetration; so each
+    strand of a two-sided contact receives a line force 2 mu d (checked in the tests on two
+    parallel segments).  Asking f = 2 mu d with d = penetration * 2 eps gives
+    mu = EI / (4 penetration eps^4).  The contact stiffness per unit length, 2 mu = 50 EI/eps^4,
+    is 50x the bending stiffness EI/eps^4 of a rod piece of length eps: stiff enough to be
+    accurate, soft enough for well-conditioned Newton systems.  This is an order-of-magnitude
+    estimate: long, gently loaded contacts (f << EI/eps^3) penetrate less, very tight knots more.
     """
-    return float(EI) / (2.0 * float(penetration) * float(eps) ** 4)
+    return float(EI) / (4.0 * float(penetration) * float(eps) ** 4)
 
 
 # --------------------------------------------------------------------------------------------
@@ -399,7 +408,8 @@ class ContactKernel:
           gap     (no, nqc)  d = 2 eps - (distance to the closest admissible point on the
                   candidate elements); -inf where the point has no candidate (then the true gap is
                   < 2 eps - reach).  Exact wherever d >= 2 eps - reach.
-          force   (no, nqc)  f_c = mu <d>
+          force   (no, nqc)  f_c = mu <d> (the slave side only: in a two-sided contact,
+                  where the master strand is slave in turn, each strand gets 2 mu d)
           sbar    (no, nqc)  arclength of the closest point (NaN where none)
           active  (nact, 2)  (own element id, element id holding the closest point), d > 0
           vec     (nact, 2(p+1), 3)  dE_c/dx for the nodes of [own element, closest element]

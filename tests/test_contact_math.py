@@ -147,9 +147,10 @@ def test_default_parameters():
     assert C.default_exclusion(0.2) == pytest.approx(0.2 * np.pi)
     EI, eps = 3.0, 0.05
     mu = C.default_penalty(EI, eps)
-    assert mu == pytest.approx(50 * EI / eps ** 4)
-    # the typical tight-contact line force EI/eps^3 penetrates 1 % of the diameter
-    assert (EI / eps ** 3) / mu == pytest.approx(0.01 * 2 * eps)
+    assert mu == pytest.approx(25 * EI / eps ** 4)
+    # the typical tight-contact line force EI/eps^3, carried as 2 mu d in a two-sided contact
+    # (see test_gap_parallel_segments), penetrates 1 % of the diameter
+    assert (EI / eps ** 3) / (2 * mu) == pytest.approx(0.01 * 2 * eps)
 
 
 # ------------------------------------------------------------------------------------------
@@ -172,8 +173,13 @@ def test_gap_parallel_segments(p):
     m = np.abs(xB) < 0.8
     assert np.allclose(out["gap"][eB][m], 2 * EPS - a, atol=1e-12)
     assert np.allclose(out["sbar"][eB][m], xB[m] + 1.0, atol=1e-12)  # A: s = x + 1
-    # energy = mu/2 (2 eps - a)^2 * (length of A + overlapping length of B)
-    assert out["energy"] > 0
+    # line force of a two-sided contact = 2 mu d: the vertex node of A at x = 0 (elements 3, 4,
+    # uniformly penetrated, both as slave and as master) carries 2 mu d * (int N_end ds) * 2
+    mu = rod.k.mu
+    R = rod.residual(X, rod.pairs(X))
+    xg, wg = fe.gauss_legendre(p + 1)
+    int_end = 0.25 / 2 * np.sum(wg * fe.lagrange(p, xg)[0][:, 0])
+    assert R[4 * p] == pytest.approx([0.0, 2 * mu * (2 * EPS - a) * 2 * int_end, 0.0], abs=1e-14)
 
 
 @pytest.mark.parametrize("p", [1, 3])
