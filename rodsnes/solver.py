@@ -72,7 +72,7 @@ class NewtonSolver:
         self.total_its = 0
 
     def _converged(self, snes, it, norms):
-        """|F| <= max(atol, roundoff floor) -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
+        """|F| <= atol, or |F| <= roundoff floor once Newton stagnates -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
         CONVERGED_FNORM_RELATIVE (relative to the problem's force scale, not to |F_0|, which the
         load-step predictor can inflate by orders of magnitude); NaN, blow-up beyond 1e12 |F_0|, or max_it -> diverged."""
         fnorm = norms[2]
@@ -81,8 +81,15 @@ class NewtonSolver:
             return R.DIVERGED_FNORM_NAN
         if it == 0:
             self.f0 = fnorm
+            self.fprev = np.inf
         atol, rtol, _, maxit = snes.getTolerances()
-        if fnorm <= max(atol, self.floor):
+        fprev, self.fprev = self.fprev, fnorm
+        if fnorm <= atol:
+            return R.CONVERGED_FNORM_ABS
+        # below the roundoff floor, accept only once Newton has stopped gaining (|F| no longer
+        # falls tenfold): an iterate that merely crossed the floor on its way down is not yet
+        # the most accurate state the arithmetic allows
+        if fnorm <= self.floor and (fnorm > 0.1 * fprev or fnorm <= 1e-3 * self.floor):
             return R.CONVERGED_FNORM_ABS
         if it > 0 and fnorm <= rtol * self.force_scale:
             return R.CONVERGED_FNORM_RELATIVE
