@@ -119,3 +119,29 @@ def test_michell_twisted_ring_loses_stability_at_sqrt3_B_over_C():
             assert np.abs(X[:, 2]).max() < 30 * 1e-4      # circular up to the amplified imperfection
     assert counts[1.5] == 0 and counts[1.70] == 0
     assert counts[1.76] >= 1 and counts[2.5] >= 1, counts
+
+
+def test_loading_then_unloading_returns_to_the_start():
+    """Path independence: load the cantilever to lambda = 10, unload to 0: back to the initial
+    configuration (positions and rotations) within solver tolerance."""
+    run = run_case("mattiasson", load_steps=5)
+    assert run.ok
+    for lam in (0.75, 0.5, 0.25, 0.0):
+        assert run.solver.solve_at(lam).converged
+    fields = run.problem.owned_fields()
+    X = run.layout.allgather_nodes(fields["positions"])
+    R = run.layout.allgather_nodes(fields["directors"])
+    from rodsnes import so3
+    R0 = so3.rot(run.mesh.q_init)
+    assert np.abs(X - run.mesh.x_init).max() < 1e-9
+    assert np.abs(R - R0).max() < 1e-9
+
+
+@pytest.mark.mpi
+def test_iterative_solver_setup_reaches_the_same_equilibrium():
+    from conftest import ROOT, read_opts_file
+    it_opts = {k: v for k, v in read_opts_file(ROOT + "/options/iterative.opts")}
+    lu = run_case("mattiasson", load_steps=5)
+    it = run_case("mattiasson", load_steps=5, **it_opts)
+    assert lu.ok and it.ok
+    assert np.abs(gathered_positions(lu) - gathered_positions(it)).max() < 1e-8
