@@ -168,6 +168,10 @@ class RodProblem:
         self.lconn = lconn
         self.stats = {}
         self._e0_nodes = None
+        # further terms with add_residual(r, q, Floc), add_jacobian(r, q, P), energy(r, q) on
+        # local (owned + ghost) nodes; P is the global matrix (add with ADD_VALUES, before
+        # assembly).  Used by regularisations such as the relaxation of relax.py.
+        self.extra_terms = []
 
     # -- load factor ------------------------------------------------------------------
     def set_load(self, lam):
@@ -188,6 +192,8 @@ class RodProblem:
         self.loads.add_residual(self.lam, r, q, Floc)
         if self.contact is not None:
             self.contact.add_residual(r, Floc)
+        for term in self.extra_terms:
+            term.add_residual(r, q, Floc)
         F.set(0.0)
         self.layout.add_to_global(Floc, F)
         xa = X.getArray(readonly=True)
@@ -207,6 +213,8 @@ class RodProblem:
             P.setValuesBlocked([lg[i]], [lg[j]], B, addv=PETSc.InsertMode.ADD)
         if self.contact is not None:
             self.contact.add_jacobian(r, P)
+        for term in self.extra_terms:
+            term.add_jacobian(r, q, P)
         P.assemble()
         P.zeroRowsColumns(self.constraints.is_rows, 1.0)
         if J != P:
@@ -223,6 +231,8 @@ class RodProblem:
         E += self.loads.potential(self.lam, r)
         if self.contact is not None:
             E += self.contact.energy(r)
+        for term in self.extra_terms:
+            E += term.energy(r, q)
         return self.layout.comm.tompi4py().allreduce(E)
 
     def owned_fields(self):
