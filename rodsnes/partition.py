@@ -119,16 +119,24 @@ class Layout:
         return d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)
 
     def create_matrix(self, extra_pairs=None):
-        d_nnz, o_nnz = self.block_pattern(extra_pairs)
+        """MPIBAIJ (block size 6; -mat_type overrides) preallocated for the element coupling
+        and the extra node groups."""
         J = PETSc.Mat().create(comm=self.comm)
         J.setSizes(((NDOF * self.n_owned, NDOF * self.n_global),) * 2, bsize=NDOF)
         J.setType(PETSc.Mat.Type.BAIJ)
         J.setBlockSize(NDOF)
+        J.setFromOptions()
+        self.preallocate(J, extra_pairs)
+        return J
+
+    def preallocate(self, J, extra_pairs=None):
+        """(Re)preallocate J in place for the element coupling + extra node groups; values are
+        discarded.  New entries beyond the pattern are still accepted (a counted malloc)."""
+        d_nnz, o_nnz = self.block_pattern(extra_pairs)
         J.setPreallocationNNZ((d_nnz, o_nnz))
         J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
-        J.setFromOptions()
         J.setUp()
-        return J
+        self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(d_nnz.sum() + o_nnz.sum())))
 
     def gather_nodes(self, owned_values, root=0):
         """Natural-ordered (n, ...) array of per-owned-node values on ``root`` (None elsewhere)."""

@@ -172,16 +172,36 @@ class RodProblem:
         # local (owned + ghost) nodes; P is the global matrix (add with ADD_VALUES, before
         # assembly).  Used by regularisations such as the relaxation of relax.py.
         self.extra_terms = []
+        self.on_pattern_change = None
+        self.step_limit = contact.step_limit if contact is not None else 0.0
 
     # -- load factor ------------------------------------------------------------------
     def set_load(self, lam):
         """Set lambda: prescribed motions into the state, intrinsic twist ramp into e0."""
         self.lam = float(lam)
         self.constraints.apply(self.lam, self.state)
+        if self.contact is not None:
+            self.refresh_pattern()
         if self.load_twist:
             e0 = self.e0_base.copy()
             e0[..., 5] -= self.lam * 2 * np.pi * self.load_twist / self.mesh.length
             self.elastic.set_reference(e0)
+
+    def refresh_pattern(self):
+        """Preallocate the Jacobian for the contact candidates of the current state (within a
+        margin wider than any Newton step is expected to move), when they changed."""
+        r, _ = self.state.local_config()
+        groups = self.contact.extra_pattern(r)
+        key = None if groups is None else np.unique(np.sort(groups, axis=1), axis=0)
+        old = getattr(self, "_pattern_key", None)
+        same = (key is None and old is None) or (key is not None and old is not None
+                                                  and key.shape == old.shape and np.array_equal(key, old))
+        if not same:
+            self.layout.preallocate(self.J, groups)
+            self._pattern_key = key
+            if self.on_pattern_change is not None:   # the factorisation must be redone
+                self.on_pattern_change()
+            self.stats["pattern_refreshes"] = self.stats.get("pattern_refreshes", 0) + 1
 
     # -- SNES callbacks ---------------------------------------------------------------
     def residual(self, snes, X, F):
@@ -219,6 +239,23 @@ class RodProblem:
         P.zeroRowsColumns(self.constraints.is_rows, 1.0)
         if J != P:
             J.assemble()
+
+    def precheck(self, X, Y):
+        """Line-search pre-check: scale the Newton step so that no node moves by more than
+        ``step_limit`` (length units; contact scenes: half the contact radius, so one step
+        cannot carry a strand through another before the penalty sees it).  Returns True when
+        the step was changed.  The scaling keeps the direction, so near the solution (small
+        steps) Newton is untouched and converges quadratically."""
+        if not self.step_limit:
+            return False
+        y = Y.getArray(readonly=True).reshape(-1, NDOF)
+        move = float(np.sqrt((y[:, 0:3] ** 2).sum(axis=1)).max()) if len(y) else 0.0
+        move = self.layout.comm.tompi4py().allreduce(move, op=__import__("mpi4py").MPI.MAX)
+        if move <= self.step_limit:
+            return False
+        Y.scale(self.step_limit / move)
+        self.stats["limited_steps"] = self.stats.get("limited_steps", 0) + 1
+        return True
 
     def update(self, snes, its):
         self.state.recentre()

@@ -36,6 +36,10 @@ class Run:
         self.force_scale = (max(rod.EI1, rod.EI2) / L**2 + np.linalg.norm(ld.end_force)
                             + np.linalg.norm(ld.end_moment) / L + np.linalg.norm(ld.gravity) * L)
         self.solver = NewtonSolver(self.problem, self.force_scale, check_stability=scene.stability)
+        # a new Jacobian pattern (contact candidates) invalidates the symbolic factorisation
+        self.problem.on_pattern_change = lambda: self.solver.snes.getKSP().reset()
+        if self.problem.step_limit:
+            self.solver.snes.setLineSearchPreCheck(lambda X, Y: self.problem.precheck(X, Y))
         self.outdir = scene.output.dir
         self.quiet = scene.output.quiet
         self.step = 0
@@ -89,13 +93,42 @@ class Run:
             attrs["negative_eigenvalues"] = res.negative_eigenvalues
         qp = {}
         if self.contact is not None:
-            attrs.update(self.contact.summary())
+            r_loc, _ = p.state.local_config()
+            self.contact.evaluate(r_loc, tangent=False)
+            self.last_contact = self.contact.summary()
+            attrs.update({"contact_" + k: v for k, v in self.last_contact.items()})
             qp = self.contact.qp_fields()
+        topo = self._topology(fields)
+        if topo is not None:
+            attrs.update(topo)
+            self.last_topology = topo
         self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
                                qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
         self.last_fields = fields
         self.last_energy = energy
         return energy
+
+    def _topology(self, fields):
+        """Link, twist, writhe (topology.py) for rings and for open rods whose both ends are
+        held in orientation (clamped or sliding: closure at infinity along the end axis)."""
+        bc = self.scene.bc
+        if not (self.mesh.closed or (bc.start == "clamped" and bc.end in ("clamped", "sliding"))):
+            return None
+        X = self.layout.gather_nodes(fields["positions"])
+        D = self.layout.gather_nodes(fields["directors"][:, :, 0])
+        topo = None
+        if self.rank == 0:
+            from . import topology
+            axis = None
+            if not self.mesh.closed:
+                axis = X[-1] - X[0]
+                axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else None
+            try:
+                t = topology.topology(X, D, self.mesh.closed, axis=axis)
+                topo = {"link": float(t["link"]), "twist": float(t["twist"]), "writhe": float(t["writhe"])}
+            except ValueError as err:          # degenerate geometry: report, do not stop the run
+                topo = {"link": np.nan, "twist": np.nan, "writhe": np.nan, "topology_error": str(err)}
+        return self.mpi.bcast(topo, root=0)
 
     def summary(self, converged, failed_reason=None):
         s = {"case": self.scene.output.case_name, "converged": bool(converged),
@@ -109,7 +142,11 @@ class Run:
         if failed_reason is not None:
             s["failure"] = failed_reason
         if self.contact is not None:
-            s["contact"] = self.contact.summary()
+            s["contact"] = self.last_contact
+            s["contact"]["sf_builds"] = self.contact.sf_builds
+            s["contact"]["pattern_refreshes"] = self.problem.stats.get("pattern_refreshes", 0)
+        if getattr(self, "last_topology", None) is not None:
+            s["topology"] = self.last_topology
         return s
 
     def _log(self, res, energy):
@@ -138,6 +175,8 @@ class Run:
             output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
 
         def on_fail(res, dlam):
+            if res.reason == -100:       # a PETSc error inside the solve: start the KSP afresh
+                self.solver.snes.getKSP().reset()
             if not self.quiet and self.rank == 0:
                 why = ("it lands on a less stable equilibrium" if res.reason == "stability"
                        else f"SNES reason {res.reason}, {res.its} its")

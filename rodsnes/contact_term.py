@@ -1,0 +1,187 @@
+"""Self-contact as a term of the parallel problem: search, halo exchange through a PETSc star
+forest, assembly (DESIGN.md: "partition.py and problem.py own all communication"; this module is
+the contact part of that communication around the pure kernel of contact.py).
+
+Per evaluation (residual or Jacobian), on every rank:
+  1. bounding spheres of the owned elements (contact.element_bounds), allgathered (4 doubles
+     per element: the only global exchange, O(N));
+  2. candidate pairs (owned element, any element) from a cKDTree (contact.candidate_pairs),
+     reach = 2 eps + margin;
+  3. the nodes of the candidate master elements are fetched from their owners through a PetscSF
+     (leaves = needed nodes, roots = owned nodes); the SF is rebuilt only when that node set
+     changes;
+  4. the kernel evaluates gap, closest points, energy, residual and tangent on owned slave points;
+  5. slave-side residual goes into the owned/ghost rows; master-side residual is sent back to
+     the owners through the same SF (reduce with MPI.SUM); tangent blocks go straight into the
+     global matrix (MatSetValuesBlocked with off-process rows, communicated at assembly).
+The Jacobian's block pattern is extended by the candidate pairs found with a wider margin at the
+start of every load step (RodProblem.refresh_pattern), so new contacts inside a step find their
+entries preallocated; one that appears beyond the margin still gets a (counted) malloc, never a
+lost entry.
+"""
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from . import contact as ck
+from .partition import NDOF
+
+
+class ContactTerm:
+    def __init__(self, scene, mesh, layout):
+        rod, c = scene.rod, scene.contact
+        self.mesh, self.layout = mesh, layout
+        self.comm = layout.comm.tompi4py()
+        self.eps = float(c.radius if c.radius is not None else rod.radius)
+        self.delta = float(c.exclusion if c.exclusion is not None else ck.default_exclusion(self.eps))
+        self.mu = float(c.penalty if c.penalty is not None else ck.default_penalty(min(rod.EI1, rod.EI2), self.eps))
+        self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
+        self.p = rod.order
+        self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
+                                       mesh.length, mesh.nelem, mesh.closed)
+        self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
+        self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
+        self.pattern_reach = 2.0 * self.eps + 4.0 * self.eps + mesh.h   # preallocation margin per step
+        self.own_ids = layout.owned_elems
+        self.lconn = layout.lconn
+        self.unit = MPI.DOUBLE.Create_contiguous(3).Commit()
+        self.sf = None
+        self.leaf_nodes = None
+        self.last = None
+        self.last_min_gap = np.nan
+        self.sf_builds = 0
+
+    # -- communication ----------------------------------------------------------------
+    def _pairs(self, r_loc, reach):
+        x_own = r_loc[self.lconn]
+        cen, rad = ck.element_bounds(x_own)
+        ids = self.comm.allgather(self.own_ids)
+        cens = self.comm.allgather(cen)
+        rads = self.comm.allgather(rad)
+        all_ids = np.concatenate(ids)
+        pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, np.concatenate(cens),
+                                   np.concatenate(rads), reach, self.mesh.length, self.mesh.h,
+                                   self.mesh.closed, self.delta)
+        return x_own, pairs
+
+    def _ensure_sf(self, nodes):
+        """PetscSF from the owners of ``nodes`` (natural ids, sorted) to this rank's leaves."""
+        if self.leaf_nodes is not None and np.array_equal(nodes, self.leaf_nodes):
+            return
+        lay = self.layout
+        owner = lay.node_owner[nodes]
+        remote = np.empty(2 * len(nodes), dtype=PETSc.IntType)
+        remote[0::2] = owner
+        remote[1::2] = lay.nat2petsc[nodes] - lay.starts[owner]
+        if self.sf is not None:
+            self.sf.destroy()
+        sf = PETSc.SF().create(comm=lay.comm)
+        sf.setGraph(lay.n_owned, None, remote)
+        sf.setFromOptions()
+        sf.setUp()
+        self.sf, self.leaf_nodes = sf, nodes.copy()
+        self.sf_builds += 1
+
+    def _fetch(self, r_loc, nodes):
+        self._ensure_sf(nodes)
+        root = np.ascontiguousarray(r_loc[:self.layout.n_owned], dtype=float)
+        leaf = np.zeros((len(nodes), 3))
+        self.sf.bcastBegin(self.unit, root, leaf, MPI.REPLACE)
+        self.sf.bcastEnd(self.unit, root, leaf, MPI.REPLACE)
+        return leaf
+
+    def _send_back(self, leaf_force):
+        root = np.zeros((self.layout.n_owned, 3))
+        leaf = np.ascontiguousarray(leaf_force, dtype=float)
+        self.sf.reduceBegin(self.unit, leaf, root, MPI.SUM)
+        self.sf.reduceEnd(self.unit, leaf, root, MPI.SUM)
+        return root
+
+    # -- evaluation -------------------------------------------------------------------
+    def evaluate(self, r_loc, tangent):
+        m = self.mesh
+        x_own, pairs = self._pairs(r_loc, self.reach)
+        other = np.unique(pairs[:, 1]) if len(pairs) else np.zeros(0, dtype=np.int64)
+        other_nodes = ck.element_node_ids(other, m.order, m.nelem, m.closed)
+        nodes = np.unique(other_nodes)
+        # every rank takes part in the SF collectives, even with nothing to fetch
+        leaf = self._fetch(r_loc, nodes)
+        x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, m.order + 1, 3))
+        out = self.kernel.evaluate(self.own_ids, x_own, other, x_other, pairs, tangent=tangent)
+        out["nodes"] = nodes
+        self.last = out
+        return out
+
+    def add_residual(self, r_loc, Floc):
+        out = self.evaluate(r_loc, tangent=False)
+        n1 = self.p + 1
+        act = out["active"]
+        leaf_force = np.zeros((len(out["nodes"]), 3))
+        if len(act):
+            own_index = np.searchsorted(self.own_ids, act[:, 0])
+            np.add.at(Floc[:, 0:3], self.lconn[own_index], out["vec"][:, :n1])
+            m = self.mesh
+            master_nodes = ck.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
+            np.add.at(leaf_force, np.searchsorted(out["nodes"], master_nodes), out["vec"][:, n1:])
+        Floc[:self.layout.n_owned, 0:3] += self._send_back(leaf_force)
+
+    def add_jacobian(self, r_loc, P):
+        out = self.evaluate(r_loc, tangent=True)
+        act = out["active"]
+        if not len(act):
+            return
+        m, lay = self.mesh, self.layout
+        slave = ck.element_node_ids(act[:, 0], m.order, m.nelem, m.closed)
+        master = ck.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
+        rows = lay.nat2petsc[np.concatenate([slave, master], axis=1)].astype(PETSc.IntType)
+        k = rows.shape[1]
+        K3 = out["mat"].reshape(len(act), k, 3, k, 3)
+        K6 = np.zeros((len(act), k, NDOF, k, NDOF))
+        K6[:, :, 0:3, :, 0:3] = K3
+        P.setValuesBlockedRCV(rows, rows, K6.reshape(len(act), k * NDOF, k * NDOF),
+                              addv=PETSc.InsertMode.ADD)
+
+    def energy(self, r_loc):
+        return self.evaluate(r_loc, tangent=False)["energy"]
+
+    def extra_pattern(self, r_loc=None):
+        """Natural node groups (npair, 2(p+1)) coupled by candidate pairs within the
+        preallocation margin, from all ranks (every rank needs the rows it owns)."""
+        m = self.mesh
+        if r_loc is None:
+            r_loc = m.x_init[self.layout.local_nodes]
+        _, pairs = self._pairs(r_loc, self.pattern_reach)
+        pairs = np.concatenate(self.comm.allgather(pairs))
+        if not len(pairs):
+            return None
+        return np.concatenate([ck.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
+                               ck.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
+
+    # -- the KKT picture ----------------------------------------------------------------
+    def summary(self):
+        """The KKT picture over all ranks, from the last evaluation (the converged state):
+        min_gap = min_s (|r(s) - r(sbar)| - 2 eps) (negative: penetration), max_penetration =
+        max <d> / (2 eps), total_force = int f_c ds, active_points = #{d > 0},
+        complementarity = int <d> f_c ds (zero for exact contact; the penalty makes it ~1/mu)."""
+        out = self.last
+        gap = out["gap"]
+        wJ = self.kernel.wq * (0.5 * self.mesh.h)
+        d = np.maximum(gap, 0.0)
+        f = out["force"]
+        loc = np.array([np.sum(f * wJ), np.sum(d * f * wJ), np.count_nonzero(gap > 0)], dtype=float)
+        tot = self.comm.allreduce(loc)
+        dmax = self.comm.allreduce(float(gap.max()) if gap.size else -np.inf, op=MPI.MAX)
+        self.last_min_gap = -dmax
+        return {"min_gap": float(-dmax), "max_penetration": float(max(dmax, 0.0) / (2 * self.eps)),
+                "total_force": float(tot[0]), "complementarity": float(tot[1]),
+                "active_points": int(tot[2]), "penalty": self.mu, "radius": self.eps,
+                "exclusion": self.delta}
+
+    def qp_fields(self):
+        out = self.last
+        ids = (self.own_ids[:, None] * self.nqc + np.arange(self.nqc)[None, :]).ravel()
+        s = self.kernel.slave_arclength(self.own_ids).ravel()
+        gap = out["gap"].ravel()
+        return {"ids": ids, "n": self.mesh.nelem * self.nqc,
+                "fields": {"qp_s": s, "gap": np.where(np.isfinite(gap), gap, -1e300),
+                           "contact_force": out["force"].ravel()}}
