@@ -49,6 +49,7 @@ class ContactTerm:
         self.leaf_nodes = None
         self.last = None
         self.last_min_gap = np.nan
+        self.near_local = np.zeros(0, dtype=np.int64)
         self.sf_builds = 0
 
     # -- communication ----------------------------------------------------------------
@@ -109,6 +110,11 @@ class ContactTerm:
         x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, m.order + 1, 3))
         out = self.kernel.evaluate(self.own_ids, x_own, other, x_other, pairs, tangent=tangent)
         out["nodes"] = nodes
+        # owned nodes of elements within one contact radius of touching something (gap > -eps):
+        # the step limiter watches them
+        close = np.flatnonzero(out["gap"].max(axis=1) > -self.eps) if len(self.own_ids) else []
+        near = np.unique(self.lconn[close]) if len(close) else np.zeros(0, dtype=np.int64)
+        self.near_local = near[near < self.layout.n_owned]
         self.last = out
         return out
 

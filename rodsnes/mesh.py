@@ -15,7 +15,7 @@ Shapes (all start at the origin):
             with kappa = a/w^2, tau = b/w^2.
 Imperfection A: the first buckling mode of the supports, along d1 for open rods:
 A (1 - cos(pi s/2L)) for a clamped-free rod (cantilever column), A (1 - cos(2 pi s/L))/2 for
-clamped-clamped, A sin(pi s/L) otherwise; closed rods r += A sin(4 pi s/L) d2 (the out-of-plane
+clamped-clamped or clamped-sliding, A sin(pi s/L) otherwise; closed rods r += A sin(4 pi s/L) d2 (the out-of-plane
 two-wave mode in which a twisted ring writhes).  Frames follow the perturbed tangent by the
 smallest rotation.
 Initial twist T turns: R_init(s) = R_ref(s) Rot_d3(2 pi T s / L) (right-handed about d3).
@@ -94,7 +94,7 @@ def _imperfection_mode(rod, bc, s):
         if ends[0] == "free":
             f, df = 1 - np.cos(k * (L - s)), -k * np.sin(k * (L - s))
         return f, df
-    if ends == ("clamped", "clamped"):
+    if ends in (("clamped", "clamped"), ("clamped", "sliding")):
         k = 2 * np.pi / L
         return (1 - np.cos(k * s)) / 2, k * np.sin(k * s) / 2
     k = np.pi / L

@@ -102,7 +102,8 @@ class Constraints:
                     t = so3.rot(q_init[node])[:, 2]
                     axis = int(np.argmax(np.abs(t)))
                     if abs(abs(t[axis]) - 1.0) > 1e-10:
-                        raise ValueError("-bc_end sliding: the end tangent must lie along a coordinate "
+                        from .scene import SceneError
+                        raise SceneError("-bc_end sliding: the end tangent must lie along a coordinate "
                                          f"axis (it is {t}); use -bc_end clamped or a straight rod")
                     fixed += [(node, c) for c in range(3) if c != axis]
             if bc.start == "clamped":
@@ -241,14 +242,15 @@ class RodProblem:
             J.assemble()
 
     def precheck(self, X, Y):
-        """Line-search pre-check: scale the Newton step so that no node moves by more than
-        ``step_limit`` (length units; contact scenes: half the contact radius, so one step
-        cannot carry a strand through another before the penalty sees it).  Returns True when
-        the step was changed.  The scaling keeps the direction, so near the solution (small
-        steps) Newton is untouched and converges quadratically."""
+        """Line-search pre-check: scale the Newton step so that no node near a possible contact
+        (a node of an element with contact candidates) moves by more than ``step_limit``
+        (contact scenes: half the contact radius, so one step cannot carry a strand through
+        another before the penalty sees it).  Returns True when the step was changed.  The
+        scaling keeps the direction; far from contact, and near the solution (small steps),
+        Newton is untouched and converges quadratically."""
         if not self.step_limit:
             return False
-        y = Y.getArray(readonly=True).reshape(-1, NDOF)
+        y = Y.getArray(readonly=True).reshape(-1, NDOF)[self.contact.near_local]
         move = float(np.sqrt((y[:, 0:3] ** 2).sum(axis=1)).max()) if len(y) else 0.0
         move = self.layout.comm.tompi4py().allreduce(move, op=__import__("mpi4py").MPI.MAX)
         if move <= self.step_limit:
