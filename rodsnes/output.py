@@ -252,7 +252,8 @@ class ResultWriter:
     append : bool
         False: start a new file (an old result.h5, rod.xdmf/rod.h5 and summary.json are removed).
         True: restart: reopen the existing result.h5 (``n_nodes`` must match), keep steps
-        ``<= last_step``, delete newer (partial) step groups; the next step must be ``last_step + 1``.
+        ``<= last_step``, delete newer (partial) step groups (summary.json is removed, rod.xdmf kept);
+        the next step must be ``last_step + 1``; root attribute ``restarted_after_step`` records it.
     xdmf : bool
         Rewrite ``rod.xdmf``/``rod.h5`` after every step (rank 0; cost grows with the number of steps
         because the whole series is rewritten). With False call :func:`write_xdmf` at the end.
@@ -295,8 +296,8 @@ class ResultWriter:
         attrs["closed"] = bool(attrs["closed"])
         return attrs
 
-    def _remove_stale(self):
-        for name in (SUMMARY_FILE, XDMF_FILE, XDMF_H5):
+    def _remove_stale(self, names=(SUMMARY_FILE, XDMF_FILE, XDMF_H5)):
+        for name in names:
             p = os.path.join(self.outdir, name)
             if os.path.exists(p):
                 os.remove(p)
@@ -328,7 +329,8 @@ class ResultWriter:
             for k, v in self._root_attrs().items():
                 f.attrs[k] = _attr_value(v)
             f.attrs["restarted_after_step"] = last
-        self._remove_stale()
+        # the summary described the earlier process; rod.xdmf holds only steps <= last_step: it stays
+        self._remove_stale((SUMMARY_FILE,))
         return last
 
     # -- validation (collective, consistent on every rank) --
@@ -411,7 +413,7 @@ class ResultWriter:
         owned = np.asarray(owned_nodes, dtype=np.int64).ravel()
         self._check_owned("node", owned, self.n_nodes)
         node_specs = self._specs("node", node_fields, len(owned))
-        absent = [k for k in REQUIRED_NODE_FIELDS if k not in dict((s[0], s) for s in node_specs)]
+        absent = [k for k in REQUIRED_NODE_FIELDS if k not in {s[0] for s in node_specs}]
         if absent:
             raise ValueError(f"write_step: node_fields lack {absent}")
         groups = [("node", owned, self.n_nodes, node_specs, node_fields)]

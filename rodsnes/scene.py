@@ -261,6 +261,15 @@ class O:
     # --- analysis ---------------------------------------------------------------
     stability = Opt(BOOL, False, "report the inertia of the tangent at each converged step",
                     "analysis")
+    stability_switch = Opt(BOOL, True, "with -stability: relax a step that stays unstable onto a "
+                           "stable equilibrium (branch switching; conservative loads only)",
+                           "analysis")
+    stability_perturbation = Opt(REAL, 1e-2, "branch switching: initial push along the lowest "
+                                 "eigenvector, largest nodal displacement / L", "analysis",
+                                 rng="(0,inf)", note="a fraction of the rod length")
+    stability_relax_max_it = Opt(INT, 200, "branch switching: most pseudo-time steps of one "
+                                 "relaxation", "analysis", rng="[1,inf)",
+                                 note="number of relaxation steps")
 
 
 OPTIONS = tuple(v for v in vars(O).values() if isinstance(v, Opt))

@@ -13,6 +13,10 @@ near limit and bifurcation points.  With -stability, every converged step also c
 negative eigenvalues of the energy Hessian (stability.py); a step that arrives at a less stable
 equilibrium than it left is cut back too, so the load path stays on the stable branch (a genuine
 loss of stability that survives all cut-backs is accepted and reported per step).
+Branch switching (-stability_switch, on by default with -stability): such an accepted unstable
+step is pushed along the lowest eigenvector of the energy Hessian (-stability_perturbation x L)
+and relaxed by an energy-decreasing implicit gradient flow (relax.py) onto a stable equilibrium
+at the same load, from which the load path goes on (switch_branch; conservative loads only).
 """
 import time
 
@@ -70,6 +74,18 @@ class NewtonSolver:
         self.check_stability = check_stability
         self.f0 = None
         self.total_its = 0
+        # branch switching (-stability_switch, on by default with -stability): relax an unstable
+        # converged step onto a stable equilibrium (switch_branch, relax.py)
+        self.switch = bool(check_stability) and opts.getBool("stability_switch", True)
+        self.perturbation = opts.getReal("stability_perturbation", 1e-2)
+        self.relax_max_it = opts.getInt("stability_relax_max_it", 200)
+        self.switch_attempts = 3
+        self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
+        self.switch_refused = _nonconservative(problem.scene.loads)
+        self._refusal_shown = False
+        self._switch_failed_nneg = None     # skip new attempts until the instability grows
+        self.switches = []                  # info dict of every attempted switch
+        self.results = []                   # StepResults of the last run()
 
     def _converged(self, snes, it, norms):
         """|F| <= atol, or |F| <= roundoff floor once Newton stagnates -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
@@ -121,12 +137,19 @@ class NewtonSolver:
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None):
         """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
 
-        on_step(result) is called after every converged step (write output there)."""
+        on_step(result) is called after every converged step (write output there).  With
+        -stability and -stability_switch, a step accepted with negative eigenvalues is relaxed
+        onto a stable equilibrium first (switch_branch); its result then has branch_switch =
+        True and the negative eigenvalues counted after the switch, and the next step starts
+        from the new state with the nominal increment (no secant predictor across the switch).
+        A step that fails at every cut-back from a stable state (a fold: no equilibrium nearby)
+        is relaxed at the load of its shortest try instead of ending the run (jump_branch; the
+        result has branch_switch = jump = True)."""
         p = self.problem
         nominal = 1.0 / steps      # the same load grid when a run is restarted from lam0
         lam, dlam = lam0, nominal
         cutbacks = 0
-        results = []
+        results = self.results = []
         prev = None            # (snapshot, lambda) of the previous converged step
         nneg = 0               # negative eigenvalues of the last converged step (-stability)
         while lam < 1.0 - 1e-14:
@@ -134,33 +157,321 @@ class NewtonSolver:
             snap = p.state.snapshot()
             if prev is not None and self.predictor:
                 p.state.predict(prev[0], (target - lam) / (lam - prev[1]))
-            res = self.solve_at(target)
+            res = self.solve_guarded(target)
             if res.converged and self.check_stability:
                 from .stability import negative_eigenvalues
-                res.negative_eigenvalues = negative_eigenvalues(p)
+                res.negative_eigenvalues = self._count_negative(negative_eigenvalues)
                 if (res.negative_eigenvalues > nneg and cutbacks < max_cutbacks
                         and 0.5 * dlam >= min_step):
                     # the step landed on a less stable equilibrium than the one it left: the
                     # path turned near a limit/bifurcation point; retry with a shorter step
                     res.converged = False
                     res.reason = "stability"
-            if res.converged:
-                nneg = getattr(res, "negative_eigenvalues", 0)
-                prev = (snap, lam)
-                lam = target
-                self.total_its += res.its
-                results.append(res)
-                if on_step is not None:
-                    on_step(res)
-                cutbacks = 0
-                dlam = min(nominal, 1.5 * dlam)
-            else:
+            switched = False
+            if res.converged and getattr(res, "negative_eigenvalues", 0) > 0 and self.switch:
+                switched = self._maybe_switch(res)
+            if not res.converged:
                 p.state.restore(snap)
                 p.set_load(lam)
                 cutbacks += 1
                 if on_fail is not None:
                     on_fail(res, dlam)
                 dlam *= 0.5
-                if cutbacks > max_cutbacks or dlam < min_step:
+                if cutbacks <= max_cutbacks and dlam >= min_step:
+                    continue
+                # no equilibrium near the last one, however short the step: a fold of the
+                # (stable) path, where the rod must jump; with switching, relax at the load
+                # of the shortest step tried (jump_branch), else give up
+                res = self._maybe_jump(target) if (self.switch and nneg == 0) else None
+                if res is None:
                     return results, False
+                switched = True
+            nneg = getattr(res, "negative_eigenvalues", 0)
+            prev = None if switched else (snap, lam)
+            lam = target
+            self.total_its += res.its
+            results.append(res)
+            if on_step is not None:
+                on_step(res)
+            cutbacks = 0
+            # after a switch the steps start afresh from the nominal increment
+            dlam = nominal if switched else min(nominal, 1.5 * dlam)
         return results, True
+
+    def solve_guarded(self, lam):
+        """solve_at(lam); after a PETSc error inside the solve (e.g. MUMPS failing in its solve
+        phase after a failed factorisation, reason -100) the linear solver is replaced by a
+        fresh one: the error unwinds past PCPostSolve and would leave the old PC refusing every
+        later solve ("Cannot embed PCPreSolve() more than twice")."""
+        res = self.solve_at(lam)
+        if res.reason == -100:
+            self.reset_linear_solver()
+        return res
+
+    def reset_linear_solver(self):
+        """Give the SNES's KSP a new PC of the same prefix and options (SNES sets its operators
+        again at the next Newton step)."""
+        ksp = self.snes.getKSP()
+        old = ksp.getPC()
+        pc = PETSc.PC().create(comm=ksp.getComm())
+        prefix = old.getOptionsPrefix()
+        if prefix:
+            pc.setOptionsPrefix(prefix)
+        ksp.setPC(pc)
+        ksp.setFromOptions()
+        self.stats_linear_resets = getattr(self, "stats_linear_resets", 0) + 1
+
+    # -- branch switching -------------------------------------------------------------
+    def _count_negative(self, counter):
+        """counter(problem), the same on every rank (max over ranks)."""
+        from mpi4py import MPI
+        return int(self.problem.layout.comm.tompi4py().allreduce(int(counter(self.problem)), op=MPI.MAX))
+
+    def _say(self, text):
+        if not self.quiet and self.problem.layout.comm.getRank() == 0:
+            print(text, flush=True)
+
+    def _maybe_switch(self, res):
+        """Try switch_branch for the accepted step ``res`` (negative eigenvalues > 0); update res.
+        Returns True when the state moved onto a stable equilibrium."""
+        res.branch_switch = False
+        n = res.negative_eigenvalues
+        if self.switch_refused:
+            if not self._refusal_shown:
+                self._say(f"  branch switching refused at load {res.lam:.6f}: {self.switch_refused}; "
+                          "the load path stays on the unstable branch")
+                self._refusal_shown = True
+            return False
+        if self._switch_failed_nneg is not None and n <= self._switch_failed_nneg:
+            return False
+        info = self.switch_branch(res.lam, n)
+        res.switch_info = info
+        self.total_its += info["newton_its"]
+        if info["switched"]:
+            res.branch_switch = True
+            res.negative_eigenvalues = info["negative_after"]
+            res.fnorm = info["fnorm"]
+            res.seconds += info["seconds"]
+            self._switch_failed_nneg = None
+            self._say(f"  branch switch at load {res.lam:.6f}: {n} -> {info['negative_after']} negative "
+                      f"eigenvalues (lowest {info['eigenvalue']:+.3e}, {info['eigen_method']} "
+                      f"{info['dofs']} dofs {info['eigen_seconds']:.2f} s); relaxation "
+                      f"{info['relax_steps']} steps ({info['relax_rejected']} rejected, "
+                      f"{info['newton_its']} Newton its); E {info['energy_before']:+.6e} -> "
+                      f"{info['energy_after']:+.6e}; {info['seconds']:.2f} s")
+            return True
+        self._switch_failed_nneg = n
+        self._say(f"  branch switch at load {res.lam:.6f} FAILED ({info['message']}): the load "
+                  f"path stays on the unstable branch ({n} negative eigenvalues)")
+        return False
+
+    def _maybe_jump(self, lam):
+        """After the load step to lam failed at every cut-back: jump_branch; a StepResult
+        (branch_switch = jump = True) when it found a stable equilibrium at lam, else None."""
+        if self.switch_refused:
+            if not self._refusal_shown:
+                self._say(f"  branch switching refused at load {lam:.6f}: {self.switch_refused}")
+                self._refusal_shown = True
+            return None
+        info = self.jump_branch(lam)
+        if not info["switched"]:
+            self.total_its += info["newton_its"]
+            self._say(f"  jump at load {lam:.6f} FAILED ({info['message']})")
+            return None
+        res = StepResult(lam, True, info["newton_its"], "jump", info["fnorm"], np.array([]),
+                         info["seconds"])
+        res.negative_eigenvalues = info["negative_after"]
+        res.branch_switch = res.jump = True
+        res.switch_info = info
+        self._say(f"  jump at load {lam:.6f} (no equilibrium near the last one: a fold): relaxation "
+                  f"{info['relax_steps']} steps ({info['relax_rejected']} rejected, "
+                  f"{info['newton_its']} Newton its) to a stable equilibrium; E "
+                  f"{info['energy_before']:+.6e} -> {info['energy_after']:+.6e}; {info['seconds']:.2f} s")
+        return res
+
+    def jump_branch(self, lam):
+        """From the last converged state (at a lower load), relax at load factor lam by the
+        implicit gradient flow of relax.py (no perturbation: the state is out of equilibrium at
+        lam) to an equilibrium; if that one is unstable, switch_branch from it.  Success: an
+        equilibrium at lam with 0 negative eigenvalues (then the state is there); else the
+        last converged state and its load are restored.  Collective."""
+        from mpi4py import MPI
+        from .relax import lumped_weights, relax
+        from .stability import negative_eigenvalues
+        p = self.problem
+        comm = p.layout.comm.tompi4py()
+        t0 = time.perf_counter()
+        snap0, lam0 = p.state.snapshot(), p.lam
+        p.set_load(lam)
+        E0 = comm.bcast(p.energy(), root=0)
+        info = {"switched": False, "jump": True, "negative_before": None, "negative_after": None,
+                "energy_before": E0, "energy_after": E0, "relax_steps": 0, "relax_rejected": 0,
+                "newton_its": 0, "message": "", "fnorm": np.nan, "relax_energies": [],
+                "relax_log": [], "energy_monotone": True}
+        atol, rtol, _, _ = self.snes.getTolerances()
+        tol = max(atol, rtol * self.force_scale, self.floor)
+        # initial pseudo-time stiffness: the first damped step moves no node by more than about
+        # -stability_perturbation x L (positions) or that / l (rotations)
+        L = p.mesh.length
+        ell = L / (2 * np.pi)
+        delta = self.perturbation * L
+        M = lumped_weights(p.mesh, p.layout)
+        F = p.layout.create_vec()
+        p.residual(None, p.state.X, F)
+        Fa = F.getArray(readonly=True).reshape(-1, NDOF)
+        c0 = float(np.max(np.maximum(np.linalg.norm(Fa[:, 0:3], axis=1),
+                                     np.linalg.norm(Fa[:, 3:6], axis=1) / ell) / (delta * M), initial=0.0))
+        F.destroy()
+        c0 = comm.bcast(comm.allreduce(c0, op=MPI.MAX), root=0)
+        rr = relax(self, lam, max(c0, 1e-300), tol, max_steps=self.relax_max_it)
+        info.update(relax_steps=rr.steps, relax_rejected=rr.rejected, newton_its=rr.newton_its)
+        info["relax_energies"].append(rr.energies)
+        info["relax_log"].append(rr.log)
+        dE = np.diff(rr.energies)
+        info["energy_monotone"] = bool(np.all(dE <= 1e-12 * (np.abs(rr.energies[1:]) + abs(E0))))
+        n = None
+        if not rr.ok:
+            info["message"] = "relaxation: " + rr.message
+        else:
+            res = self.solve_guarded(lam)
+            info["newton_its"] += res.its
+            if not res.converged:
+                info["message"] = f"the undamped solve after relaxation failed (SNES reason {res.reason})"
+            else:
+                info["fnorm"] = res.fnorm
+                n = self._count_negative(negative_eigenvalues)
+                info["negative_before"] = n
+                if n > 0:
+                    sub = self.switch_branch(lam, n)
+                    for k in ("relax_steps", "relax_rejected", "newton_its"):
+                        info[k] += sub[k]
+                    info["relax_energies"] += sub["relax_energies"]
+                    info["energy_monotone"] &= sub["energy_monotone"]
+                    info["fnorm"] = sub["fnorm"] if sub["switched"] else info["fnorm"]
+                    n = sub["negative_after"]
+                    info["message"] = sub["message"]
+        if n == 0:
+            info["switched"] = True
+            info["negative_after"] = 0
+            info["energy_after"] = comm.bcast(p.energy(), root=0)
+        else:
+            p.state.restore(snap0)
+            p.set_load(lam0)
+            info["message"] = info["message"] or f"the equilibrium reached has {n} negative eigenvalues"
+        info["seconds"] = time.perf_counter() - t0
+        self.switches.append(info)
+        return info
+
+    def switch_branch(self, lam, nneg):
+        """Leave the unstable equilibrium at load factor lam (nneg > 0 negative eigenvalues)
+        for a stable one: (1) lowest eigenvector v of the energy Hessian
+        (stability.lowest_eigenpair); (2) perturb the state by s v, |s v| = -stability_perturbation
+        x L at the node that moves most, with the sign of lower energy; (3) relax (relax.relax:
+        implicit gradient flow with the RelaxationTerm, energy decreasing) until the undamped
+        residual is at tolerance, then an undamped Newton solve; (4) count the negative
+        eigenvalues: 0 ends, else repeat from (1), at most switch_attempts times.  On failure the
+        unstable equilibrium is restored.  Returns an info dict (switched, negative_after,
+        energies, eigen and relaxation statistics).  Collective; every branch decision uses
+        broadcast or allreduced values."""
+        from mpi4py import MPI
+        from .relax import lumped_weights, relax
+        from .stability import lowest_eigenpair, negative_eigenvalues
+        p = self.problem
+        comm = p.layout.comm.tompi4py()
+        t0 = time.perf_counter()
+        L = p.mesh.length
+        ell = L / (2 * np.pi)
+        snap0 = p.state.snapshot()
+        p.set_load(lam)
+
+        def same(x):       # rank 0's value everywhere: the decisions must agree bit for bit
+            return comm.bcast(x, root=0)
+
+        E_before = same(p.energy())
+        atol, rtol, _, _ = self.snes.getTolerances()
+        tol = max(atol, rtol * self.force_scale, self.floor)
+        info = {"switched": False, "negative_before": nneg, "negative_after": nneg,
+                "energy_before": E_before, "energy_after": E_before, "attempts": 0,
+                "relax_steps": 0, "relax_rejected": 0, "newton_its": 0, "eigen_seconds": 0.0,
+                "message": "", "fnorm": np.nan, "energy_perturbed": [], "relax_energies": [],
+                "relax_log": [], "energy_monotone": True}
+        M = lumped_weights(p.mesh, p.layout)
+        for attempt in range(1, self.switch_attempts + 1):
+            info["attempts"] = attempt
+            ev, v, einfo = lowest_eigenpair(p, nneg)
+            info["eigen_seconds"] += einfo["seconds"]
+            info.update(eigenvalue=ev, eigen_method=einfo["method"], dofs=einfo["n"])
+            if not ev < 0:
+                info["message"] = f"lowest eigenvalue {ev:.3e} is not negative"
+                break
+            va = v.getArray(readonly=True).reshape(-1, NDOF)
+            dr = comm.allreduce(float(np.linalg.norm(va[:, 0:3], axis=1).max(initial=0.0)), op=MPI.MAX)
+            dth = comm.allreduce(float(np.linalg.norm(va[:, 3:6], axis=1).max(initial=0.0)), op=MPI.MAX)
+            # the largest nodal displacement becomes perturbation x L (a rotation-only mode:
+            # the largest rotation becomes perturbation x 2 pi)
+            s = same(self.perturbation * L / (dr if dr > 1e-2 * ell * dth else ell * dth))
+            X0 = p.state.X.copy()
+            energies = []
+            for sign in (1.0, -1.0):
+                p.state.X.axpy(sign * s, v)
+                energies.append(p.energy())
+                X0.copy(p.state.X)
+            Ep, Em = same(energies)
+            sign = -1.0 if Em < Ep - 1e-10 * (abs(Ep) + abs(Em)) else 1.0
+            p.state.X.axpy(sign * s, v)
+            X0.destroy()
+            p.state.recentre()
+            p.set_load(lam)
+            # initial pseudo-time stiffness: H + c M positive along v with margin |ev|
+            # (c M v.v >= 2 |ev|), so the first damped step doubles the departure from the saddle
+            mv = comm.allreduce(float(np.sum(M * (np.einsum("ij,ij->i", va[:, 0:3], va[:, 0:3])
+                                                   + ell**2 * np.einsum("ij,ij->i", va[:, 3:6], va[:, 3:6])))))
+            v.destroy()
+            c0 = same(2.0 * abs(ev) / mv)
+            rr = relax(self, lam, c0, tol, max_steps=self.relax_max_it)
+            info["relax_steps"] += rr.steps
+            info["relax_rejected"] += rr.rejected
+            info["newton_its"] += rr.newton_its
+            info["energy_perturbed"].append(rr.energies[0])
+            info["relax_energies"].append(rr.energies)
+            info["relax_log"].append(rr.log)
+            # the flow must go downhill (relax rejects uphill steps: a violation here is a bug)
+            dE = np.diff(rr.energies)
+            info["energy_monotone"] &= bool(np.all(dE <= 1e-12 * (np.abs(rr.energies[1:]) + abs(E_before))))
+            if not rr.ok:
+                info["message"] = "relaxation: " + rr.message
+                break
+            res = self.solve_guarded(lam)
+            info["newton_its"] += res.its
+            if not res.converged:
+                info["message"] = f"the undamped solve after relaxation failed (SNES reason {res.reason})"
+                break
+            info["fnorm"] = res.fnorm
+            E_after = same(p.energy())
+            if not E_after < E_before:
+                info["message"] = f"relaxation did not lower the energy ({E_before:.6e} -> {E_after:.6e})"
+                break
+            n_after = self._count_negative(negative_eigenvalues)
+            info.update(energy_after=E_after, negative_after=n_after)
+            if n_after == 0:
+                info["switched"] = True
+                break
+            nneg = n_after
+            info["message"] = f"{n_after} negative eigenvalues after {attempt} relaxations"
+        if not info["switched"]:
+            p.state.restore(snap0)
+            p.set_load(lam)
+            info.update(energy_after=E_before, negative_after=info["negative_before"])
+        info["seconds"] = time.perf_counter() - t0
+        self.switches.append(info)
+        return info
+
+
+def _nonconservative(loads):
+    """Why energy is not a merit function for these loads (None if it is)."""
+    if getattr(loads, "end_force_follower", False) and np.any(np.asarray(loads.end_force)):
+        return "the follower end force is not conservative, so energy cannot guide the relaxation"
+    if np.any(np.asarray(getattr(loads, "end_moment", (0, 0, 0)))):
+        return ("a dead end moment is not conservative for 3-D rotations (and has no potential "
+                "here), so energy cannot guide the relaxation")
+    return None

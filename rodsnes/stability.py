@@ -5,6 +5,11 @@ the exponential chart (elastic.py).  Its number of negative eigenvalues, from a 
 (Cholesky-type) factorisation (-mat_mumps_icntl_13 1 for a parallel-correct count), is the
 number of independent directions in which the energy decreases: 0 means a stable (local
 minimum) equilibrium.  Dirichlet rows hold 1 on the diagonal and count as positive.
+
+lowest_eigenpair gives the lowest eigenvalue of the same (unscaled) Hessian and its eigenvector,
+the direction along which NewtonSolver.switch_branch leaves an unstable equilibrium (relax.py):
+the matrix is gathered to rank 0 (dense LAPACK up to DENSE_MAX dofs, sparse shift-invert beyond),
+the vector broadcast and scattered back to the owned rows of the SNES layout.
 """
 import numpy as np
 from petsc4py import PETSc
@@ -45,3 +50,137 @@ def negative_eigenvalues(problem):
     A.destroy()
     H.destroy()
     return int(nneg)
+
+
+# -- the lowest eigenpair (branch switching, solver.NewtonSolver.switch_branch) --------------
+DENSE_MAX = 4000
+"""Up to this many dofs the eigenpair comes from a dense LAPACK eigh (dsyevr, lowest few pairs
+only) on rank 0: O(n^3) flops and 8 n^2 bytes there.  Measured on the 2-core CI machine
+(Debian's reference BLAS): 0.2 s at n = 1000, 1.7 s at 2000, 18 s at 4000 (17.5 s for a 3960-dof
+ring, where eigsh takes 0.22 s: lower DENSE_MAX if that matters).  Beyond it a
+sparse shift-invert Lanczos (scipy eigsh, sigma slightly below 0, one sparse LU of H - sigma I
+on rank 0, then two block inverse-iteration steps): O(n) for the banded rod Hessian, 0.2 s
+at 3960 and 0.5 s at 7200 dofs."""
+
+
+def hessian(problem):
+    """The symmetric energy Hessian at the current state, in a new BAIJ matrix of the problem's
+    layout (Dirichlet rows and columns: identity).  Collective."""
+    groups = None
+    if problem.contact is not None:
+        r_loc, _ = problem.state.local_config()
+        groups = problem.contact.extra_pattern(r_loc)
+    H = problem.layout.create_matrix(groups)
+    problem.jacobian(None, problem.state.X, H, H, symmetric=True)
+    return H
+
+
+def gather_csr(A, layout, root=0):
+    """The assembled parallel matrix A as a scipy CSR matrix in NATURAL dof numbering (node
+    6 + component) on ``root`` (None elsewhere).  Collective: every rank sends its owned rows
+    (getValuesCSR of the AIJ form: global PETSc column numbers)."""
+    import scipy.sparse as sp
+    comm = layout.comm.tompi4py()
+    B = A.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
+    ai, aj, av = B.getValuesCSR()
+    B.destroy()
+    parts = comm.gather((np.asarray(ai), np.asarray(aj), np.asarray(av)), root=root)
+    if comm.rank != root:
+        return None
+    n = 6 * layout.n_global
+    rows, cols, vals = [], [], []
+    row0 = 0
+    for r, (ai, aj, av) in enumerate(parts):   # rank r holds PETSc rows 6 starts[r] ...
+        nr = len(ai) - 1
+        rows.append(row0 + np.repeat(np.arange(nr), np.diff(ai)))
+        cols.append(aj)
+        vals.append(av)
+        row0 += nr
+    A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    # PETSc dof of natural dof (node, c): 6 nat2petsc[node] + c
+    perm = (6 * layout.nat2petsc[:, None] + np.arange(6)[None, :]).ravel()
+    return A[perm][:, perm].tocsr()
+
+
+def _canonical(V, w, tol):
+    """One vector of the cluster of lowest eigenvalues, chosen independently of the basis
+    LAPACK/ARPACK returns for a (nearly) degenerate cluster (symmetric rods: buckling in y or z;
+    rings: the sin/cos pair): P e_k / |P e_k| with P the cluster's projector and k the first
+    position dof (natural numbering; any dof for a mode without displacement) where diag(P) is
+    largest; the sign makes its largest entry positive."""
+    cl = np.flatnonzero(w <= w[0] + tol)
+    Vc = V[:, cl]
+    d = np.einsum("ij,ij->i", Vc, Vc)
+    pos = (np.arange(len(d)) % 6) < 3
+    if d[pos].max() > 1e-6 * d.max():
+        d = np.where(pos, d, 0.0)
+    k = int(np.flatnonzero(d >= (1 - 1e-6) * d.max())[0])
+    v = Vc @ Vc[k]
+    v /= np.linalg.norm(v)
+    a = np.abs(v)
+    j = int(np.flatnonzero(a >= (1 - 1e-6) * a.max())[0])
+    return (v if v[j] > 0 else -v), len(cl)
+
+
+def lowest_eigenpair(problem, nneg=None, dense_max=None):
+    """The lowest eigenvalue lam of the symmetric energy Hessian H at the current state and its
+    unit eigenvector v (a PETSc vector of the SNES layout: positions and rotation increments
+    theta per node), with H v = lam v; plain Euclidean eigenproblem of H (no metric).
+
+    H is gathered to rank 0; dense eigh for n <= dense_max (default DENSE_MAX) dofs, else
+    scipy.sparse.linalg.eigsh in shift-invert mode about sigma = -1e3 eps max|diag H| for the
+    nneg + 4 eigenvalues nearest sigma (nneg: the number of negative eigenvalues if known), of
+    which the lowest is taken: the most negative one is missed only if more than 4 positive
+    eigenvalues lie closer to 0 than it does.  The vector is broadcast and each rank keeps
+    its owned rows.  Returns (lam, v, info) with info = {n, method, seconds, cluster,
+    residual}, the same on every rank.  Collective."""
+    import time
+    t0 = time.perf_counter()
+    lay = problem.layout
+    comm = lay.comm.tompi4py()
+    dense_max = DENSE_MAX if dense_max is None else dense_max
+    H = hessian(problem)
+    A = gather_csr(H, lay)
+    H.destroy()
+    payload = None
+    if comm.rank == 0:
+        A = 0.5 * (A + A.T)
+        n = A.shape[0]
+        dmax = float(np.abs(A.diagonal()).max())
+        tau = 1e3 * np.finfo(float).eps * dmax
+        kk = min(n - 1, max(6, (nneg or 1) + 4))
+        if n <= dense_max:
+            import scipy.linalg as sl
+            w, V = sl.eigh(A.toarray(), subset_by_index=[0, min(n, kk) - 1])
+            method = "dense"
+        else:
+            import scipy.sparse as sp
+            from scipy.sparse.linalg import eigsh, splu
+            w, V = eigsh(A.tocsc(), k=kk, sigma=-tau, which="LM")
+            w = np.sort(w)
+            # ARPACK's Ritz vectors are accurate relative to the shift-inverted operator, whose
+            # largest eigenvalues are the near-zero modes (rigid motions, symmetries); two steps
+            # of block inverse iteration just below the lowest Ritz value + Rayleigh-Ritz bring
+            # |H v - lam v| down to roundoff (1e-13 instead of 1e-3 on the Michell ring)
+            lu = splu((A - (w[0] - 1e-2 * abs(w[0]) - tau) * sp.identity(n, format="csc")).tocsc())
+            for _ in range(2):
+                V, _ = np.linalg.qr(lu.solve(V))
+            w, Y = np.linalg.eigh(V.T @ (A @ V))
+            V = V @ Y
+            method = "eigsh"
+        v, ncl = _canonical(V, w, 1e-6 * abs(w[0]) + tau)
+        lam = float(v @ (A @ v))                     # Rayleigh quotient (= w[0] in a cluster)
+        resid = float(np.linalg.norm(A @ v - lam * v))
+        payload = (lam, v, {"n": n, "method": method, "cluster": ncl, "residual": resid,
+                            "eigenvalues": w.tolist()})
+    lam, v_nat, info = comm.bcast(payload, root=0)
+    vec = lay.create_vec()
+    with vec as a:
+        a[:] = v_nat.reshape(-1, 6)[lay.owned_nodes].ravel()
+    info["seconds"] = comm.allreduce(time.perf_counter() - t0, op=_max())
+    return lam, vec, info
+
+
+def _max():
+    from mpi4py import MPI
+    return MPI.MAX

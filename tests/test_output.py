@@ -124,6 +124,7 @@ def test_append_drops_partial_step(tmp_path):
     assert output.read_step(tmp_path)["step"] == 1
     w = output.ResultWriter(tmp_path, None, N, META, append=True)
     assert w.last_step == 1
+    assert (tmp_path / "rod.xdmf").exists()   # it only ever holds complete steps: kept on restart
     with h5py.File(tmp_path / "result.h5", "r") as f:
         assert "00002" not in f["steps"]
     attrs, node, qp = fake_step(2)

@@ -266,7 +266,7 @@ def bounds(curves, radius):
     return lo, hi
 
 
-def field_limits(curves, symmetric):
+def field_limits(curves, symmetric, min_span=1e-12):
     vals = np.concatenate([c.c for c in curves if c.c is not None]) if any(c.c is not None for c in curves) else None
     if vals is None or len(vals) == 0:
         return None
@@ -274,9 +274,9 @@ def field_limits(curves, symmetric):
     if symmetric:
         a = max(abs(lo), abs(hi))
         lo, hi = -a, a
-    # a colour range of at least 1% of the largest |value|: round-off-level variation of a
-    # (nearly) constant field is not blown up to the whole colour map
-    span = max(0.01 * max(abs(lo), abs(hi)), 1e-12)
+    # a colour range of at least 1% of the largest |value| (and min_span): round-off-level variation
+    # of a (nearly) constant or zero field is not blown up to the whole colour map
+    span = max(0.01 * max(abs(lo), abs(hi)), min_span)
     if hi - lo < span:
         mid = 0.0 if symmetric else 0.5 * (lo + hi)
         lo, hi = mid - 0.5 * span, mid + 0.5 * span
@@ -296,6 +296,12 @@ def visible_views(lo, hi, views=("iso", "top", "front", "side"), min_ratio=0.05)
     return keep
 
 
+def min_span(meta, field):
+    """Smallest colour range: 1e-6 / L for curvature and twist (below that a rod is straight or
+    untwisted to round-off), 1e-12 otherwise."""
+    return 1e-6 / float(meta["length"]) if field in ("curvature", "twist") else 1e-12
+
+
 def _layout(nviews):
     return {1: (1, 1), 2: (1, 2), 3: (1, 3)}.get(nviews, (2, math.ceil(nviews / 2)))
 
@@ -312,7 +318,7 @@ def render(steps_curves, meta, views, field, out_paths, size=None, dpi=110, styl
     half = np.maximum(half, max(half.max() * 0.02, radius, 1e-12))
     _, label, symmetric = field_values(step, field)
     if clim is None:
-        clim = field_limits([curve], symmetric)
+        clim = field_limits([curve], symmetric, min_span(meta, field))
     cmap = plt.get_cmap(CMAPS.get(field, "viridis"))
     norm = colors.Normalize(*clim) if (clim is not None and field != "none") else None
 
@@ -340,7 +346,7 @@ def render(steps_curves, meta, views, field, out_paths, size=None, dpi=110, styl
             ax.set_xlim(centre[0] - half[0], centre[0] + half[0])
             ax.set_ylim(centre[1] - half[1], centre[1] + half[1])
             ax.set_zlim(centre[2] - half[2], centre[2] + half[2])
-            ax.set_box_aspect(tuple(half / half.max()), zoom=1.0 if view == "iso" else 1.25)
+            ax.set_box_aspect(tuple(half / half.max()), zoom=1.0 if view == "iso" else 1.1)
             for j, a in enumerate("xyz"):
                 getattr(ax, f"set_{a}label")(a, labelpad=0)
                 if half[j] < 0.1 * half.max():   # a thin direction: no tick clutter
@@ -355,7 +361,7 @@ def render(steps_curves, meta, views, field, out_paths, size=None, dpi=110, styl
                 a = HIDDEN_AXIS[view]
                 getattr(ax, f"set_{a}ticks")([])
                 getattr(ax, f"set_{a}label")("")
-            ax.set_title(view, fontsize=9, pad=0)
+            ax.set_title(view, fontsize=9, pad=0, y=1.03)
             axes.append(ax)
         at = step["attrs"]
         fig.suptitle(f"{meta.get('case_name', '')}   step {step['step']}   load {float(at['load']):.6g}",
@@ -412,7 +418,7 @@ def movie(outdir, out, field="curvature", views=("iso",), size=None, dpi=110, st
         lo = l if lo is None else np.minimum(lo, l)
         hi = h if hi is None else np.maximum(hi, h)
         symmetric = field_values(st, field)[2]
-        lim = field_limits([c], symmetric)
+        lim = field_limits([c], symmetric, min_span(st["meta"], field))
         if lim is not None:
             vmin, vmax = min(vmin, lim[0]), max(vmax, lim[1])
     clim = (vmin, vmax) if math.isfinite(vmin) else None

@@ -231,7 +231,8 @@ class CliRunner:
         self.cmd = solver_command(exe)
         self.timeout, self.ref_nelem, self.quiet = timeout, ref_nelem, quiet
         self._scene = None
-        self._ref = None
+        self._ref = None           # FEReference once computed
+        self._ref_error = None     # why the reference run failed (not retried)
 
     def scene(self, extra):
         if self._scene is None:
@@ -284,16 +285,18 @@ class CliRunner:
         return row, last
 
     def reference(self, np_, out, extra):
-        """The overkill solution (order 4, ref_nelem elements), computed once."""
-        if self._ref is None:
+        """The overkill solution (order 4, ref_nelem elements), run once (a failure is not retried)."""
+        if self._ref is None and self._ref_error is None:
             rd = os.path.join(out, "runs", f"reference_p4_n{self.ref_nelem}")
             if not self.quiet:
                 print(f"reference: order 4, {self.ref_nelem} elements -> {rd}", flush=True)
             row, st = self.run(4, self.ref_nelem, np_, rd, extra)
             if st is None:
-                raise RuntimeError(f"the overkill reference run failed: {row.get('note')}")
-            L = float(st["meta"]["length"])
-            self._ref = FEReference(st["positions"], float(st["attrs"]["energy"]), 4, self.ref_nelem, L)
+                self._ref_error = f"overkill reference run failed: {row.get('note')}"
+                print(self._ref_error, file=sys.stderr, flush=True)
+            else:
+                L = float(st["meta"]["length"])
+                self._ref = FEReference(st["positions"], float(st["attrs"]["energy"]), 4, self.ref_nelem, L)
         return self._ref
 
     def __call__(self, case, order, nelem, np_, outdir, extra):
@@ -312,12 +315,14 @@ class CliRunner:
             if abs(sc.rod.EI1 - sc.rod.EI2) > 1e-12 * sc.rod.EI1:
                 row["note"] = "EI1 != EI2: reference uses EI1"
         elif case == "mattiasson":
-            out = str(Path(outdir).parents[1])
-            ref = self.reference(row.get("ranks", np_) or np_, out, extra)
             row["err_tip_published"], lam_ = mattiasson_published_error(
                 P, R0, x0, sc.loads.end_force, sc.rod.EI1, L, lam)
             if math.isnan(row["err_tip_published"]):
                 row["note"] = f"lambda = {lam_:g} is not in the published table"
+            ref = self.reference(np_, str(Path(outdir).parents[1]), extra)
+            if ref is None:
+                row["note"] = (row.get("note", "") + "; " + self._ref_error).lstrip("; ")
+                return row
         else:
             raise ValueError(f"no reference for case {case!r}")
         row.update(ref.errors(P, E, order, nelem))
@@ -456,13 +461,23 @@ def main(argv=None):
     rows = study(args.case, args.orders, args.nelem, args.np, out, args.extra, runner)
     write_csv(rows, os.path.join(out, "work_precision.csv"))
     plot(rows, os.path.join(out, "work_precision.png"), args.case)
-    cols = list(ERRORS) + (["err_tip_published"] if args.case == "mattiasson" else [])
-    all_rates = {c: rates(rows, c) for c in cols}
+    all_rates = {c: rates(rows, c) for c in ERRORS}
     print("\nobserved rates vs h (two finest converged meshes; shared/REFERENCES.md expects positions "
           "O(h^(p+1)), energy O(h^(2p)); nodal values such as the tip may superconverge):")
-    print("order " + " ".join(f"{c:>18s}" for c in cols))
+    print("order " + " ".join(f"{c:>12s}" for c in ERRORS))
     for p in args.orders:
-        print(f"{p:5d} " + " ".join(f"{all_rates[c][p]:18.2f}" for c in cols))
+        print(f"{p:5d} " + " ".join(f"{all_rates[c][p]:12.2f}" for c in ERRORS))
+    if args.case == "mattiasson":
+        # no rate: the published values are the inextensible elastica to 6 digits, so this error
+        # levels off at max(6-digit rounding ~7e-7, the model difference ~ P/EA, P/GA)
+        print("\nerror against the published tip (finest converged mesh per order; floor = "
+              "6-digit rounding and extensibility/shear of the model):")
+        for p in args.orders:
+            ok = [r for r in rows if r["order"] == p and r["converged"]
+                  and np.isfinite(float(r["err_tip_published"]))]
+            if ok:
+                r = max(ok, key=lambda r: r["nelem"])
+                print(f"  p={p} nelem={r['nelem']}: {float(r['err_tip_published']):.3e}")
     Path(out, "rates.json").write_text(json.dumps(output.to_jsonable(all_rates), indent=2) + "\n")
     nfail = sum(1 for r in rows if not r["converged"])
     print(f"\n{len(rows) - nfail}/{len(rows)} runs converged; wrote {out}/work_precision.csv, "

@@ -1,0 +1,281 @@
+"""Relaxation of an unstable equilibrium onto a stable one (branch switching), in parallel.
+
+Newton converges to the nearest stationary point, stable or not.  Past a subcritical
+instability the load path can only go on along an unstable equilibrium; NewtonSolver (with
+-stability -stability_switch) then perturbs the state along the lowest eigenvector of the
+energy Hessian (stability.lowest_eigenpair) and calls :func:`relax`, an implicit gradient flow
+(pseudo-transient continuation) on R^3 x SO(3) that decreases the energy to a stable minimum.
+
+Pseudo-time step k (anchor (a_i, A_i) = the state after step k-1):
+
+    minimise   E(x, R) + E_c(x, R),
+    E_c = sum_i M_i [ c/2 |x_i - a_i|^2 + c_rot/2 |psi_i|^2 ],   psi_i = log(R_i A_i^T)
+
+with the existing SNES (the term :class:`RelaxationTerm` sits in problem.extra_terms), then
+move the anchor to the result.  M_i = int N_i ds is the lumped (row-sum) length weight of node
+i, c = 1/dt a stiffness per length^2 and c_rot = c l^2 (l = L / 2 pi).  Every accepted step
+satisfies E(x_k) + E_c(x_k) <= E(x_{k-1}) when x_k is the minimiser of the damped energy near
+the anchor, so the energy decreases along the relaxation (checked: a step that raises E is
+rejected and retried with a larger c).  c adapts by switched evolution relaxation
+(c <- c |F_k| / |F_{k-1}|, |F| the undamped residual; bounded), grows after a failed damped
+solve and shrinks further when the damped solve converges in a few Newton steps: the flow
+becomes full Newton as the minimum is approached.  A pseudo-time step may move no node by more
+than max_move (L/10; half the contact radius with contact, so the flow cannot tunnel through the
+rod).  It stops when the undamped residual is at the solver's tolerance; the caller then removes
+the term and finishes with an undamped solve.
+
+Two callers in NewtonSolver: switch_branch (a converged but unstable equilibrium: push along the
+lowest eigenvector, relax) and jump_branch (a fold: no equilibrium near the last one at the next
+load, however short the step; relax from the last converged state at that load).
+
+Energy is the merit function, so the loads must be conservative: dead forces, gravity, the
+twist load, prescribed end rotations and contact are; follower forces and (3-D) end moments are
+not, and branch switching is refused with them (NewtonSolver).
+"""
+import numpy as np
+from petsc4py import PETSc
+
+from . import fe, so3
+from .partition import NDOF
+
+
+def _MAX():
+    from mpi4py import MPI
+    return MPI.MAX
+
+
+def _gamma(phi):
+    """1/phi^2 - (1 + cos phi) / (2 phi sin phi) = 1/phi^2 - 1 / (2 phi tan(phi/2)), the
+    psi^x psi^x coefficient of J_l^{-1}; finite on [0, pi] (1/pi^2 at pi)."""
+    phi = np.asarray(phi, dtype=float)
+    small = phi < 1e-3
+    ps = np.where(small, 1.0, phi)
+    exact = 1.0 / ps**2 - 1.0 / (2.0 * ps * np.tan(0.5 * ps))
+    return np.where(small, 1.0 / 12.0 + phi**2 / 720.0, exact)
+
+
+def left_jacobian_inverse(psi):
+    """J_l^{-1}(psi) = I - 1/2 psi^x + gamma(|psi|) psi^x psi^x (batched (n,3) -> (n,3,3)):
+    exp(theta^x) exp(psi^x) = exp((psi + J_l^{-1}(psi) theta)^x) + O(theta^2)."""
+    K = so3.hat(psi)
+    g = _gamma(np.linalg.norm(psi, axis=-1))
+    return np.eye(3) - 0.5 * K + g[..., None, None] * (K @ K)
+
+
+def lumped_weights(mesh, layout):
+    """M_i = int N_i ds for the owned nodes (row-sum lumping of the consistent mass matrix of
+    a unit line density; positive for the equispaced Lagrange elements of order 1..4)."""
+    xi, w = fe.gauss_legendre(mesh.order + 1)
+    N, _, _ = fe.lagrange(mesh.order, xi)
+    we = (w * mesh.h / 2.0) @ N                       # (p+1,) per element node
+    loc = np.zeros((len(layout.local_nodes), NDOF))
+    np.add.at(loc, layout.lconn, np.broadcast_to(we[None, :, None], layout.lconn.shape + (NDOF,)))
+    V = layout.create_vec()
+    layout.add_to_global(loc, V)
+    M = V.getArray(readonly=True).reshape(-1, NDOF)[:, 0].copy()
+    V.destroy()
+    return M
+
+
+class RelaxationTerm:
+    """Pseudo-time regularisation c M (x - a) (force rows), c_rot M log(R A^T) (moment rows).
+
+    Energy (owned nodes of this rank; RodProblem.energy allreduces it):
+
+        E_c = sum_i M_i [ c/2 |x_i - a_i|^2 + c_rot/2 |psi_i|^2 ],  psi_i = log(R_i A_i^T)
+
+    Residual (its exact gradient in the Newton unknowns (r, theta), R <- exp(theta^x) R):
+
+        force row   c M_i (x_i - a_i)
+        moment row  c_rot M_i psi_i      (J_l^{-T}(psi) psi = psi: no chart factor)
+
+    Tangent: c M_i I on the position block and c_rot M_i J_l^{-1}(psi_i) on the rotation
+    block (= c_rot M_i I at the anchor; the exact derivative of the moment row everywhere, not
+    symmetric away from the anchor).  Only the owned rows are touched, so no node is counted
+    twice across ranks.  Use: set_anchor(), then append to problem.extra_terms."""
+
+    def __init__(self, mesh, layout, c=1.0, c_rot=None, rot_length=None):
+        self.layout = layout
+        self.no = layout.n_owned
+        self.M = lumped_weights(mesh, layout)
+        self.rot_length = mesh.length / (2 * np.pi) if rot_length is None else float(rot_length)
+        self.set_stiffness(c, c_rot)
+        self.rows = (layout.starts[layout.comm.getRank()] + np.arange(self.no)).astype(PETSc.IntType)
+        self.a = None
+        self.qa = None
+
+    def set_stiffness(self, c, c_rot=None):
+        self.c = float(c)
+        self.c_rot = self.c * self.rot_length**2 if c_rot is None else float(c_rot)
+
+    def set_anchor(self, r_loc, q_loc):
+        """Anchor at the local (owned + ghost) configuration, e.g. state.local_config()."""
+        self.a = np.array(r_loc[:self.no], dtype=float)
+        self.qa = np.array(q_loc[:self.no], dtype=float)
+
+    def _psi(self, q_loc):
+        return so3.qlog(so3.qmul(q_loc[:self.no], so3.qconj(self.qa)))
+
+    def add_residual(self, r_loc, q_loc, Floc):
+        no = self.no
+        Floc[:no, 0:3] += self.c * self.M[:, None] * (r_loc[:no] - self.a)
+        Floc[:no, 3:6] += self.c_rot * self.M[:, None] * self._psi(q_loc)
+
+    def add_jacobian(self, r_loc, q_loc, P):
+        B = np.zeros((self.no, NDOF, NDOF))
+        B[:, 0:3, 0:3] = self.c * self.M[:, None, None] * np.eye(3)
+        B[:, 3:6, 3:6] = self.c_rot * self.M[:, None, None] * left_jacobian_inverse(self._psi(q_loc))
+        P.setValuesBlockedRCV(self.rows[:, None], self.rows[:, None], B, addv=PETSc.InsertMode.ADD)
+
+    def energy(self, r_loc, q_loc):
+        no = self.no
+        dx = r_loc[:no] - self.a
+        psi = self._psi(q_loc)
+        return 0.5 * float(np.sum(self.M * (self.c * np.einsum("ij,ij->i", dx, dx)
+                                             + self.c_rot * np.einsum("ij,ij->i", psi, psi))))
+
+
+class RelaxResult:
+    """Outcome of :func:`relax`: ok, pseudo-time steps (accepted / rejected), Newton
+    iterations of the damped solves, energies (first, last) and the per-step log
+    (c, Newton its, energy, undamped |F|)."""
+
+    def __init__(self):
+        self.ok, self.steps, self.rejected, self.newton_its = False, 0, 0, 0
+        self.energies, self.log, self.message = [], [], ""
+
+
+def undamped_residual_norm(problem, skip, F=None):
+    """|F| of the problem without the term ``skip`` at the current state (collective)."""
+    terms = problem.extra_terms
+    saved = list(terms)
+    problem.extra_terms = [t for t in terms if t is not skip]
+    own = F is None
+    F = problem.layout.create_vec() if own else F
+    try:
+        problem.residual(None, problem.state.X, F)
+        return F.norm()
+    finally:
+        problem.extra_terms = saved
+        if own:
+            F.destroy()
+
+
+def undamped_energy(problem, skip):
+    terms = problem.extra_terms
+    saved = list(terms)
+    problem.extra_terms = [t for t in terms if t is not skip]
+    try:
+        return problem.energy()
+    finally:
+        problem.extra_terms = saved
+
+
+def relax(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_it=12,
+          max_move=None):
+    """Implicit gradient flow at load factor lam from the current state to an equilibrium of
+    lower energy (module docstring).  solver: NewtonSolver (solve_at, problem); c0: initial c;
+    tol: undamped |F| to stop at; max_move: largest nodal displacement of one pseudo-time step
+    (default L/10, and half the contact radius with contact, so the flow cannot tunnel through
+    the rod); a longer step is rejected like a failed one.  The term is removed again before
+    returning; the state is the last accepted pseudo-time step.  Collective: every decision
+    uses rank 0's values of energies, norms and displacements, and SNES reasons."""
+    p = solver.problem
+    comm = p.layout.comm.tompi4py()
+
+    def same(*values):     # rank 0's values everywhere: reductions may round differently per rank
+        return comm.bcast(values if len(values) > 1 else values[0], root=0)
+
+    out = RelaxResult()
+    if max_move is None:
+        max_move = 0.1 * p.mesh.length
+        eps = getattr(p.contact, "eps", None) if p.contact is not None else None
+        if eps:
+            max_move = min(max_move, 0.5 * eps)
+    term = RelaxationTerm(p.mesh, p.layout, c0)
+    c_min = 1e-12 * c0 if c_min is None else c_min
+    F = p.layout.create_vec()
+    p.set_load(lam)
+    E, f = same(undamped_energy(p, None), undamped_residual_norm(p, None, F))
+    out.energies.append(E)
+    out.log.append((np.nan, 0, E, f, ""))
+    E_scale = abs(E) + solver.force_scale * p.mesh.length      # force scale x L: EI/L + ...
+
+    def Etol(e):           # roundoff of an energy difference
+        return 1e-11 * (abs(e) + E_scale)
+
+    p.extra_terms.append(term)
+    c = float(c0)
+    cooldown = 0            # accepted steps after a rejection during which c may not fall
+    stuck = 0               # damped solves in a row that failed before any Newton step
+    rejected_row = 0        # rejections in a row: beyond max_rejected_row the flow has stalled
+    max_rejected_row = 12   # c grown by >= grow^12 (1.7e7) without an acceptable step
+    snes = solver.snes
+    tols = snes.getTolerances()
+    snes.setTolerances(max_it=newton_max_it)    # a damped solve that needs more: c too small
+    try:
+        while out.steps + out.rejected < max_steps:
+            if f <= tol:
+                out.ok = True
+                break
+            term.set_stiffness(c)
+            term.set_anchor(*p.state.local_config())
+            snap = p.state.snapshot()
+            res = solver.solve_guarded(lam)
+            out.newton_its += res.its
+            ok, fac = False, grow
+            if res.converged:
+                r_new, _ = p.state.local_config()
+                move = float(np.linalg.norm(r_new[:term.no] - term.a, axis=1).max(initial=0.0))
+                move = same(comm.allreduce(move, op=_MAX()))
+                E_new = same(undamped_energy(p, term))
+                ok = E_new <= E + Etol(E_new) and move <= max_move
+                if move > max_move:
+                    fac = max(grow, 2 * move / max_move)
+            stuck = stuck + 1 if (not res.converged and res.its == 0) else 0
+            rejected_row = 0 if ok else rejected_row + 1
+            if not ok:
+                # damped solve failed, went uphill (toward a saddle) or too far: smaller
+                # pseudo-time step
+                p.state.restore(snap)
+                p.set_load(lam)
+                out.rejected += 1
+                out.log.append((c, res.its, np.nan, np.nan, str(res.reason)))
+                if stuck >= 3:      # fails at the anchor itself, whatever c: not a step size issue
+                    out.message = (f"the damped solve fails at the state itself (SNES reason "
+                                   f"{res.reason}) after {out.steps} pseudo-time steps")
+                    break
+                if rejected_row >= max_rejected_row:
+                    out.message = (f"stalled after {out.steps} pseudo-time steps: {rejected_row} "
+                                   f"damped solves in a row rejected (last SNES reason "
+                                   f"{res.reason}, c = {c:.3e}, undamped |F| = {f:.3e})")
+                    break
+                c *= fac
+                cooldown = 2
+                continue
+            f_new = same(undamped_residual_norm(p, term, F))
+            out.steps += 1
+            out.log.append((c, res.its, E_new, f_new, str(res.reason)))
+            out.energies.append(E_new)
+            # switched evolution relaxation: dt ~ 1/|F|, bounded; harder solves -> smaller dt
+            ratio = min(max(f_new / f, 0.05), 2.0)
+            if res.its > 8:
+                ratio = max(ratio, 2.0)
+            elif res.its <= 5:          # an easy damped solve: a longer pseudo-time step
+                ratio = min(ratio, 0.25)
+            if cooldown > 0:
+                ratio = max(ratio, 1.0)
+                cooldown -= 1
+            c = max(c * ratio, c_min)
+            E, f = E_new, f_new
+        else:
+            out.ok = f <= tol
+        if not out.ok and not out.message:
+            out.message = (f"no equilibrium after {out.steps} pseudo-time steps "
+                           f"({out.rejected} rejected): undamped |F| = {f:.3e} > {tol:.3e}")
+    finally:
+        p.extra_terms = [t for t in p.extra_terms if t is not term]
+        snes.setTolerances(max_it=tols[3])
+        F.destroy()
+    out.c_last = c
+    return out

@@ -1,0 +1,223 @@
+"""Branch switching by relaxation (relax.py, stability.lowest_eigenpair, NewtonSolver.switch_branch):
+the pseudo-time term against finite differences, the lowest eigenpair of the energy Hessian on the
+twisted Michell ring, the perfect Euler column relaxed from the straight (unstable) state onto
+the buckled elastica, the twisted clamped rod jumping into a loop at a fold, and the refusal
+for non-conservative loads."""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+from scipy.optimize import brentq
+from scipy.special import ellipk
+
+from conftest import gathered_positions, run_case, set_options
+
+
+def _small_problem_layout(case="michell", **kw):
+    """Mesh and a serial layout of a small scene (no solve)."""
+    from rodsnes.mesh import build_mesh
+    from rodsnes.partition import Layout
+    from rodsnes.scene import read_scene
+    scene = read_scene(["rodsnes"], set_options(case, **kw))
+    mesh = build_mesh(scene.rod, scene.bc)
+    return mesh, Layout(PETSc.COMM_SELF, mesh)
+
+
+def test_relaxation_term_residual_and_tangent_match_finite_differences():
+    from rodsnes import so3
+    from rodsnes.relax import RelaxationTerm
+    mesh, lay = _small_problem_layout(rod_nelem=2, rod_order=3)     # 6 nodes of a ring
+    n = mesh.n_nodes
+    rng = np.random.default_rng(7)
+    term = RelaxationTerm(mesh, lay, c=3.0, c_rot=0.7)
+    assert abs(term.M.sum() - mesh.length) < 1e-14 and np.all(term.M > 0)   # lumped int N_i ds
+    a = mesh.x_init + 0.05 * rng.standard_normal((n, 3))
+    qa = so3.qmul(so3.qexp(0.8 * rng.standard_normal((n, 3))), mesh.q_init)
+    term.set_anchor(a, qa)
+
+    def energy(r, q):
+        return term.energy(r, q)
+
+    def residual(r, q):
+        F = np.zeros((n, 6))
+        term.add_residual(r, q, F)
+        return F
+
+    def tangent(r, q):
+        P = lay.create_matrix()
+        term.add_jacobian(r, q, P)
+        P.assemble()
+        return P.convert("dense").getDenseArray().copy()
+
+    def moved(r, q, i, k, h):
+        r2, q2 = r.copy(), q.copy()
+        if k < 3:
+            r2[i, k] += h
+        else:
+            e = np.zeros(3)
+            e[k - 3] = h
+            q2[i] = so3.qmul(so3.qexp(e), q[i])      # R <- exp(theta^x) R, as SNES moves it
+        return r2, q2
+
+    # at the anchor: zero energy and residual, tangent diag(c M I, c_rot M I)
+    assert energy(a, qa) == 0.0 and np.abs(residual(a, qa)).max() == 0.0
+    K0 = tangent(a, qa)
+    want = np.diag(np.repeat(term.M, 6) * np.tile([3.0] * 3 + [0.7] * 3, n))
+    assert np.abs(K0 - want).max() < 1e-14
+    # away from the anchor (rotations up to ~1.5 rad): residual = dE, tangent = dF (exact
+    # J_l^{-1}(psi) on the rotation block), both by central differences
+    r = a + 0.1 * rng.standard_normal((n, 3))
+    q = so3.qmul(so3.qexp(0.5 * rng.standard_normal((n, 3))), qa)
+    F, K = residual(r, q), tangent(r, q)
+    h = 1e-6
+    for point, (FF, KK) in (("anchor", (residual(a, qa), K0)), ("away", (F, K))):
+        r0, q0 = (a, qa) if point == "anchor" else (r, q)
+        for i in range(n):
+            for k in range(6):
+                rp, qp = moved(r0, q0, i, k, h)
+                rm, qm = moved(r0, q0, i, k, -h)
+                dE = (energy(rp, qp) - energy(rm, qm)) / (2 * h)
+                assert abs(dE - FF[i, k]) < 1e-8 * (1 + abs(FF[i, k])), (point, i, k)
+                dF = ((residual(rp, qp) - residual(rm, qm)) / (2 * h)).ravel()
+                assert np.abs(dF - KK[:, 6 * i + k]).max() < 1e-7, (point, i, k)
+
+
+@pytest.mark.mpi
+def test_lowest_eigenvector_of_the_twisted_ring_is_the_writhing_mode():
+    """Perfect Michell ring (nu = 0) at 2.5 turns, beyond sqrt(3): lam < 0 with H v = lam v; the
+    mode leaves the plane: most of it lies in the out-of-plane unknowns (z, theta_x, theta_y) and
+    its out-of-plane displacement is the two-wave (n = 2) writhing pattern.  (It is not purely
+    out-of-plane: the twist couples the in-plane n = 2 deflection into it, so in- and out-of-plane
+    motions alone are both stable.)  The dense and the sparse shift-invert path agree."""
+    from rodsnes import so3
+    from rodsnes.stability import hessian, lowest_eigenpair, negative_eigenvalues
+    run = run_case("michell", load_twist_turns=2.5, rod_imperfection=0, rod_nelem=16, load_steps=4)
+    assert run.ok
+    p = run.problem
+    assert negative_eigenvalues(p) == 2                 # the n = 2 pair (n = 3 needs sqrt 8 turns)
+    lam, v, info = lowest_eigenpair(p)
+    assert info["method"] == "dense" and info["n"] == 6 * run.mesh.n_nodes
+    assert lam < -1e-4
+    H = hessian(p)
+    r = v.duplicate()
+    H.mult(v, r)
+    r.axpy(-lam, v)
+    assert abs(v.norm() - 1) < 1e-12 and r.norm() < 1e-6 * abs(lam), r.norm()
+    V = run.layout.allgather_nodes(v.getArray(readonly=True).reshape(-1, 6))
+    out, inp = np.linalg.norm(V[:, [2, 3, 4]]), np.linalg.norm(V[:, [0, 1, 5]])
+    assert out**2 > 0.55 and out > inp, (out, inp)
+    # displacement without its rigid part (node 0 is held, which mixes rigid motion in)
+    X = run.mesh.x_init
+    c = X.mean(0)
+    G = np.zeros((3 * len(X), 6))
+    for i, x in enumerate(X - c):
+        G[3 * i:3 * i + 3, :3] = np.eye(3)
+        G[3 * i:3 * i + 3, 3:] = -so3.hat(x)
+    u = V[:, 0:3].ravel()
+    ud = (u - G @ np.linalg.lstsq(G, u, rcond=None)[0]).reshape(-1, 3)
+    assert np.linalg.norm(ud[:, 2]) > 0.5 * np.linalg.norm(ud[:, 0:2])
+    phi = np.arctan2(X[:, 1] - c[1], X[:, 0] - c[0])
+    B = np.stack([np.ones_like(phi)] + [f(k * phi) for k in range(1, 5) for f in (np.cos, np.sin)], 1)
+    co = np.linalg.lstsq(B, ud[:, 2], rcond=None)[0]
+    amp = np.array([abs(co[0])] + [np.hypot(co[2 * k - 1], co[2 * k]) for k in range(1, 5)])
+    assert np.argmax(amp) == 2 and amp[2] > 4 * np.delete(amp, 2).max(), amp
+    # the sparse path (shift-invert Lanczos + inverse-iteration refinement) finds the same pair
+    lam2, v2, info2 = lowest_eigenpair(p, nneg=2, dense_max=0)
+    assert info2["method"] == "eigsh"
+    assert abs(lam2 - lam) < 1e-8 * abs(lam) and abs(v.dot(v2)) > 1 - 1e-9
+
+
+def _elastica_tip():
+    k = np.sqrt(brentq(lambda m: (2 * ellipk(m) / np.pi) ** 2 - 1.2, 1e-9, 0.99))
+    return 2 * k / ellipk(k * k)
+
+
+@pytest.mark.mpi
+def test_perfect_euler_column_switches_onto_the_buckled_elastica():
+    """Clamped-free column at 1.2 P_cr without imperfection: plain Newton stays on the straight,
+    unstable state (negative eigenvalues); with -stability (switching on by default) the run
+    leaves it at P_cr and ends on the elastica, tip deflection 2k/K(k), stable.  On two ranks
+    the same tip as on one (the buckling plane of the isotropic column is neutral: compare the
+    in-plane deflection and |y|)."""
+    from rodsnes.stability import negative_eigenvalues
+    exact = _elastica_tip()
+    plain = run_case("euler", rod_imperfection=0, stability=False)
+    assert plain.ok
+    assert np.abs(gathered_positions(plain)[:, 1:]).max() < 1e-12      # straight
+    assert negative_eigenvalues(plain.problem) == 2                     # unstable in y and z
+    run = run_case("euler", rod_imperfection=0, stability=True)
+    assert run.ok
+    sw = [s for s in run.solver.switches if s["switched"]]
+    assert len(sw) == 1 and len(run.solver.switches) == 1
+    sw = sw[0]
+    assert sw["negative_before"] == 2 and sw["negative_after"] == 0
+    assert sw["energy_after"] < sw["energy_before"] and sw["energy_monotone"]
+    switched = [r for r in run.solver.results if getattr(r, "branch_switch", False)]
+    assert len(switched) == 1 and switched[0].negative_eigenvalues == 0
+    assert switched[0].lam < 1.0 and abs(switched[0].lam - 1 / 1.2) < 2e-3   # at P_cr (+ shear)
+    assert all(h["negative_eigenvalues"] == 0 for h in run.history)     # stable all along
+    x = gathered_positions(run)[-1]
+    assert abs(abs(x[1]) - exact) < 2e-3, (x, exact)
+    assert abs(np.hypot(x[1], x[2]) - exact) < 1e-5                    # 16 cubic elements
+    if PETSc.COMM_WORLD.getSize() > 1:
+        ser = run_case("euler", comm=PETSc.COMM_SELF, rod_imperfection=0, stability=True,
+                       outdir=run.outdir + f"_serial{PETSc.COMM_WORLD.getRank()}")
+        xs = gathered_positions(ser)[-1]
+        assert ser.ok and abs(xs[0] - x[0]) < 1e-8
+        assert abs(np.hypot(xs[1], xs[2]) - np.hypot(x[1], x[2])) < 1e-8
+        assert abs(abs(xs[1]) - abs(x[1])) < 1e-3            # plane may turn by roundoff
+
+
+TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
+               rod_nelem=8, rod_imperfection=1e-3, bc_start="clamped", bc_end="sliding",
+               bc_end_turns=1.25, load_end_force="3,0,0", load_steps=10, load_min_step=1e-4)
+
+
+def test_twisted_clamped_rod_jumps_into_a_loop_at_the_fold():
+    """Clamped rod, small end tension, end turned 1.25 times (sliding end), no contact: the
+    twisted, nearly straight rod's path folds at ~1.24 turns (imperfection 1e-3 L): no
+    equilibrium beyond it, plain Newton stops there.  With -stability the run relaxes at the
+    load of the shortest failed step (a jump) onto a stable loop (|writhe| ~ 1), the energy
+    lower and falling all along the relaxation.  Without contact the rod may pass through
+    itself on the way (here it does: link 1 -> -1, a change by 2 at one crossing)."""
+    from rodsnes.output import read_step
+    plain = run_case(None, stability=True, stability_switch="false", **TWISTED)
+    assert not plain.ok and 0.95 < plain.problem.lam < 1.0
+    run = run_case(None, stability=True, **TWISTED)
+    assert run.ok and run.problem.lam == 1.0
+    res = run.solver.results
+    jumps = [i for i, r in enumerate(res) if getattr(r, "jump", False)]
+    assert len(jumps) == 1 and len(run.solver.switches) == 1
+    j = jumps[0]
+    info = res[j].switch_info
+    assert res[j].branch_switch and res[j].negative_eigenvalues == 0 and res[j].converged
+    assert abs(res[j].lam - plain.problem.lam) < 1e-3
+    assert info["energy_monotone"] and info["energy_after"] < info["energy_before"] - 1.0
+    assert all(h["negative_eigenvalues"] == 0 for h in run.history)
+    before, after = read_step(run.outdir, j)["attrs"], read_step(run.outdir, j + 1)["attrs"]
+    dlink = after["link"] - before["link"]
+    assert min(abs(dlink), abs(abs(dlink) - 2)) < 1e-6               # 0 or one crossing
+    assert abs(before["writhe"]) < 0.1 and abs(abs(after["writhe"]) - 1) < 0.05, (before, after)
+    X = gathered_positions(run)
+    assert np.hypot(X[:, 1], X[:, 2]).max() > 0.2                   # a loop, not a straight rod
+
+
+def test_branch_switching_is_refused_for_non_conservative_loads(capsys):
+    """Energy is no merit with an end moment or a follower force: an unstable step is kept, with
+    one message."""
+    from rodsnes.scene import read_scene
+    from rodsnes.solver import StepResult, _nonconservative
+    scene = read_scene(["rodsnes"], set_options("euler", load_end_force_follower=True))
+    assert "follower" in _nonconservative(scene.loads)
+    assert _nonconservative(read_scene(["rodsnes"], set_options("euler")).loads) is None
+    run = run_case("rollup", rod_nelem=4)          # end moment
+    solver = run.solver
+    solver.switch, solver.quiet = True, False
+    assert "end moment" in solver.switch_refused
+    for _ in range(2):
+        res = StepResult(1.0, True, 1, 2, 0.0, [], 0.0)
+        res.negative_eigenvalues = 1
+        assert solver._maybe_switch(res) is False and res.branch_switch is False
+    out = capsys.readouterr().out
+    if PETSc.COMM_WORLD.getRank() == 0:
+        assert out.count("branch switching refused") == 1 and "end moment" in out
+    assert solver.switches == []
