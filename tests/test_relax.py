@@ -221,3 +221,18 @@ def test_branch_switching_is_refused_for_non_conservative_loads(capsys):
     if PETSc.COMM_WORLD.getRank() == 0:
         assert out.count("branch switching refused") == 1 and "end moment" in out
     assert solver.switches == []
+
+
+def test_twisted_ring_beyond_michell_leaves_the_unstable_circle():
+    """T = 2.5 > sqrt(3) turns (nu = 0): plain load stepping stays on the unstable circle;
+    with -stability the ring leaves it (branch switch), writhes during the relaxation and,
+    having no contact term, passes through itself: the link changes by 2 and the energy ends
+    below the circle's.  (A writhed equilibrium needs self-contact: the bifurcation is
+    subcritical.)"""
+    run = run_case("michell", load_twist_turns=2.5, stability=True)
+    assert run.ok
+    circle = run_case("michell", load_twist_turns=2.5, outdir=run.outdir + "_plain")
+    assert circle.ok
+    assert run.last_energy < 0.5 * circle.last_energy
+    assert abs(abs(run.last_topology["link"] - circle.last_topology["link"]) - 2) < 1e-6
+    assert run.history[-1].get("negative_eigenvalues") == 0
