@@ -22,8 +22,6 @@ def metis_parts(nelem, closed, nparts):
         raise ValueError(f"-rod_nelem = {nelem} is smaller than the number of ranks {nparts}: "
                          f"use at least {nparts} elements or fewer ranks")
     import pymetis
-    e = np.arange(nelem)
-    nbrs = [e - 1, e + 1]
     xadj = [0]
     adj = []
     for k in range(nelem):
@@ -31,7 +29,6 @@ def metis_parts(nelem, closed, nparts):
         row = sorted(set(row) - {k})
         adj.extend(row)
         xadj.append(len(adj))
-    del nbrs
     _, parts = pymetis.part_graph(nparts, adjacency=pymetis.CSRAdjacency(
         adj_starts=np.asarray(xadj), adjacent=np.asarray(adj)))
     parts = np.asarray(parts, dtype=np.int64)

@@ -49,8 +49,7 @@ class NewtonSolver:
         _default(opts, "snes_max_it", "40")
         _default(opts, "ksp_type", "preonly")
         _default(opts, "pc_type", "lu")
-        if "mumps" in PETSc.Sys.getVersionInfo().get("version", "") or True:
-            _default(opts, "pc_factor_mat_solver_type", "mumps")
+        _default(opts, "pc_factor_mat_solver_type", "mumps")
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)
