@@ -184,9 +184,7 @@ class RodProblem:
         if self.contact is not None:
             self.refresh_pattern()
         if self.load_twist:
-            e0 = self.e0_base.copy()
-            e0[..., 5] -= self.lam * 2 * np.pi * self.load_twist / self.mesh.length
-            self.elastic.set_reference(e0)
+            self.elastic.set_reference(self.twisted_reference(self.e0_base))
 
     def refresh_pattern(self):
         """Preallocate the Jacobian for the contact candidates of the current state (within a
@@ -203,6 +201,14 @@ class RodProblem:
             if self.on_pattern_change is not None:   # the factorisation must be redone
                 self.on_pattern_change()
             self.stats["pattern_refreshes"] = self.stats.get("pattern_refreshes", 0) + 1
+
+    def twisted_reference(self, e0):
+        """Stress-free strains at the current load: u_hat_3 lowered by lambda 2 pi T / L
+        (-load_twist_turns T); a copy, e0 itself is kept."""
+        e0 = np.array(e0, copy=True)
+        if self.load_twist:
+            e0[..., 5] -= self.lam * 2 * np.pi * self.load_twist / self.mesh.length
+        return e0
 
     # -- SNES callbacks ---------------------------------------------------------------
     def residual(self, snes, X, F):
@@ -287,10 +293,7 @@ class RodProblem:
             at_nodes = lambda q, x: elastic.strains_at_nodes(self.mesh.order, self.mesh.h, q, x)  # noqa: E731
             e0 = reference_strains(self.scene.rod, self.mesh, self.mesh.conn[self.layout.owned_elems], at_nodes)
             self._e0_nodes = nodal_average(self.layout, self.lconn, e0)
-        e0 = self._e0_nodes.copy()
-        if self.load_twist:
-            e0[:, 5] -= self.lam * 2 * np.pi * self.load_twist / self.mesh.length
-        S = (e - e0) * self.elastic.C
+        S = (e - self.twisted_reference(self._e0_nodes)) * self.elastic.C
         return {"positions": r[:no].copy(), "directors": R,
                 "strain_v": e[:, 0:3], "strain_u": e[:, 3:6],
                 "force_n": np.einsum("nij,nj->ni", R, S[:, 0:3]),

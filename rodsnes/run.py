@@ -175,8 +175,6 @@ class Run:
             output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
 
         def on_fail(res, dlam):
-            if res.reason == -100:       # a PETSc error inside the solve: start the KSP afresh
-                self.solver.snes.getKSP().reset()
             if not self.quiet and self.rank == 0:
                 why = ("it lands on a less stable equilibrium" if res.reason == "stability"
                        else f"SNES reason {res.reason}, {res.its} its")
