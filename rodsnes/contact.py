@@ -259,7 +259,7 @@ class ContactKernel:
     MAXBT = 40          # backtracking halvings
     CHUNK = 16384       # projection problems per vectorised batch
 
-    def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed):
+    def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, segments=False):
         self.p = int(order)
         self.nqc = int(nqc)
         self.eps = float(eps)
@@ -273,6 +273,13 @@ class ContactKernel:
         self.Nq = fe.lagrange(self.p, self.xq)[0]
         self.C = _monomial_matrix(self.p)
         self.nsamp = 4 * self.p + 1 if self.p > 1 else 3
+        # contact-zone integration (module docstring, "Segments"): samples per slave element
+        self.segments = bool(segments)
+        self.nseg = max(2 * self.p + 3, self.nqc + 2)
+        # Gauss points per zone: d ~ d0 - k s^2 near a crossing (<d>^2 a quartic), and deep
+        # penetrations are far from polynomial: 8 points keep the quadrature error below 1e-8
+        self.nqz = max(self.nqc + 3, 8)
+        self.xz, self.wz = fe.gauss_legendre(self.nqz)
 
     # -- arclength ------------------------------------------------------------------------
     def slave_arclength(self, own_ids):
@@ -404,20 +411,28 @@ class ContactKernel:
         pairs (npair, 2) global ids (e_own, e_other) from ``candidate_pairs``.
 
         Returns a dict:
-          energy  float  sum_{own e, q} w_q J (mu/2) <d>^2
+          energy  float  the penalty energy of the own slave points: sum_{own e, q} w_q J
+                  (mu/2) <d>^2 over the nqc Gauss points, or (segments) over the Gauss points
+                  of the contact zones
+          total_force, complementarity  int f_c ds, int <d> f_c ds by the same quadrature
           gap     (no, nqc)  d = 2 eps - (distance to the closest admissible point on the
-                  candidate elements); -inf where the point has no candidate (then the true gap is
-                  < 2 eps - reach).  Exact wherever d >= 2 eps - reach.
-          force   (no, nqc)  f_c = mu <d> (the slave side only: in a two-sided contact,
-                  where the master strand is slave in turn, each strand gets 2 mu d)
+                  candidate elements) at the Gauss points; -inf where the point has no
+                  candidate (then the true gap is < 2 eps - reach).  Exact wherever
+                  d >= 2 eps - reach.
+          force   (no, nqc)  f_c = mu <d> at the Gauss points (the slave side only: in a
+                  two-sided contact, where the master strand is slave in turn, each strand
+                  gets 2 mu d)
           sbar    (no, nqc)  arclength of the closest point (NaN where none)
-          active  (nact, 2)  (own element id, element id holding the closest point), d > 0
+          active  (nact, 2)  (own element id, element id holding the closest point), d > 0,
+                  one row per quadrature point carrying force
           vec     (nact, 2(p+1), 3)  dE_c/dx for the nodes of [own element, closest element]
           mat     (nact, 6(p+1), 6(p+1))  d2E_c/dx2, index 3a+i (None if not tangent)
-          qp      (nact,) Gauss index of the slave point; xi (nact,) master xi;
+          qp      (nact,) Gauss index of the slave point (-1 for a contact-zone point);
+          xi_slave (nact,) slave xi; xi (nact,) master xi;
           normal  (nact, 3) nu; interior (nact,) bool (closest point strictly inside its slot)
+          zones   number of contact zones (segments; else the number of active Gauss points)
         """
-        p, nqc, h, eps, mu = self.p, self.nqc, self.h, self.eps, self.mu
+        p, nqc, h = self.p, self.nqc, self.h
         n1 = p + 1
         own_ids = np.asarray(own_ids, dtype=np.int64).ravel()
         x_own = np.asarray(x_own, dtype=float).reshape(len(own_ids), n1, 3)
@@ -425,108 +440,355 @@ class ContactKernel:
         x_other = np.asarray(x_other, dtype=float).reshape(len(other_ids), n1, 3)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         no = len(own_ids)
-
-        rs = np.einsum("qa,oad->oqd", self.Nq, x_own)           # slave points (no, nqc, 3)
-        s_q = self.slave_arclength(own_ids)
         gap = np.full((no, nqc), -np.inf)
         sbar = np.full((no, nqc), np.nan)
-        out = {"energy": 0.0, "gap": gap, "force": np.zeros((no, nqc)), "sbar": sbar,
+        out = {"energy": 0.0, "total_force": 0.0, "complementarity": 0.0, "zones": 0,
+               "gap": gap, "force": np.zeros((no, nqc)), "sbar": sbar,
                "active": np.zeros((0, 2), dtype=np.int64), "vec": np.zeros((0, 2 * n1, 3)),
                "mat": np.zeros((0, 6 * n1, 6 * n1)) if tangent else None,
-               "qp": np.zeros(0, dtype=np.int64), "xi": np.zeros(0),
-               "normal": np.zeros((0, 3)), "interior": np.zeros(0, dtype=bool)}
+               "qp": np.zeros(0, dtype=np.int64), "xi": np.zeros(0), "xi_slave": np.zeros(0),
+               "normal": np.zeros((0, 3)), "interior": np.zeros(0, dtype=bool),
+               "d_active": np.zeros(0)}
         if no == 0 or len(pairs) == 0:
             return out
+        ctx = self._context(own_ids, x_own, other_ids, x_other, pairs)
 
-        # pool of master elements: other first, then own (first occurrence wins)
+        # the Gauss points: reported gap and force, and the quadrature unless segments
+        o_r = np.repeat(np.arange(no), nqc)
+        xi_r = np.tile(self.xq, no)
+        w_r = np.tile(self.wq * (0.5 * h), no)
+        cl = self._closest(ctx, o_r, xi_r)
+        gap[:] = cl["d"].reshape(no, nqc)
+        has = cl["m"] >= 0
+        sb = np.full(len(o_r), np.nan)
+        sb[has] = ctx["pool_ids"][cl["m"][has]] * h + (cl["xi_m"][has] + 1.0) * 0.5 * h
+        sbar[:] = sb.reshape(no, nqc)
+        out["force"] = self.mu * np.maximum(gap, 0.0)
+        if self.segments:
+            o_q, xi_q, w_q, nz = self._zones(ctx, gap)
+            cl = self._closest(ctx, o_q, xi_q)
+            qp = np.full(len(o_q), -1, dtype=np.int64)
+            out["zones"] = nz
+        else:
+            o_q, xi_q, w_q = o_r, xi_r, w_r
+            qp = np.tile(np.arange(nqc), no)
+            out["zones"] = int(np.count_nonzero(cl["d"] > 0.0))
+        self._terms(ctx, o_q, xi_q, w_q, qp, cl, tangent, out)
+        return out
+
+    # -- building blocks ----------------------------------------------------------------------
+    def _context(self, own_ids, x_own, other_ids, x_other, pairs):
+        """Master pool (other first, then own; first occurrence wins), monomial coefficients,
+        bounding spheres, and the candidate masters of every own element (CSR by own index)."""
         pool_ids = np.concatenate([other_ids, own_ids])
         pool_x = np.concatenate([x_other, x_own], axis=0)
         pool_ids, first = np.unique(pool_ids, return_index=True)
         pool_x = pool_x[first]
         oi = _lookup(own_ids, pairs[:, 0], "own")
         mi = _lookup(pool_ids, pairs[:, 1], "other")
-        A_pool = np.einsum("ka,ead->ekd", self.C, pool_x)      # monomial coefficients
+        order = np.argsort(oi, kind="stable")
+        no = len(own_ids)
+        count = np.bincount(oi, minlength=no)
+        cen, rad = element_bounds(pool_x)
+        return {"own_ids": own_ids, "x_own": x_own, "pool_ids": pool_ids, "pool_x": pool_x,
+                "A_pool": np.einsum("ka,ead->ekd", self.C, pool_x), "cen": cen, "rad": rad,
+                "m_sorted": mi[order], "start": np.cumsum(count) - count, "count": count}
 
-        # problems: (pair, q, slot)
-        npair = len(pairs)
-        P_o = np.repeat(oi, nqc)                                # (npair*nqc,)
-        P_q = np.tile(np.arange(nqc), npair)
-        P_m = np.repeat(mi, nqc)
-        lo, hi, valid = self.admissible_slots(s_q[P_o, P_q], pool_ids[P_m])
-        sel_pq, sel_slot = np.nonzero(valid)
-        if sel_pq.size == 0:
-            return out
-        pr_o, pr_q, pr_m = P_o[sel_pq], P_q[sel_pq], P_m[sel_pq]
-        pr_lo, pr_hi = lo[sel_pq, sel_slot], hi[sel_pq, sel_slot]
-        pt = pr_o * nqc + pr_q
-
+    def _closest(self, ctx, o, xi):
+        """Closest admissible point of the slave points (own index o, slave xi) (M,) among the
+        candidate elements of their element: d = 2 eps - g (-inf without candidate), m (pool
+        index, -1 without), xi_m, interior, D = r(s) - r(sbar), g, and N, dN at xi."""
+        p, h = self.p, self.h
+        M = len(o)
+        Ns, dNs, _ = (mm @ self.C for mm in _monomials(p, xi))
+        P = np.einsum("na,nad->nd", Ns, ctx["x_own"][o])
+        s = ctx["own_ids"][o] * h + (xi + 1.0) * (0.5 * h)
+        res = {"d": np.full(M, -np.inf), "m": np.full(M, -1, dtype=np.int64), "xi_m": np.zeros(M),
+               "interior": np.zeros(M, dtype=bool), "D": np.zeros((M, 3)), "g": np.full(M, np.inf),
+               "N": Ns, "dN": dNs, "P": P}
+        cnt = ctx["count"][o]
+        tot = int(cnt.sum())
+        if tot == 0:
+            return res
+        pt = np.repeat(np.arange(M), cnt)
+        offs = np.arange(tot) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+        pm = ctx["m_sorted"][np.repeat(ctx["start"][o], cnt) + offs]
+        lo, hi, valid = self.admissible_slots(s[pt], ctx["pool_ids"][pm])
+        sel, slot = np.nonzero(valid)
+        if sel.size == 0:
+            return res
+        pr_pt, pr_m = pt[sel], pm[sel]
+        pr_lo, pr_hi = lo[sel, slot], hi[sel, slot]
         # prune (exactly): a slot whose element's bounding sphere is farther from the slave point
         # than some admissible point (a slot end) of another slot cannot hold the minimum
-        P = rs[pr_o, pr_q]
-        cen, rad = element_bounds(pool_x)
-        lb = np.linalg.norm(P - cen[pr_m], axis=1) - rad[pr_m]
+        A = ctx["A_pool"]
+        Pp = P[pr_pt]
+        lb = np.linalg.norm(Pp - ctx["cen"][pr_m], axis=1) - ctx["rad"][pr_m]
         kk = np.arange(p + 1)
         ub = np.minimum(
-            np.linalg.norm(np.einsum("mk,mkd->md", pr_lo[:, None] ** kk, A_pool[pr_m]) - P, axis=1),
-            np.linalg.norm(np.einsum("mk,mkd->md", pr_hi[:, None] ** kk, A_pool[pr_m]) - P, axis=1))
-        best_ub = np.full(no * nqc, np.inf)
-        np.minimum.at(best_ub, pt, ub)
-        keep = lb <= best_ub[pt] * (1.0 + 1e-9) + 1e-300
-        pr_o, pr_q, pr_m, pr_lo, pr_hi, pt = (a[keep] for a in (pr_o, pr_q, pr_m, pr_lo, pr_hi, pt))
-        xi, f = self.project(P[keep], A_pool[pr_m], pr_lo, pr_hi)
-
+            np.linalg.norm(np.einsum("mk,mkd->md", pr_lo[:, None] ** kk, A[pr_m]) - Pp, axis=1),
+            np.linalg.norm(np.einsum("mk,mkd->md", pr_hi[:, None] ** kk, A[pr_m]) - Pp, axis=1))
+        best_ub = np.full(M, np.inf)
+        np.minimum.at(best_ub, pr_pt, ub)
+        keep = lb <= best_ub[pr_pt] * (1.0 + 1e-9) + 1e-300
+        pr_pt, pr_m, pr_lo, pr_hi, Pp = (a[keep] for a in (pr_pt, pr_m, pr_lo, pr_hi, Pp))
+        xm, f = self.project(Pp, A[pr_m], pr_lo, pr_hi)
         # global minimum per slave point (ties, e.g. a shared node: the first one only)
-        order = np.lexsort((f, pt))
-        keep = np.ones(len(order), dtype=bool)
-        keep[1:] = pt[order][1:] != pt[order][:-1]
-        best = order[keep]
-        b_o, b_q, b_m, b_xi = pr_o[best], pr_q[best], pr_m[best], xi[best]
-        b_int = (b_xi > pr_lo[best]) & (b_xi < pr_hi[best])
-
-        Nm, dNm, d2Nm = (m @ self.C for m in _monomials(p, b_xi))   # = fe.lagrange(p, b_xi)
-        xm = pool_x[b_m]
-        r_m = np.einsum("na,nad->nd", Nm, xm)
-        Dv = rs[b_o, b_q] - r_m
+        order = np.lexsort((f, pr_pt))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = pr_pt[order][1:] != pr_pt[order][:-1]
+        best = order[first]
+        b = pr_pt[best]
+        res["m"][b] = pr_m[best]
+        res["xi_m"][b] = xm[best]
+        res["interior"][b] = (xm[best] > pr_lo[best]) & (xm[best] < pr_hi[best])
+        Nm = _monomials(p, xm[best])[0] @ self.C
+        Dv = P[b] - np.einsum("na,nad->nd", Nm, ctx["pool_x"][pr_m[best]])
         g = np.linalg.norm(Dv, axis=1)
-        d = 2.0 * eps - g
-        gap[b_o, b_q] = d
-        sbar[b_o, b_q] = pool_ids[b_m] * h + (b_xi + 1.0) * 0.5 * h
-        dpos = np.maximum(gap, 0.0)
-        out["force"] = mu * dpos
-        wJ = self.wq * (0.5 * h)
-        out["energy"] = float(0.5 * mu * np.sum(wJ[None, :] * dpos ** 2))
+        res["D"][b] = Dv
+        res["g"][b] = g
+        res["d"][b] = 2.0 * self.eps - g
+        return res
 
+    def _ddxi(self, ctx, o, cl):
+        """d'(xi) = -nu . dr/dxi of the slave points (the closest-point motion drops out)."""
+        t = np.einsum("na,nad->nd", cl["dN"], ctx["x_own"][o])
+        g = np.where(np.isfinite(cl["g"]) & (cl["g"] > 0), cl["g"], 1.0)
+        return np.where(cl["m"] >= 0, -np.einsum("nd,nd->n", cl["D"], t) / g, 0.0)
+
+    def _solve1d(self, ctx, o, a, b, fa, fb, which, iters=40, target=None):
+        """Illinois (modified regula falsi) root of f on [a, b], f(a), f(b) of opposite signs,
+        vectorised; f = d (which 0), d' (which 1), sbar - target (which 2, periodic for a
+        ring) of the slave points of own index o, or (which 3, by bisection) +1 / -1 as the
+        closest point is or is not on pool element target[:, 0] with interior flag target[:, 1].  Bisection where a value is not finite.
+        Returns the root and d there."""
+        a, b, fa, fb = (np.array(v, dtype=float) for v in (a, b, fa, fb))
+        x = 0.5 * (a + b)
+        dx_tol = 1e-13
+        act = np.arange(len(a))
+        side = np.zeros(len(a), dtype=int)
+        for _ in range(iters):
+            if act.size == 0:
+                break
+            A_, B_, FA, FB = a[act], b[act], fa[act], fb[act]
+            ok = np.isfinite(FA) & np.isfinite(FB) & (FA != FB) & (which != 3)
+            c = np.where(ok, (A_ * FB - B_ * FA) / np.where(ok, FB - FA, 1.0), 0.5 * (A_ + B_))
+            c = np.clip(c, np.minimum(A_, B_), np.maximum(A_, B_))
+            cl = self._closest(ctx, o[act], c)
+            if which == 0:
+                fc = cl["d"]
+            elif which == 1:
+                fc = self._ddxi(ctx, o[act], cl)
+            elif which == 2:
+                fc = self._sbar_offset(ctx, cl, target[act])
+            else:               # +1 while the closest point is of the same kind as at a
+                fc = np.where((cl["m"] == target[act, 0]) & (cl["interior"] == target[act, 1].astype(bool)), 1.0, -1.0)
+            x[act] = c
+            left = np.sign(fc) == np.sign(FA)
+            # replace the end with the same sign; halve the other end's value if it stays twice
+            a[act] = np.where(left, c, A_)
+            fa[act] = np.where(left, fc, FA)
+            b[act] = np.where(left, B_, c)
+            fb[act] = np.where(left, FB, fc)
+            s_new = np.where(left, 1, -1)
+            stay = side[act] == s_new
+            fb[act] = np.where(stay & left & np.isfinite(fb[act]), 0.5 * fb[act], fb[act])
+            fa[act] = np.where(stay & ~left & np.isfinite(fa[act]), 0.5 * fa[act], fa[act])
+            side[act] = s_new
+            done = (np.abs(b[act] - a[act]) <= dx_tol) | (fc == 0.0)
+            act = act[~done]
+        cl = self._closest(ctx, o, x)
+        return x, cl["d"]
+
+    def _sbar_offset(self, ctx, cl, target):
+        """sbar - target (periodic difference on a ring; NaN without a closest point)."""
+        m = cl["m"]
+        ok = m >= 0
+        sb = np.where(ok, ctx["pool_ids"][np.maximum(m, 0)] * self.h + (cl["xi_m"] + 1.0) * 0.5 * self.h, np.nan)
+        off = sb - target
+        if self.closed:
+            off = np.mod(off + 0.5 * self.L, self.L) - 0.5 * self.L
+        return off
+
+    def _split_zones(self, ctx, oz, za, zb):
+        """Split the zones where the integrand has a kink, which Gauss points must not straddle:
+        where the closest point passes from a master element to the next (a master node: N_m
+        (xibar(s)) has a kink; Illinois on sbar - s_node), jumps to another strand, or moves
+        between the interior and a bound (rod end, exclusion boundary) (bisection).  Looked for
+        between nqz + 2 points of each zone."""
+        h, nel = self.h, self.nelem
+        n = self.nqz + 2
+        t = np.linspace(0.0, 1.0, n)
+        Xs = za[:, None] + (zb - za)[:, None] * t[None, :]
+        o = np.repeat(oz, n)
+        cl = self._closest(ctx, o, Xs.ravel())
+        me = np.where(cl["m"] >= 0, ctx["pool_ids"][np.maximum(cl["m"], 0)], -1).reshape(-1, n)
+        m1, m2 = me[:, :-1], me[:, 1:]
+        fwd = (m1 >= 0) & (m2 >= 0) & (np.mod(m2 - m1, nel) == 1)
+        bwd = (m1 >= 0) & (m2 >= 0) & (np.mod(m1 - m2, nel) == 1)
+        cuts = []
+        # a jump to another strand or between an interior closest point and a bound (rod end,
+        # exclusion boundary): d(s) has a kink there; bisection on the kind of closest point
+        mm = cl["m"].reshape(-1, n)
+        it = cl["interior"].reshape(-1, n)
+        xim = cl["xi_m"].reshape(-1, n)
+        other = (mm[:, :-1] != mm[:, 1:]) & ~(fwd | bwd) | (it[:, :-1] != it[:, 1:])
+        ki, kj = np.nonzero(other)
+        if ki.size:
+            tgt = np.stack([mm[ki, kj], it[ki, kj].astype(float)], axis=1)
+            c2, _ = self._solve1d(ctx, oz[ki], Xs[ki, kj], Xs[ki, kj + 1], np.ones(len(ki)),
+                                  -np.ones(len(ki)), 3, iters=45, target=tgt)
+            cuts.append((ki, c2))
+        zi, ji = np.nonzero(fwd | bwd)
+        if zi.size == 0 and not cuts:
+            return oz, za, zb
+        if zi.size:
+            node = np.where(fwd[zi, ji], m2[zi, ji], m1[zi, ji]) * h      # arclength of the node
+            cut, _ = self._solve1d(ctx, oz[zi], Xs[zi, ji], Xs[zi, ji + 1],
+                                   self._sbar_offset(ctx, {"m": mm[zi, ji], "xi_m": xim[zi, ji]}, node),
+                                   self._sbar_offset(ctx, {"m": mm[zi, ji + 1], "xi_m": xim[zi, ji + 1]}, node),
+                                   2, target=node)
+            cuts.append((zi, cut))
+        zid = np.concatenate([np.arange(len(za)), np.arange(len(za))] + [c[0] for c in cuts])
+        pts = np.concatenate([za, zb] + [c[1] for c in cuts])
+        srt = np.lexsort((pts, zid))
+        zid, pts = zid[srt], pts[srt]
+        same = zid[1:] == zid[:-1]
+        a, b, z = pts[:-1][same], pts[1:][same], zid[:-1][same]
+        keep = b > a
+        return oz[z[keep]], a[keep], b[keep]
+
+    def _zones(self, ctx, gap_q):
+        """Contact zones {xi : d(xi) > 0} of the own elements and their Gauss points.
+
+        Slave elements within one contact radius of touching (max over the Gauss points of
+        d > -eps) are sampled at nseg equispaced xi (ends included); an interior discrete
+        maximum of d above -eps is refined (root of d' by Illinois), so a zone narrower than
+        the sample spacing (crossing strands) is still found; every run of points with d > 0
+        becomes a zone bounded by the roots of d (Illinois) or by the element ends.  Each zone
+        [a, b] gets the nqc Gauss points mapped onto it.  Returns (own index, xi, weight w J)
+        of those points and the number of zones."""
+        nqc, h = self.nqc, self.h
+        empty = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), 0)
+        cand = np.flatnonzero(gap_q.max(axis=1) > -self.eps)
+        if cand.size == 0:
+            return empty
+        S = self.nseg
+        xs = np.linspace(-1.0, 1.0, S)
+        nc = len(cand)
+        o = np.repeat(cand, S)
+        xi = np.tile(xs, nc)
+        d = self._closest(ctx, o, xi)["d"].reshape(nc, S)
+        # refine the discrete maxima of d within eps of contact (an end sample too: the peak
+        # may lie between it and its neighbour)
+        pad = np.full((nc, 1), -np.inf)
+        left = np.concatenate([pad, d[:, :-1]], axis=1)
+        right = np.concatenate([d[:, 1:], pad], axis=1)
+        ismax = (d >= left) & (d >= right) & (d > -self.eps)
+        ei, jj = np.nonzero(ismax)
+        xe, de = [xi.reshape(nc, S)], [d]
+        if ei.size:
+            om = cand[ei]
+            a, b = xs[np.maximum(jj - 1, 0)], xs[np.minimum(jj + 1, S - 1)]
+            cla = self._closest(ctx, om, a)
+            clb = self._closest(ctx, om, b)
+            fa, fb = self._ddxi(ctx, om, cla), self._ddxi(ctx, om, clb)
+            brk = (fa > 0.0) & (fb < 0.0)
+            if np.any(brk):
+                xr, dr = self._solve1d(ctx, om[brk], a[brk], b[brk], fa[brk], fb[brk], 1)
+                # append as extra columns, one per refined maximum (padded with -inf)
+                rows = ei[brk]
+                k = np.zeros(len(rows), dtype=np.int64)
+                order = np.argsort(rows, kind="stable")
+                rs = rows[order]
+                firsts = np.r_[0, np.flatnonzero(rs[1:] != rs[:-1]) + 1]
+                k[order] = np.arange(len(rs)) - np.repeat(firsts, np.diff(np.r_[firsts, len(rs)]))
+                ncol = int(k.max()) + 1
+                X2 = np.full((nc, ncol), 2.0)       # padding beyond the element end: ignored
+                D2 = np.full((nc, ncol), -np.inf)
+                X2[rows, k] = xr
+                D2[rows, k] = dr
+                xe.append(X2)
+                de.append(D2)
+        X = np.concatenate(xe, axis=1)
+        D = np.concatenate(de, axis=1)
+        srt = np.argsort(X, axis=1, kind="stable")
+        X = np.take_along_axis(X, srt, axis=1)
+        D = np.take_along_axis(D, srt, axis=1)
+        inside = X <= 1.0
+        pos = (D > 0.0) & inside
+        if not np.any(pos):
+            return empty
+        prev = np.concatenate([np.zeros((nc, 1), dtype=bool), pos[:, :-1]], axis=1)
+        nxt = np.concatenate([pos[:, 1:], np.zeros((nc, 1), dtype=bool)], axis=1)
+        r0, c0 = np.nonzero(pos & ~prev)          # zone starts
+        r1, c1 = np.nonzero(pos & ~nxt)           # zone ends (same row order: row-major)
+        za = X[r0, c0].copy()
+        zb = X[r1, c1].copy()
+        # roots of d between a start and the point before it (xi = -1 has no point before)
+        need = c0 > 0
+        if np.any(need):
+            rr, cc = r0[need], c0[need]
+            za[need], _ = self._solve1d(ctx, cand[rr], X[rr, cc - 1], X[rr, cc], D[rr, cc - 1],
+                                        D[rr, cc], 0)
+        need = (c1 + 1 < X.shape[1])
+        need[need] = X[r1[need], c1[need] + 1] <= 1.0
+        if np.any(need):
+            rr, cc = r1[need], c1[need]
+            zb[need], _ = self._solve1d(ctx, cand[rr], X[rr, cc], X[rr, cc + 1], D[rr, cc],
+                                        D[rr, cc + 1], 0)
+        nz = len(za)
+        oz, za, zb = self._split_zones(ctx, cand[r0], za, zb)
+        oz = np.repeat(oz, self.nqz)
+        mid, half = 0.5 * (za + zb), 0.5 * (zb - za)
+        xq = (mid[:, None] + half[:, None] * self.xz[None, :]).ravel()
+        wq = (half[:, None] * self.wz[None, :] * (0.5 * h)).ravel()
+        return oz, xq, wq, nz
+
+    def _terms(self, ctx, o, xi, wJ, qp, cl, tangent, out):
+        """Energy, residual and tangent of the slave points (o, xi) with weights w J
+        (module docstring, "Formulas used"); fills ``out``."""
+        p, eps, mu = self.p, self.eps, self.mu
+        n1 = p + 1
+        d = cl["d"]
+        dpos = np.maximum(d, 0.0)
+        out["energy"] = float(0.5 * mu * np.sum(wJ * dpos ** 2))
+        out["total_force"] = float(mu * np.sum(wJ * dpos))
+        out["complementarity"] = float(mu * np.sum(wJ * dpos ** 2))
         act = d > 0.0
         if not np.any(act):
-            return out
-        a_o, a_q, a_m, a_xi = b_o[act], b_q[act], b_m[act], b_xi[act]
-        Dv, g, d = Dv[act], g[act], d[act]
-        Nm, dNm, d2Nm, xm = Nm[act], dNm[act], d2Nm[act], xm[act]
-        interior = b_int[act]
+            return
+        m, xm = cl["m"][act], cl["xi_m"][act]
+        Dv, g, d = cl["D"][act], cl["g"][act], d[act]
+        Nm, dNm, d2Nm = (mm @ self.C for mm in _monomials(p, xm))
+        xmn = ctx["pool_x"][m]
+        Ns = cl["N"][act]
+        interior = cl["interior"][act]
         gs = np.maximum(g, 1e-300)
         nu = Dv / gs[:, None]
-        Nt = np.concatenate([self.Nq[a_q], -Nm], axis=1)           # (nact, 2(p+1))
-        cw = wJ[a_q] * mu                                           # w J mu
-        out["active"] = np.stack([own_ids[a_o], pool_ids[a_m]], axis=1)
+        Nt = np.concatenate([Ns, -Nm], axis=1)                     # (nact, 2(p+1))
+        cw = wJ[act] * mu                                           # w J mu
+        out["active"] = np.stack([ctx["own_ids"][o[act]], ctx["pool_ids"][m]], axis=1)
         out["vec"] = -(cw * d)[:, None, None] * Nt[:, :, None] * nu[:, None, :]
-        out["qp"], out["xi"], out["normal"], out["interior"] = a_q, a_xi, nu, interior
+        out["qp"], out["xi"], out["xi_slave"] = qp[act], xm, xi[act]
+        out["d_active"] = d
+        out["normal"], out["interior"] = nu, interior
         if tangent:
             nact = len(d)
             A3 = (2.0 * eps / gs)[:, None, None] * nu[:, :, None] * nu[:, None, :] \
                 - (d / gs)[:, None, None] * np.eye(3)[None]
             K = np.einsum("na,nb,nij->naibj", Nt, Nt, A3 * cw[:, None, None])
-            t = np.einsum("na,nad->nd", dNm, xm)
-            r2 = np.einsum("na,nad->nd", d2Nm, xm)
+            t = np.einsum("na,nad->nd", dNm, xmn)
+            r2 = np.einsum("na,nad->nd", d2Nm, xmn)
             k = np.einsum("nd,nd->n", t, t) - np.einsum("nd,nd->n", Dv, r2)
             use = interior & (k > 0.0)
             if np.any(use):
-                c = np.concatenate([-self.Nq[a_q][:, :, None] * t[:, None, :],
+                c = np.concatenate([-Ns[:, :, None] * t[:, None, :],
                                     Nm[:, :, None] * t[:, None, :] - dNm[:, :, None] * Dv[:, None, :]],
                                    axis=1)                           # (nact, 2(p+1), 3)
                 fac = np.where(use, cw * d / (gs * np.where(use, k, 1.0)), 0.0)
                 K += fac[:, None, None, None, None] * c[:, :, :, None, None] * c[:, None, None, :, :]
             out["mat"] = K.reshape(nact, 6 * n1, 6 * n1)
-        return out
 
 
 def _lookup(ids, query, what):

@@ -38,7 +38,8 @@ class ContactTerm:
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
         self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
-                                       mesh.length, mesh.nelem, mesh.closed)
+                                       mesh.length, mesh.nelem, mesh.closed,
+                                       segments=getattr(c, "zones", True))
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
         self.pattern_reach = 2.0 * self.eps + 4.0 * self.eps + mesh.h   # preallocation margin per step
@@ -163,25 +164,56 @@ class ContactTerm:
         return np.concatenate([ck.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
                                ck.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
 
+    def clearance(self, r_loc, k=48):
+        """A lower bound of the free space between strands that have come back toward each
+        other (collective):
+
+            c = min |x_i - x_j| - 2 eps  over node pairs with arclength distance a_ij >= delta
+                and (|x_i - x_j| < a_ij / 2  or  |x_i - x_j| < 3 eps)
+
+        The second condition leaves out the rod's own continuation (a nearly straight piece has
+        |x_i - x_j| ~ a_ij), which cannot be tunnelled through, while a hairpin or a loop about to
+        close counts.  Search: the k nearest nodes of every node (scipy cKDTree on the
+        allgathered nodes); if none of them counts, the k-th distance bounds the nearest pair
+        that does from below.  No strand can reach another by moving less than c / 2, so a
+        pseudo-time step whose nodes move less than c / 4 cannot tunnel through the rod."""
+        from scipy.spatial import cKDTree
+        m, lay = self.mesh, self.layout
+        X = lay.allgather_nodes(np.asarray(r_loc[:lay.n_owned], dtype=float))
+        n = len(X)
+        k = min(k, n)
+        dist, idx = cKDTree(X).query(X, k=k)
+        ds = m.length / (m.nelem * m.order)
+        arc = np.abs(idx - np.arange(n)[:, None]) * ds
+        if m.closed:
+            arc = np.minimum(arc, m.length - arc)
+        counts = (arc >= self.delta) & ((dist < 0.5 * arc) | (dist < 3.0 * self.eps))
+        near_min = np.where(counts, dist, np.inf).min(axis=1)
+        bound = np.where(np.isfinite(near_min), near_min, dist[:, -1])
+        return float(bound.min() - 2.0 * self.eps)
+
     # -- the KKT picture ----------------------------------------------------------------
     def summary(self):
         """The KKT picture over all ranks, from the last evaluation (the converged state):
-        min_gap = min_s (|r(s) - r(sbar)| - 2 eps) (negative: penetration), max_penetration =
-        max <d> / (2 eps), total_force = int f_c ds, active_points = #{d > 0},
-        complementarity = int <d> f_c ds (zero for exact contact; the penalty makes it ~1/mu)."""
+        min_gap = min_s (|r(s) - r(sbar)| - 2 eps) over the Gauss points (negative:
+        penetration), max_penetration = max <d> / (2 eps), total_force = int f_c ds,
+        complementarity = int <d> f_c ds (zero for exact contact; the penalty makes it ~1/mu)
+        by the contact quadrature (the zones, by default), active_points = Gauss points with
+        d > 0, zones = contact zones."""
         out = self.last
         gap = out["gap"]
-        wJ = self.kernel.wq * (0.5 * self.mesh.h)
-        d = np.maximum(gap, 0.0)
-        f = out["force"]
-        loc = np.array([np.sum(f * wJ), np.sum(d * f * wJ), np.count_nonzero(gap > 0)], dtype=float)
+        loc = np.array([out["total_force"], out["complementarity"], np.count_nonzero(gap > 0),
+                        out["zones"]], dtype=float)
         tot = self.comm.allreduce(loc)
-        dmax = self.comm.allreduce(float(gap.max()) if gap.size else -np.inf, op=MPI.MAX)
+        # the deepest point of a zone may lie between the Gauss points
+        dloc = max(float(gap.max()) if gap.size else -np.inf,
+                   float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
+        dmax = self.comm.allreduce(dloc, op=MPI.MAX)
         self.last_min_gap = -dmax
         return {"min_gap": float(-dmax), "max_penetration": float(max(dmax, 0.0) / (2 * self.eps)),
                 "total_force": float(tot[0]), "complementarity": float(tot[1]),
-                "active_points": int(tot[2]), "penalty": self.mu, "radius": self.eps,
-                "exclusion": self.delta}
+                "active_points": int(tot[2]), "zones": int(tot[3]), "penalty": self.mu,
+                "radius": self.eps, "exclusion": self.delta}
 
     def qp_fields(self):
         out = self.last

@@ -20,8 +20,8 @@ rejected and retried with a larger c).  c adapts by switched evolution relaxatio
 (c <- c |F_k| / |F_{k-1}|, |F| the undamped residual; bounded), grows after a failed damped
 solve and shrinks further when the damped solve converges in a few Newton steps: the flow
 becomes full Newton as the minimum is approached.  A pseudo-time step may move no node by more
-than max_move (L/10; half the contact radius with contact, so the flow cannot tunnel through the
-rod).  It stops when the undamped residual is at the solver's tolerance; the caller then removes
+than max_move (L/10; with contact, a quarter of the free space between non-neighbouring
+strands but no less than half the contact radius, so the flow cannot tunnel through the rod).  It stops when the undamped residual is at the solver's tolerance; the caller then removes
 the term and finishes with an undamped solve.
 
 Two callers in NewtonSolver: switch_branch (a converged but unstable equilibrium: push along the
@@ -176,8 +176,8 @@ def relax(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_
     """Implicit gradient flow at load factor lam from the current state to an equilibrium of
     lower energy (module docstring).  solver: NewtonSolver (solve_at, problem); c0: initial c;
     tol: undamped |F| to stop at; max_move: largest nodal displacement of one pseudo-time step
-    (default L/10, and half the contact radius with contact, so the flow cannot tunnel through
-    the rod); a longer step is rejected like a failed one.  The term is removed again before
+    (default L/10, with contact max(eps/2, clearance/4) from the anchor, so the flow cannot
+    tunnel through the rod); a longer step is rejected like a failed one.  The term is removed again before
     returning; the state is the last accepted pseudo-time step.  Collective: every decision
     uses rank 0's values of energies, norms and displacements, and SNES reasons."""
     p = solver.problem
@@ -187,11 +187,18 @@ def relax(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_
         return comm.bcast(values if len(values) > 1 else values[0], root=0)
 
     out = RelaxResult()
-    if max_move is None:
-        max_move = 0.1 * p.mesh.length
-        eps = getattr(p.contact, "eps", None) if p.contact is not None else None
-        if eps:
-            max_move = min(max_move, 0.5 * eps)
+    fixed_move = max_move
+
+    def move_limit():
+        """max_move, else L/10, and with contact at most max(eps/2, clearance/4) (contact_term
+        .clearance): far from contact the flow may take long steps, near it none can tunnel."""
+        if fixed_move is not None:
+            return fixed_move
+        lim = 0.1 * p.mesh.length
+        if p.contact is not None:
+            r_loc, _ = p.state.local_config()
+            lim = min(lim, max(0.5 * p.contact.eps, 0.25 * p.contact.clearance(r_loc)))
+        return lim
     term = RelaxationTerm(p.mesh, p.layout, c0)
     c_min = 1e-12 * c0 if c_min is None else c_min
     F = p.layout.create_vec()
@@ -220,18 +227,21 @@ def relax(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_
                 break
             term.set_stiffness(c)
             term.set_anchor(*p.state.local_config())
+            max_move = same(move_limit())
             snap = p.state.snapshot()
             res = solver.solve_guarded(lam)
             out.newton_its += res.its
-            ok, fac = False, grow
+            ok, fac, too_far = False, grow, False
             if res.converged:
                 r_new, _ = p.state.local_config()
                 move = float(np.linalg.norm(r_new[:term.no] - term.a, axis=1).max(initial=0.0))
                 move = same(comm.allreduce(move, op=_MAX()))
                 E_new = same(undamped_energy(p, term))
                 ok = E_new <= E + Etol(E_new) and move <= max_move
-                if move > max_move:
-                    fac = max(grow, 2 * move / max_move)
+                if move > max_move and E_new <= E + Etol(E_new):
+                    # too long a step, but downhill: the move scales as 1/c, aim at 0.8 max_move
+                    fac = max(1.25 * move / max_move, 1.5)
+                    too_far = True
             stuck = stuck + 1 if (not res.converged and res.its == 0) else 0
             rejected_row = 0 if ok else rejected_row + 1
             if not ok:
@@ -251,18 +261,22 @@ def relax(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_
                                    f"{res.reason}, c = {c:.3e}, undamped |F| = {f:.3e})")
                     break
                 c *= fac
-                cooldown = 2
+                cooldown = 0 if too_far else 2
                 continue
             f_new = same(undamped_residual_norm(p, term, F))
             out.steps += 1
             out.log.append((c, res.its, E_new, f_new, str(res.reason)))
             out.energies.append(E_new)
-            # switched evolution relaxation: dt ~ 1/|F|, bounded; harder solves -> smaller dt
+            # switched evolution relaxation: dt ~ 1/|F|, bounded; harder solves -> smaller dt.
+            # While the energy falls, a growing |F| (the flow leaving a saddle) does not shorten
+            # the step: that would stall the escape.
             ratio = min(max(f_new / f, 0.05), 2.0)
             if res.its > 8:
                 ratio = max(ratio, 2.0)
             elif res.its <= 5:          # an easy damped solve: a longer pseudo-time step
-                ratio = min(ratio, 0.25)
+                ratio = min(ratio, 0.25 if f_new < f else 0.5)
+            else:
+                ratio = min(ratio, 1.0)
             if cooldown > 0:
                 ratio = max(ratio, 1.0)
                 cooldown -= 1

@@ -246,6 +246,8 @@ class O:
     contact_exclusion = Opt(REAL, None, "arclength below which point pairs are never in contact",
                             "contact", rng="[0,inf)", shown="automatic",
                             note="an arclength, in length units")
+    contact_zones = Opt(BOOL, True, "integrate the penalty over the contact zones (d > 0, found by "
+                        "root finding) instead of at fixed Gauss points", "contact")
     contact_quadrature = Opt(INT, None, "points per element for the contact integral", "contact",
                              rng="[1,inf)", shown="order+2",
                              note="quadrature points per element")
@@ -387,6 +389,7 @@ class Contact:
     radius: Optional[float]
     exclusion: Optional[float]
     quadrature: int
+    zones: bool = True
 
 
 @dataclass
@@ -866,7 +869,8 @@ def _contact(c, rod):
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
     return Contact(enabled=enabled, penalty=_f(c[O.contact_penalty]), radius=rc,
                    exclusion=_f(c[O.contact_exclusion]),
-                   quadrature=int(q) if q is not None else rod["order"] + 2)
+                   quadrature=int(q) if q is not None else rod["order"] + 2,
+                   zones=bool(c[O.contact_zones]))
 
 
 def _output(c, argv):

@@ -50,6 +50,9 @@ class NewtonSolver:
         _default(opts, "ksp_type", "preonly")
         _default(opts, "pc_type", "lu")
         _default(opts, "pc_factor_mat_solver_type", "mumps")
+        if problem.contact is not None:
+            # contact pairs add fill the analysis did not see: room for it (else INFOG(1) = -9)
+            _default(opts, "mat_mumps_icntl_14", "100")
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)
