@@ -48,7 +48,8 @@ def main(argv=None):
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
     rows, mu0 = [], None
     for f in [float(x) for x in a.factors.split(",")]:
-        d = run(a.case, f"{out}_runs/x{f:g}", extra, None if mu0 is None else f * mu0, a.np)
+        runs = os.path.join("out", os.path.basename(out) + "_runs", f"x{f:g}")      # run directories
+        d = run(a.case, runs, extra, None if mu0 is None else f * mu0, a.np)
         c = d.get("contact", {})
         if mu0 is None:
             mu0 = c["penalty"] / f
