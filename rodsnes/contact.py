@@ -560,8 +560,8 @@ class ContactKernel:
         """Illinois (modified regula falsi) root of f on [a, b], f(a), f(b) of opposite signs,
         vectorised; f = d (which 0), d' (which 1), sbar - target (which 2, periodic for a
         ring) of the slave points of own index o, or (which 3, by bisection) +1 / -1 as the
-        closest point is or is not on pool element target[:, 0] with interior flag target[:, 1].  Bisection where a value is not finite.
-        Returns the root and d there."""
+        closest point is or is not on pool element target[:, 0] with interior flag
+        target[:, 1].  Bisection where a value is not finite.  Returns the root."""
         a, b, fa, fb = (np.array(v, dtype=float) for v in (a, b, fa, fb))
         x = 0.5 * (a + b)
         dx_tol = 1e-13
@@ -597,8 +597,7 @@ class ContactKernel:
             side[act] = s_new
             done = (np.abs(b[act] - a[act]) <= dx_tol) | (fc == 0.0)
             act = act[~done]
-        cl = self._closest(ctx, o, x)
-        return x, cl["d"]
+        return x
 
     def _sbar_offset(self, ctx, cl, target):
         """sbar - target (periodic difference on a ring; NaN without a closest point)."""
@@ -636,7 +635,7 @@ class ContactKernel:
         ki, kj = np.nonzero(other)
         if ki.size:
             tgt = np.stack([mm[ki, kj], it[ki, kj].astype(float)], axis=1)
-            c2, _ = self._solve1d(ctx, oz[ki], Xs[ki, kj], Xs[ki, kj + 1], np.ones(len(ki)),
+            c2 = self._solve1d(ctx, oz[ki], Xs[ki, kj], Xs[ki, kj + 1], np.ones(len(ki)),
                                   -np.ones(len(ki)), 3, iters=45, target=tgt)
             cuts.append((ki, c2))
         zi, ji = np.nonzero(fwd | bwd)
@@ -644,7 +643,7 @@ class ContactKernel:
             return oz, za, zb
         if zi.size:
             node = np.where(fwd[zi, ji], m2[zi, ji], m1[zi, ji]) * h      # arclength of the node
-            cut, _ = self._solve1d(ctx, oz[zi], Xs[zi, ji], Xs[zi, ji + 1],
+            cut = self._solve1d(ctx, oz[zi], Xs[zi, ji], Xs[zi, ji + 1],
                                    self._sbar_offset(ctx, {"m": mm[zi, ji], "xi_m": xim[zi, ji]}, node),
                                    self._sbar_offset(ctx, {"m": mm[zi, ji + 1], "xi_m": xim[zi, ji + 1]}, node),
                                    2, target=node)
@@ -678,7 +677,9 @@ class ContactKernel:
         nc = len(cand)
         o = np.repeat(cand, S)
         xi = np.tile(xs, nc)
-        d = self._closest(ctx, o, xi)["d"].reshape(nc, S)
+        cls = self._closest(ctx, o, xi)
+        d = cls["d"].reshape(nc, S)
+        dd = self._ddxi(ctx, o, cls).reshape(nc, S)          # d' at the samples
         # refine the discrete maxima of d within eps of contact (an end sample too: the peak
         # may lie between it and its neighbour)
         pad = np.full((nc, 1), -np.inf)
@@ -689,13 +690,13 @@ class ContactKernel:
         xe, de = [xi.reshape(nc, S)], [d]
         if ei.size:
             om = cand[ei]
-            a, b = xs[np.maximum(jj - 1, 0)], xs[np.minimum(jj + 1, S - 1)]
-            cla = self._closest(ctx, om, a)
-            clb = self._closest(ctx, om, b)
-            fa, fb = self._ddxi(ctx, om, cla), self._ddxi(ctx, om, clb)
+            ja, jb = np.maximum(jj - 1, 0), np.minimum(jj + 1, S - 1)
+            a, b = xs[ja], xs[jb]
+            fa, fb = dd[ei, ja], dd[ei, jb]
             brk = (fa > 0.0) & (fb < 0.0)
             if np.any(brk):
-                xr, dr = self._solve1d(ctx, om[brk], a[brk], b[brk], fa[brk], fb[brk], 1)
+                xr = self._solve1d(ctx, om[brk], a[brk], b[brk], fa[brk], fb[brk], 1)
+                dr = self._closest(ctx, om[brk], xr)["d"]
                 # append as extra columns, one per refined maximum (padded with -inf)
                 rows = ei[brk]
                 k = np.zeros(len(rows), dtype=np.int64)
@@ -729,13 +730,13 @@ class ContactKernel:
         need = c0 > 0
         if np.any(need):
             rr, cc = r0[need], c0[need]
-            za[need], _ = self._solve1d(ctx, cand[rr], X[rr, cc - 1], X[rr, cc], D[rr, cc - 1],
+            za[need] = self._solve1d(ctx, cand[rr], X[rr, cc - 1], X[rr, cc], D[rr, cc - 1],
                                         D[rr, cc], 0)
         need = (c1 + 1 < X.shape[1])
         need[need] = X[r1[need], c1[need] + 1] <= 1.0
         if np.any(need):
             rr, cc = r1[need], c1[need]
-            zb[need], _ = self._solve1d(ctx, cand[rr], X[rr, cc], X[rr, cc + 1], D[rr, cc],
+            zb[need] = self._solve1d(ctx, cand[rr], X[rr, cc], X[rr, cc + 1], D[rr, cc],
                                         D[rr, cc + 1], 0)
         nz = len(za)
         oz, za, zb = self._split_zones(ctx, cand[r0], za, zb)

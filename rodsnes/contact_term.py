@@ -39,7 +39,7 @@ class ContactTerm:
         self.p = rod.order
         self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                        mesh.length, mesh.nelem, mesh.closed,
-                                       segments=getattr(c, "zones", True))
+                                       segments=c.zones)
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
         self.pattern_reach = 2.0 * self.eps + 4.0 * self.eps + mesh.h   # preallocation margin per step
@@ -183,8 +183,7 @@ class ContactTerm:
         n = len(X)
         k = min(k, n)
         dist, idx = cKDTree(X).query(X, k=k)
-        ds = m.length / (m.nelem * m.order)
-        arc = np.abs(idx - np.arange(n)[:, None]) * ds
+        arc = np.abs(m.s_nodes[idx] - m.s_nodes[:, None])
         if m.closed:
             arc = np.minimum(arc, m.length - arc)
         counts = (arc >= self.delta) & ((dist < 0.5 * arc) | (dist < 3.0 * self.eps))

@@ -21,8 +21,9 @@ rejected and retried with a larger c).  c adapts by switched evolution relaxatio
 solve and shrinks further when the damped solve converges in a few Newton steps: the flow
 becomes full Newton as the minimum is approached.  A pseudo-time step may move no node by more
 than max_move (L/10; with contact, a quarter of the free space between non-neighbouring
-strands but no less than half the contact radius, so the flow cannot tunnel through the rod).  It stops when the undamped residual is at the solver's tolerance; the caller then removes
-the term and finishes with an undamped solve.
+strands but no less than half the contact radius, so the flow cannot tunnel through the rod).
+It stops when the undamped residual is at the solver's tolerance; the caller then removes the
+term and finishes with an undamped solve.
 
 Two callers in NewtonSolver: switch_branch (a converged but unstable equilibrium: push along the
 lowest eigenvector, relax) and jump_branch (a fold: no equilibrium near the last one at the next
@@ -177,8 +178,8 @@ def relax(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_
     lower energy (module docstring).  solver: NewtonSolver (solve_at, problem); c0: initial c;
     tol: undamped |F| to stop at; max_move: largest nodal displacement of one pseudo-time step
     (default L/10, with contact max(eps/2, clearance/4) from the anchor, so the flow cannot
-    tunnel through the rod); a longer step is rejected like a failed one.  The term is removed again before
-    returning; the state is the last accepted pseudo-time step.  Collective: every decision
+    tunnel through the rod); a longer step is rejected like a failed one.  The term is removed
+    again before returning; the state is the last accepted pseudo-time step.  Collective: every decision
     uses rank 0's values of energies, norms and displacements, and SNES reasons."""
     p = solver.problem
     comm = p.layout.comm.tompi4py()

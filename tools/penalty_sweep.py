@@ -11,27 +11,26 @@ time, converged.  The penalty method promises penetration ~ 1/mu at a fixed cont
 """
 import argparse
 import csv
-import json
 import os
+import shutil
 import subprocess
 import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+from rodsnes import output
+from work_precision import solver_command      # tools/ is on sys.path when run as a script
 
 
 def run(case, outdir, extra, mu=None, np_=1):
-    exe = os.path.join(ROOT, ".venv", "bin", "rodsnes")
-    if not os.path.exists(exe):
-        exe = "rodsnes"
-    cmd = [exe, "-options_file", case, "-output_dir", outdir, "-quiet"] + list(extra)
+    """One rodsnes run into a fresh outdir (never a stale summary.json); its summary."""
+    if os.path.isdir(outdir):
+        shutil.rmtree(outdir)
+    cmd = solver_command() + ["-options_file", case, "-output_dir", outdir, "-quiet"] + list(extra)
     if mu is not None:
         cmd += ["-contact_penalty", repr(mu)]
     if np_ > 1:
         cmd = ["mpirun", "-n", str(np_), "--bind-to", "none"] + cmd
     subprocess.run(cmd, check=False)
-    with open(os.path.join(outdir, "summary.json")) as f:
-        return json.load(f)
+    return output.read_summary(outdir)
 
 
 def main(argv=None):
