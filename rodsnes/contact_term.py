@@ -14,10 +14,13 @@ Per evaluation (residual or Jacobian), on every rank:
   5. slave-side residual goes into the owned/ghost rows; master-side residual is sent back to
      the owners through the same SF (reduce with MPI.SUM); tangent blocks go straight into the
      global matrix (MatSetValuesBlocked with off-process rows, communicated at assembly).
-The Jacobian's block pattern is extended by the candidate pairs found with a wider margin at the
-start of every load step (RodProblem.refresh_pattern), so new contacts inside a step find their
-entries preallocated; one that appears beyond the margin still gets a (counted) malloc, never a
-lost entry.
+The Jacobian's block pattern holds the candidate pairs found with a wider margin
+(pattern_reach) at the start of every load step, and before every Newton step the candidates of
+the iterate (within reach) are checked against it (RodProblem.ensure_pattern): a pair outside
+the pattern gets a new, wider-preallocated matrix before any value is set.  Entries are never
+inserted beyond the preallocation: on PETSc 3.18, a new off-diagonal block inserted into an
+assembled MPIBAIJ lands in a wrong column, and MUMPS
+reuses a symbolic analysis that no longer fits (a segfault).
 """
 import numpy as np
 from mpi4py import MPI
@@ -151,18 +154,29 @@ class ContactTerm:
     def energy(self, r_loc):
         return self.evaluate(r_loc, tangent=False)["energy"]
 
+    def pattern_pairs(self, r_loc, reach):
+        """All ranks' candidate element pairs within ``reach``, as sorted unique rows (a, b),
+        a <= b, the same on every rank (collective)."""
+        _, pairs = self._pairs(r_loc, reach)
+        pairs = np.concatenate(self.comm.allgather(pairs))
+        if len(pairs):
+            pairs = np.unique(np.sort(pairs, axis=1), axis=0)
+        return pairs.reshape(-1, 2).astype(np.int64)
+
+    def node_groups(self, pairs):
+        """Natural node groups (npair, 2(p+1)) coupled all-to-all by the element pairs."""
+        if not len(pairs):
+            return None
+        m = self.mesh
+        return np.concatenate([ck.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
+                               ck.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
+
     def extra_pattern(self, r_loc=None):
         """Natural node groups (npair, 2(p+1)) coupled by candidate pairs within the
         preallocation margin, from all ranks (every rank needs the rows it owns)."""
-        m = self.mesh
         if r_loc is None:
-            r_loc = m.x_init[self.layout.local_nodes]
-        _, pairs = self._pairs(r_loc, self.pattern_reach)
-        pairs = np.concatenate(self.comm.allgather(pairs))
-        if not len(pairs):
-            return None
-        return np.concatenate([ck.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
-                               ck.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
+            r_loc = self.mesh.x_init[self.layout.local_nodes]
+        return self.node_groups(self.pattern_pairs(r_loc, self.pattern_reach))
 
     def clearance(self, r_loc, k=48):
         """A lower bound of the free space between strands that have come back toward each

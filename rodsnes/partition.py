@@ -91,7 +91,8 @@ class Layout:
         self.scatter.scatter(self.xlocal, F, addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
 
     def block_pattern(self, extra_pairs=None):
-        """d_nnz, o_nnz (per owned block row) of the element coupling (+ extra node groups).
+        """The block nonzero structure of the owned block rows: element coupling + extra node
+        groups, as CSR (ai: offsets per owned block row, aj: global PETSc block columns, sorted).
 
         extra_pairs: optional (m, k) arrays of natural node ids that are coupled all-to-all
         (e.g. the nodes of a contact element pair)."""
@@ -110,30 +111,31 @@ class Layout:
         keep = (r >= lo) & (r < hi)
         code = np.unique(r[keep] * self.n_global + c[keep])
         r, c = code // self.n_global, code % self.n_global
-        diag = (c >= lo) & (c < hi)
-        d_nnz = np.bincount(r[diag] - lo, minlength=hi - lo)
-        o_nnz = np.bincount(r[~diag] - lo, minlength=hi - lo)
-        return d_nnz.astype(PETSc.IntType), o_nnz.astype(PETSc.IntType)
+        ai = np.concatenate([[0], np.cumsum(np.bincount(r - lo, minlength=hi - lo))])
+        return ai.astype(PETSc.IntType), c.astype(PETSc.IntType)
 
     def create_matrix(self, extra_pairs=None):
-        """MPIBAIJ (block size 6; -mat_type overrides) preallocated for the element coupling
-        and the extra node groups."""
+        """MPIBAIJ (block size 6; -mat_type overrides) with the exact block structure of the
+        element coupling and the extra node groups, every entry present (explicit zeros).
+
+        Present, not merely preallocated: the first assembly squeezes out preallocated slots
+        that hold no value, so contact blocks that are zero at that moment would need mallocs
+        later, and on PETSc 3.18 a new off-diagonal block inserted into an assembled MPIBAIJ
+        lands in a wrong column.  A pattern change therefore takes a new matrix
+        (RodProblem._new_matrix), never an in-place re-preallocation."""
         J = PETSc.Mat().create(comm=self.comm)
         J.setSizes(((NDOF * self.n_owned, NDOF * self.n_global),) * 2, bsize=NDOF)
         J.setType(PETSc.Mat.Type.BAIJ)
         J.setBlockSize(NDOF)
         J.setFromOptions()
-        self.preallocate(J, extra_pairs)
-        return J
-
-    def preallocate(self, J, extra_pairs=None):
-        """(Re)preallocate J in place for the element coupling + extra node groups; values are
-        discarded.  New entries beyond the pattern are still accepted (a counted malloc)."""
-        d_nnz, o_nnz = self.block_pattern(extra_pairs)
-        J.setPreallocationNNZ((d_nnz, o_nnz))
+        ai, aj = self.block_pattern(extra_pairs)
+        if J.getType() in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
+            J.setPreallocationCSR((ai, aj))
+        else:                     # -mat_type aij etc.: expand the block structure to scalars
+            J.setPreallocationCSR(_scalar_csr(ai, aj, NDOF))
         J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
-        J.setUp()
-        self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(d_nnz.sum() + o_nnz.sum())))
+        self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(len(aj))))
+        return J
 
     def gather_nodes(self, owned_values, root=0):
         """Natural-ordered (n, ...) array of per-owned-node values on ``root`` (None elsewhere)."""
@@ -156,3 +158,18 @@ class Layout:
         for i, v in zip(ids, vals):
             out[i] = v
         return out
+
+
+def _scalar_csr(ai, aj, bs):
+    """The scalar CSR (I, J) of a block CSR structure whose blocks are dense bs x bs."""
+    counts = np.diff(ai)
+    row_block = np.repeat(np.arange(len(counts)), counts)           # block row of every block
+    # scalar row i*bs + a holds, for each block (i, j), the columns j*bs + 0..bs-1
+    cols = (aj[:, None] * bs + np.arange(bs)[None, :])                       # (nblocks, bs)
+    rr = (row_block[:, None] * bs + np.arange(bs)[None, :])                  # (nblocks, bs) rows
+    r = np.repeat(rr, bs, axis=1).ravel()
+    c = np.tile(cols, (1, bs)).ravel()
+    order = np.lexsort((c, r))
+    r, c = r[order], c[order]
+    ai_s = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=len(counts) * bs))])
+    return ai_s.astype(PETSc.IntType), c.astype(PETSc.IntType)

@@ -164,7 +164,12 @@ class RodProblem:
         self.state = RodState(layout, q_local, X)
         self.contact = contact
         self.lam = 0.0
-        self.J = layout.create_matrix(contact.extra_pattern() if contact is not None else None)
+        self._pattern_pairs = None          # contact element pairs preallocated in J
+        if contact is not None:
+            self._pattern_pairs = contact.pattern_pairs(mesh.x_init[layout.local_nodes],
+                                                        contact.pattern_reach)
+        self.J = layout.create_matrix(contact.node_groups(self._pattern_pairs)
+                                      if contact is not None else None)
         self.F = layout.create_vec()
         self.lconn = lconn
         self.stats = {}
@@ -187,20 +192,44 @@ class RodProblem:
             self.elastic.set_reference(self.twisted_reference(self.e0_base))
 
     def refresh_pattern(self):
-        """Preallocate the Jacobian for the contact candidates of the current state (within a
-        margin wider than any Newton step is expected to move), when they changed."""
+        """At the start of a load step: the Jacobian's pattern follows the contact candidates
+        of the current state within the preallocation margin (pattern_reach, wider than a load
+        step is expected to move); a new matrix when they changed."""
         r, _ = self.state.local_config()
-        groups = self.contact.extra_pattern(r)
-        key = None if groups is None else np.unique(np.sort(groups, axis=1), axis=0)
-        old = getattr(self, "_pattern_key", None)
-        same = (key is None and old is None) or (key is not None and old is not None
-                                                  and key.shape == old.shape and np.array_equal(key, old))
-        if not same:
-            self.layout.preallocate(self.J, groups)
-            self._pattern_key = key
-            if self.on_pattern_change is not None:   # the factorisation must be redone
-                self.on_pattern_change()
-            self.stats["pattern_refreshes"] = self.stats.get("pattern_refreshes", 0) + 1
+        want = self.contact.pattern_pairs(r, self.contact.pattern_reach)
+        if not np.array_equal(want, self._pattern_pairs):
+            self._new_matrix(want)
+
+    def ensure_pattern(self):
+        """Before every Newton step (update): every candidate pair of the iterate (within the
+        search reach of the contact evaluation) must be preallocated, else a new matrix with
+        the candidates within pattern_reach of the iterate, plus the old pattern, is made
+        before the Jacobian is assembled.  No entry is ever inserted beyond the preallocation
+        (see contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column)."""
+        c = self.contact
+        r, _ = self.state.local_config()
+        need = c.pattern_pairs(r, c.reach)
+        if not len(need):
+            return
+        n = self.mesh.nelem
+        have = self._pattern_pairs
+        if len(have) and np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all():
+            return
+        want = np.unique(np.concatenate([c.pattern_pairs(r, c.pattern_reach), have]), axis=0)
+        self._new_matrix(want)
+        self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
+
+    def _new_matrix(self, pairs):
+        """A fresh matrix preallocated for the elements + the contact pairs.  Not an in-place
+        re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
+        (on_pattern_change) takes the new matrix and drops its factorisation."""
+        old = self.J
+        self.J = self.layout.create_matrix(self.contact.node_groups(pairs))
+        self._pattern_pairs = pairs
+        if self.on_pattern_change is not None:
+            self.on_pattern_change(self.J)
+        old.destroy()
+        self.stats["pattern_refreshes"] = self.stats.get("pattern_refreshes", 0) + 1
 
     def twisted_reference(self, e0):
         """Stress-free strains at the current load: u_hat_3 lowered by lambda 2 pi T / L
@@ -243,9 +272,21 @@ class RodProblem:
         for term in self.extra_terms:
             term.add_jacobian(r, q, P)
         P.assemble()
+        self._check_no_mallocs(P)
         P.zeroRowsColumns(self.constraints.is_rows, 1.0)
         if J != P:
             J.assemble()
+
+    def _check_no_mallocs(self, P):
+        """Safety net for ensure_pattern: an entry beyond the preallocation would be wrong in
+        parallel (PETSc 3.18 MPIBAIJ) and would break the reused factorisation, so it is an
+        error, not a slowdown."""
+        if self.contact is None:
+            return
+        mallocs = int(P.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["mallocs"])
+        if mallocs:
+            raise RuntimeError(f"rodsnes: {mallocs} Jacobian entries fell outside the preallocated "
+                               "contact pattern (RodProblem.ensure_pattern missed a pair)")
 
     def precheck(self, X, Y):
         """Line-search pre-check: scale the Newton step so that no node near a possible contact
@@ -267,6 +308,8 @@ class RodProblem:
 
     def update(self, snes, its):
         self.state.recentre()
+        if self.contact is not None:
+            self.ensure_pattern()
 
     # -- diagnostics --------------------------------------------------------------------
     def energy(self):

@@ -36,8 +36,6 @@ class Run:
         self.force_scale = (max(rod.EI1, rod.EI2) / L**2 + np.linalg.norm(ld.end_force)
                             + np.linalg.norm(ld.end_moment) / L + np.linalg.norm(ld.gravity) * L)
         self.solver = NewtonSolver(self.problem, self.force_scale, check_stability=scene.stability)
-        # a new Jacobian pattern (contact candidates) invalidates the symbolic factorisation
-        self.problem.on_pattern_change = lambda: self.solver.snes.getKSP().reset()
         if self.problem.step_limit:
             self.solver.snes.setLineSearchPreCheck(lambda X, Y: self.problem.precheck(X, Y))
         self.outdir = scene.output.dir

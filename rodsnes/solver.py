@@ -62,6 +62,7 @@ class NewtonSolver:
         snes.setConvergenceTest(self._converged)
         snes.setFromOptions()
         self.snes = snes
+        problem.on_pattern_change = self.set_matrix
         rod = problem.scene.rod
         # roundoff floor of the residual: strains of size ~1 (v3 = 1), differentiated over a
         # node spacing, times the largest stiffness, summed over the nodes; a residual at this level is as converged as the
@@ -209,6 +210,13 @@ class NewtonSolver:
         if res.reason == -100:
             self.reset_linear_solver()
         return res
+
+    def set_matrix(self, J):
+        """Take a new Jacobian matrix (a new contact pattern, RodProblem._new_matrix) and drop
+        the factorisation: its symbolic analysis belongs to the old pattern, and a new matrix
+        object of a lower nonzero state would be taken for the same pattern."""
+        self.snes.setJacobian(None, J)
+        self.snes.getKSP().reset()
 
     def reset_linear_solver(self):
         """Give the SNES's KSP a new PC of the same prefix and options (SNES sets its operators

@@ -17,8 +17,7 @@ from petsc4py import PETSc
 
 def negative_eigenvalues(problem):
     """Number of negative eigenvalues of the symmetric tangent at the current state."""
-    H = problem.layout.create_matrix(problem.contact.extra_pattern() if problem.contact else None)
-    problem.jacobian(None, problem.state.X, H, H, symmetric=True)
+    H = hessian(problem)
     A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     # a shift tau = 1000 eps max|diag(A)| (above the roundoff of an exact zero eigenvalue)
