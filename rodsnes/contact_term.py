@@ -71,7 +71,9 @@ class ContactTerm:
 
     def _ensure_sf(self, nodes):
         """PetscSF from the owners of ``nodes`` (natural ids, sorted) to this rank's leaves."""
-        if self.leaf_nodes is not None and np.array_equal(nodes, self.leaf_nodes):
+        same = self.leaf_nodes is not None and np.array_equal(nodes, self.leaf_nodes)
+        # building an SF is collective: every rank rebuilds when any rank's node set changed
+        if not self.comm.allreduce(not same, op=MPI.LOR):
             return
         lay = self.layout
         owner = lay.node_owner[nodes]
@@ -211,22 +213,29 @@ class ContactTerm:
         min_gap = min_s (|r(s) - r(sbar)| - 2 eps) over the Gauss points (negative:
         penetration), max_penetration = max <d> / (2 eps), total_force = int f_c ds,
         complementarity = int <d> f_c ds (zero for exact contact; the penalty makes it ~1/mu)
-        by the contact quadrature (the zones, by default), active_points = Gauss points with
-        d > 0, zones = contact zones."""
+        by the contact quadrature (the zones, by default), active_points = points of that
+        quadrature with d > 0 (they carry the contact force), zones = contact zones."""
         out = self.last
         gap = out["gap"]
-        loc = np.array([out["total_force"], out["complementarity"], np.count_nonzero(gap > 0),
+        loc = np.array([out["total_force"], out["complementarity"], len(out["d_active"]),
                         out["zones"]], dtype=float)
         tot = self.comm.allreduce(loc)
-        # the deepest point of a zone may lie between the Gauss points
-        dloc = max(float(gap.max()) if gap.size else -np.inf,
-                   float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
-        dmax = self.comm.allreduce(dloc, op=MPI.MAX)
+        dmax = self.deepest()
         self.last_min_gap = -dmax
         return {"min_gap": float(-dmax), "max_penetration": float(max(dmax, 0.0) / (2 * self.eps)),
                 "total_force": float(tot[0]), "complementarity": float(tot[1]),
                 "active_points": int(tot[2]), "zones": int(tot[3]), "penalty": self.mu,
                 "radius": self.eps, "exclusion": self.delta}
+
+    def deepest(self, r_loc=None):
+        """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
+        positions r_loc (local nodes), or of the last evaluation.  Collective.  The deepest
+        point of a zone may lie between the Gauss points: the zone points count too."""
+        out = self.last if r_loc is None else self.evaluate(r_loc, tangent=False)
+        gap = out["gap"]
+        dloc = max(float(gap.max()) if gap.size else -np.inf,
+                   float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
+        return self.comm.allreduce(dloc, op=MPI.MAX)
 
     def qp_fields(self):
         out = self.last

@@ -114,9 +114,20 @@ class Constraints:
                 self.rotation_targets.append(
                     (n - 1, lambda lam: so3.qmul(so3.qexp(2 * np.pi * turns * lam * d3), q_init[n - 1])))
         fixed = sorted(set(fixed))
+        self.fixed = fixed
         nodes = np.array([f[0] for f in fixed], dtype=np.int64)
         comps = np.array([f[1] for f in fixed], dtype=np.int64)
-        self.target = np.where(comps < 3, x_init[nodes, np.minimum(comps, 2)], 0.0)
+        self._build(nodes, comps, np.where(comps < 3, x_init[nodes, np.minimum(comps, 2)], 0.0))
+
+    def hold(self, node, comp, value):
+        """One more fixed position dof (natural node, component 0..2) at ``value``."""
+        nodes = np.append(self.nodes, node)
+        comps = np.append(self.comps, comp)
+        self._build(nodes, comps, np.append(self.target, value))
+
+    def _build(self, nodes, comps, target):
+        layout = self.layout
+        self.nodes, self.comps, self.target = nodes, comps, target
         gidx = NDOF * layout.nat2petsc[nodes] + comps
         rank = layout.comm.getRank()
         lo, hi = NDOF * layout.starts[rank], NDOF * layout.starts[rank + 1]
@@ -180,6 +191,63 @@ class RodProblem:
         self.extra_terms = []
         self.on_pattern_change = None
         self.step_limit = contact.step_limit if contact is not None else 0.0
+        self.gauge = None                   # (node, component, global row) of hold_sliding
+        self.gauge_reaction = 0.0
+        # uniform stress-free strains of the perfect rod (the imperfection, a device to pick a
+        # branch, only weakly breaks the sliding symmetry: hold_sliding's reaction shows how much)
+        if rod.kappa0 is not None:
+            e_perfect = np.broadcast_to(np.r_[0.0, 0.0, 1.0, rod.kappa0], e0.shape)
+        else:
+            cp = mesh.conn[own]
+            e_perfect = self.elastic.strains(getattr(mesh, "q_perfect", mesh.q_ref)[cp],
+                                             getattr(mesh, "x_perfect", mesh.x_ref)[cp])
+        lo = np.min(np.reshape(e_perfect, (-1, NDOF)), axis=0, initial=np.inf)
+        hi = np.max(np.reshape(e_perfect, (-1, NDOF)), axis=0, initial=-np.inf)
+        comm = layout.comm.tompi4py()
+        from mpi4py import MPI
+        lo_all, hi_all = np.empty(NDOF), np.empty(NDOF)
+        comm.Allreduce(np.ascontiguousarray(lo, dtype=float), lo_all, op=MPI.MIN)
+        comm.Allreduce(np.ascontiguousarray(hi, dtype=float), hi_all, op=MPI.MAX)
+        lo, hi = lo_all, hi_all
+        self.uniform = bool(np.all(hi - lo <= 1e-9 * (1.0 + np.abs(hi) + np.abs(lo))))
+
+    def hold_sliding(self):
+        """Gauge for a closed ring of uniform stress-free strains (-rod_closed_gauge): shifting
+        the material along the centreline, s -> s + a (then moving the ring rigidly so that
+        node 0 is back in place), is a symmetry of the continuous problem, so its writhed
+        equilibria come in one-parameter families; the discretisation pins them only weakly
+        (lowest Hessian eigenvalue 2.8e-6 against 4.7e-5 next for the writhed Michell ring), and
+        relaxation and Newton creep along that valley.  This holds the coordinate of the
+        node opposite node 0 that lies most along its tangent at its current value.  Called
+        when the path leaves a symmetric state (branch switching); a circle does not feel
+        it.  Its reaction (the force the discretisation's weak pinning would exert, zero in the
+        continuous problem) is reported as ``gauge_reaction``.  Collective."""
+        m = self.mesh
+        if (self.gauge is not None or not m.closed or not self.scene.rod.closed_gauge
+                or not self.uniform):
+            return False
+        node = m.n_nodes // 2
+        lay = self.layout
+        r, q = self.state.local_config()
+        li = lay.nat2local[node]
+        own = li >= 0 and li < lay.n_owned
+        comm = lay.comm.tompi4py()
+        val = comm.allgather((r[li].copy(), so3.rot(q[li])[:, 2]) if own else None)
+        x, t = next(v for v in val if v is not None)
+        comp = int(np.argmax(np.abs(t)))
+        self.constraints.hold(node, comp, float(x[comp]))
+        self.gauge = (node, comp, NDOF * int(lay.nat2petsc[node]) + comp)
+        return True
+
+    def gauge_report(self):
+        """{node, component, reaction} of the sliding gauge at the current state (None without
+        one); reaction = the force the held coordinate carries.  Collective."""
+        if self.gauge is None:
+            return None
+        self.residual(None, self.state.X, self.F)
+        reaction = self.layout.comm.tompi4py().allreduce(self._gauge_local)
+        return {"node": int(self.gauge[0]), "component": "xyz"[self.gauge[1]],
+                "reaction": float(reaction)}
 
     # -- load factor ------------------------------------------------------------------
     def set_load(self, lam):
@@ -254,6 +322,10 @@ class RodProblem:
         self.layout.add_to_global(Floc, F)
         xa = X.getArray(readonly=True)
         with F as fa:
+            if self.gauge is not None:      # its reaction: the unbalanced force it holds
+                lo, hi = F.getOwnershipRange()
+                row = self.gauge[2]
+                self._gauge_local = float(fa[row - lo]) if lo <= row < hi else 0.0
             c = self.constraints
             fa[c.rows_local] = xa[c.rows_local] - np.where(c.rows_local % NDOF < 3, c.target_own, 0.0)
 
@@ -289,22 +361,47 @@ class RodProblem:
                                "contact pattern (RodProblem.ensure_pattern missed a pair)")
 
     def precheck(self, X, Y):
-        """Line-search pre-check: scale the Newton step so that no node near a possible contact
-        (a node of an element with contact candidates) moves by more than ``step_limit``
-        (contact scenes: half the contact radius, so one step cannot carry a strand through
-        another before the penalty sees it).  Returns True when the step was changed.  The
-        scaling keeps the direction; far from contact, and near the solution (small steps),
-        Newton is untouched and converges quadratically."""
+        """Line-search pre-check for contact scenes; returns True when the step was changed
+        (scaled: the direction is kept).  Two limits:
+
+        1. no node near a possible contact (a node of an element with contact candidates) moves
+           by more than ``step_limit`` (half the contact radius), so one step cannot carry a
+           strand through another before the penalty sees it;
+        2. the step may not deepen the deepest penetration d_max = max (2 eps - distance) beyond
+           max(2 d_max(X), 2 % of the contact diameter): the step is halved until it does not
+           (at most 10 times).  A Newton step linearised before a new contact exists would push
+           the strands into each other, and the penalty answers with a residual 1e3 x larger
+           (the plectoneme: |F| 19 -> 8e3, then 40 iterations of chaos).
+
+        Far from contact, and near the solution (small steps, penetration settled), Newton is
+        untouched and converges quadratically."""
         if not self.step_limit:
             return False
+        from mpi4py import MPI
+        comm = self.layout.comm.tompi4py()
+        changed = False
         y = Y.getArray(readonly=True).reshape(-1, NDOF)[self.contact.near_local]
         move = float(np.sqrt((y[:, 0:3] ** 2).sum(axis=1)).max()) if len(y) else 0.0
-        move = self.layout.comm.tompi4py().allreduce(move, op=__import__("mpi4py").MPI.MAX)
-        if move <= self.step_limit:
-            return False
-        Y.scale(self.step_limit / move)
-        self.stats["limited_steps"] = self.stats.get("limited_steps", 0) + 1
-        return True
+        move = comm.allreduce(move, op=MPI.MAX)
+        if move > self.step_limit:
+            Y.scale(self.step_limit / move)
+            self.stats["limited_steps"] = self.stats.get("limited_steps", 0) + 1
+            changed = True
+        c = self.contact
+        d_allow = max(2.0 * c.deepest(), 0.02 * 2.0 * c.eps)
+        r, _ = self.state.local_config(X)
+        dr = self.layout.to_local(Y)[:, 0:3]             # X_new = X - Y (line search basic)
+        scale = 1.0
+        for _ in range(10):
+            d_trial = comm.bcast(c.deepest(r - scale * dr), root=0)
+            if d_trial <= d_allow:
+                break
+            scale *= 0.5
+        if scale < 1.0:
+            Y.scale(scale)
+            self.stats["penetration_limited_steps"] = self.stats.get("penetration_limited_steps", 0) + 1
+            changed = True
+        return changed
 
     def update(self, snes, its):
         self.state.recentre()

@@ -145,6 +145,9 @@ class Run:
             s["contact"]["pattern_refreshes"] = self.problem.stats.get("pattern_refreshes", 0)
         if getattr(self, "last_topology", None) is not None:
             s["topology"] = self.last_topology
+        gauge = self.problem.gauge_report()
+        if gauge is not None:
+            s["gauge"] = gauge
         return s
 
     def _log(self, res, energy):

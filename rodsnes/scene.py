@@ -196,6 +196,9 @@ class O:
                           "the helix has arclength L", "shape", shown="none")
     rod_closed = Opt(BOOL, False, "closed ring (needs -rod_shape circle, which implies it)",
                      "shape", shown="false (true for circle)")
+    rod_closed_gauge = Opt(BOOL, True, "closed ring of uniform stress-free strains: hold one "
+                           "coordinate of the node opposite node 0 (removes the ring sliding along "
+                           "itself, a symmetry; its reaction is reported)", "shape")
     rod_twist_turns = Opt(REAL, 0.0, "initial twist of the director frame about the tangent, "
                           "in turns, uniform along s (whole turns on a closed rod)", "shape")
     rod_imperfection = Opt(REAL, 0.0, "imperfection a: reference centreline displaced by "
@@ -331,6 +334,7 @@ class Rod:
     shear_modulus: Optional[float]
     poisson: Optional[float]
     shear_coefficient: Optional[float]
+    closed_gauge: bool = True
 
     @property
     def area(self):
@@ -793,7 +797,7 @@ def _rod(c):
                helix_radius=_f(hel_R), helix_pitch=_f(hel_p), closed=closed,
                twist_turns=float(twist), imperfection=float(c[O.rod_imperfection]),
                nelem=int(c[O.rod_nelem]), order=int(c[O.rod_order]),
-               quadrature=c[O.rod_quadrature])
+               quadrature=c[O.rod_quadrature], closed_gauge=bool(c[O.rod_closed_gauge]))
     return rod, material
 
 

@@ -311,6 +311,7 @@ class NewtonSolver:
         p = self.problem
         comm = p.layout.comm.tompi4py()
         t0 = time.perf_counter()
+        p.hold_sliding()          # a closed uniform ring: no creeping along its sliding symmetry
         snap0, lam0 = p.state.snapshot(), p.lam
         p.set_load(lam)
         E0 = comm.bcast(p.energy(), root=0)
@@ -391,6 +392,7 @@ class NewtonSolver:
         t0 = time.perf_counter()
         L = p.mesh.length
         ell = L / (2 * np.pi)
+        p.hold_sliding()          # a closed uniform ring: no creeping along its sliding symmetry
         snap0 = p.state.snapshot()
         p.set_load(lam)
 

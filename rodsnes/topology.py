@@ -301,7 +301,7 @@ def link(x, d1, closed=True, ribbon_width=None):
     return _gauss_cross(P, Q) / FOUR_PI
 
 
-def close_open_rod(x, d1, axis=None, far=None, n_twist_nodes=8):
+def close_open_rod(x, d1, axis=None, far=None, n_twist_nodes=8, return_phi=False):
     """Close an open rod whose ends are clamped along a common axis.
 
     Standard closure at infinity used for magnetic-tweezers / plectoneme experiments (e.g.
@@ -375,18 +375,26 @@ def close_open_rod(x, d1, axis=None, far=None, n_twist_nodes=8):
     gk = (np.cos(ang)[:, None] * g1 + np.sin(ang)[:, None] * np.cross(e, g1))
     xc = np.vstack([x, corners, ext])
     d1c = np.vstack([d1, np.tile(g1, (4, 1)), gk])
+    if return_phi:
+        return xc, d1c, phi
     return xc, d1c
 
 
 def topology(x, d1, closed, axis=None, ribbon_width=None):
     """Link, twist and writhe of a rod: dict(link=Lk, twist=Tw, writhe=Wr).
 
-    Closed rods are used as given; open rods are first closed with `close_open_rod`
-    (ends clamped along ``axis``).  Lk is the exact Gauss linking number (an integer up to
-    round-off) and Lk = Tw + Wr holds to round-off for the (closed) framed polygon.
+    Closed rods are used as given: Lk is the exact Gauss linking number (an integer up to
+    round-off) and Lk = Tw + Wr holds to round-off for the framed polygon.  Open rods are
+    first closed with `close_open_rod` (ends clamped along ``axis``); when the end directors
+    differ by a fraction phi / 2 pi of a turn the closure carries that rotation, and it is
+    taken back out of Tw and Lk: Tw is the rod's own twist, Wr the writhe of the closed curve,
+    and Lk = Tw + Wr the turns put in between the clamps (2.42 after 2.42 imposed turns, not
+    the nearest whole number), still an integer for whole turns.
     """
+    phi = 0.0
     if not closed:
-        x, d1 = close_open_rod(x, d1, axis=axis)
-    return dict(link=link(x, d1, True, ribbon_width=ribbon_width),
-                twist=twist(x, d1, True),
+        x, d1, phi = close_open_rod(x, d1, axis=axis, return_phi=True)
+    closure = phi / (2 * np.pi)
+    return dict(link=link(x, d1, True, ribbon_width=ribbon_width) - closure,
+                twist=twist(x, d1, True) - closure,
                 writhe=writhe(x, True))

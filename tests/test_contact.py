@@ -147,3 +147,42 @@ def test_first_contact_solve_same_on_two_ranks():
     assert np.abs(np.subtract(sp["tip_position"], ss["tip_position"])).max() < 1e-9
     assert sp["contact"]["total_force"] == pytest.approx(ss["contact"]["total_force"], rel=1e-8)
     assert sp["contact"]["total_force"] > 3.0
+
+
+def test_newton_step_may_not_deepen_the_penetration_beyond_the_limit():
+    """Line-search pre-check (RodProblem.precheck): a step that would push the free end into the
+    clamped end far beyond the current penetration is halved until the deepest penetration at
+    the trial point is within max(2 d_max, 2 % of the diameter); a step that does not deepen
+    it is left alone."""
+    run = coiled()
+    p, c = run.problem, run.contact
+    X = p.state.X
+    p.residual(None, X, p.F)
+    d_now = c.deepest()
+    assert d_now > 0
+    r, _ = p.state.local_config()
+    allow = max(2 * d_now, 0.02 * 2 * c.eps)
+    # push every free-end node 3 eps toward the clamped start (X_new = X - Y)
+    Y = X.duplicate()
+    Y.set(0.0)
+    lay, m = p.layout, run.mesh
+    with Y as a:
+        a = a.reshape(-1, NDOF)
+        tip = m.n_nodes - 1
+        for node in range(tip - 3, tip + 1):
+            li = lay.nat2local[node]
+            if 0 <= li < lay.n_owned:
+                a[li, 0:3] = 3 * c.eps * (r[li] - 0.0) / np.linalg.norm(r[li])
+    n0 = Y.norm()
+    p.step_limit = 10.0 * c.eps            # the move limit off: the penetration limit alone
+    before = p.stats.get("penetration_limited_steps", 0)
+    assert p.precheck(X, Y)
+    assert p.stats.get("penetration_limited_steps", 0) == before + 1
+    assert Y.norm() < n0
+    dr = lay.to_local(Y)[:, 0:3]
+    assert c.deepest(r - dr) <= allow
+    # the opposite step (pulling the end out of contact) is not limited by penetration
+    Z = X.duplicate()
+    Z.set(0.0)
+    p.residual(None, X, p.F)
+    assert not p.precheck(X, Z)

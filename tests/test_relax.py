@@ -236,3 +236,53 @@ def test_twisted_ring_beyond_michell_leaves_the_unstable_circle():
     assert run.last_energy < 0.5 * circle.last_energy
     assert abs(abs(run.last_topology["link"] - circle.last_topology["link"]) - 2) < 1e-6
     assert run.history[-1].get("negative_eigenvalues") == 0
+
+
+def test_twisted_ring_beyond_michell_writhes_into_self_contact():
+    """cases/michell_contact.opts (T = 2.5 > sqrt(3) turns, radius L/100, contact on): the load
+    path leaves the circle near Michell's threshold, the ring writhes until its strands touch
+    and follows the writhed, self-contacting branch to load 1.  Checks: converged at every step
+    with the residual at tolerance, stable at the end, writhe of the order of the excess link
+    and Lk = Tw + Wr = 0 (the ring cannot change its link: the contact keeps the strands
+    apart), contact active and the penetration within the penalty's promise (1 % of the
+    diameter), the sliding gauge's reaction zero to roundoff (it removes a symmetry, it
+    holds no force), energy below the (unstable) circle's."""
+    run = run_case("michell_contact")
+    assert run.ok
+    s = run.summary(converged=True)
+    assert all(h["residual_norm"] < 1e-9 for h in run.history)
+    assert run.history[-1].get("negative_eigenvalues") == 0
+    topo = s["topology"]
+    assert abs(topo["link"]) < 1e-6
+    assert abs(topo["twist"] + topo["writhe"]) < 1e-6
+    assert 1.0 < topo["writhe"] < 2.5
+    c = s["contact"]
+    assert c["active_points"] > 0 and c["total_force"] > 0 and c["zones"] >= 1
+    assert 0 < c["max_penetration"] < 0.01
+    assert abs(s["gauge"]["reaction"]) < 1e-8 * run.force_scale
+    circle = run_case("michell_contact", contact=False, stability=False,
+                      outdir=run.outdir + "_plain")
+    assert circle.ok and abs(circle.last_topology["writhe"]) < 1e-3
+    assert s["energy"] < circle.last_energy
+
+
+@pytest.mark.mpi
+def test_sliding_gauge_only_on_uniform_closed_rings_and_it_holds_no_force():
+    """hold_sliding: a closed ring of uniform stress-free strains gets one held coordinate (of
+    the node opposite node 0, along its tangent); with -rod_closed_gauge 0, on an open rod, or on
+    a ring whose stress-free shape is not uniform, none.  On a circle in equilibrium it carries
+    no force."""
+    kw = dict(rod_nelem=8, load_twist_turns=0.5, load_steps=1)
+    run = run_case("michell", **kw)
+    p = run.problem
+    rows = len(p.constraints.rows_global)
+    assert p.hold_sliding() and p.gauge[0] == run.mesh.n_nodes // 2
+    assert p.gauge_report()["reaction"] == pytest.approx(0.0, abs=1e-9 * run.force_scale)
+    assert PETSc.COMM_WORLD.tompi4py().allreduce(len(p.constraints.rows_global) - rows) == 1
+    assert not p.hold_sliding()                           # once
+    off = run_case("michell", rod_closed_gauge="false", outdir=run.outdir + "_off", **kw)
+    assert not off.problem.hold_sliding()
+    bumpy = run_case("michell", rod_kappa0=None, outdir=run.outdir + "_b", **kw)   # imperfect as built
+    assert not bumpy.problem.hold_sliding()
+    rod = run_case("euler", load_steps=1, outdir=run.outdir + "_open")
+    assert not rod.problem.hold_sliding()
