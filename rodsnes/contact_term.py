@@ -19,8 +19,8 @@ The Jacobian's block pattern holds the candidate pairs found with a wider margin
 the iterate (within reach) are checked against it (RodProblem.ensure_pattern): a pair outside
 the pattern gets a new, wider-preallocated matrix before any value is set.  Entries are never
 inserted beyond the preallocation: on PETSc 3.18, a new off-diagonal block inserted into an
-assembled MPIBAIJ lands in a wrong column, and MUMPS
-reuses a symbolic analysis that no longer fits (a segfault).
+assembled MPIBAIJ lands in a wrong column, and MUMPS reuses a symbolic analysis that no longer
+fits (a segfault).
 """
 import numpy as np
 from mpi4py import MPI
@@ -173,11 +173,10 @@ class ContactTerm:
         return np.concatenate([ck.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
                                ck.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
 
-    def extra_pattern(self, r_loc=None):
-        """Natural node groups (npair, 2(p+1)) coupled by candidate pairs within the
-        preallocation margin, from all ranks (every rank needs the rows it owns)."""
-        if r_loc is None:
-            r_loc = self.mesh.x_init[self.layout.local_nodes]
+    def extra_pattern(self, r_loc):
+        """Natural node groups (npair, 2(p+1)) coupled by candidate pairs of the positions
+        r_loc within the preallocation margin, from all ranks (every rank needs the rows it
+        owns)."""
         return self.node_groups(self.pattern_pairs(r_loc, self.pattern_reach))
 
     def clearance(self, r_loc, k=48):
@@ -216,7 +215,6 @@ class ContactTerm:
         by the contact quadrature (the zones, by default), active_points = points of that
         quadrature with d > 0 (they carry the contact force), zones = contact zones."""
         out = self.last
-        gap = out["gap"]
         loc = np.array([out["total_force"], out["complementarity"], len(out["d_active"]),
                         out["zones"]], dtype=float)
         tot = self.comm.allreduce(loc)

@@ -114,7 +114,6 @@ class Constraints:
                 self.rotation_targets.append(
                     (n - 1, lambda lam: so3.qmul(so3.qexp(2 * np.pi * turns * lam * d3), q_init[n - 1])))
         fixed = sorted(set(fixed))
-        self.fixed = fixed
         nodes = np.array([f[0] for f in fixed], dtype=np.int64)
         comps = np.array([f[1] for f in fixed], dtype=np.int64)
         self._build(nodes, comps, np.where(comps < 3, x_init[nodes, np.minimum(comps, 2)], 0.0))
@@ -192,23 +191,19 @@ class RodProblem:
         self.on_pattern_change = None
         self.step_limit = contact.step_limit if contact is not None else 0.0
         self.gauge = None                   # (node, component, global row) of hold_sliding
-        self.gauge_reaction = 0.0
         # uniform stress-free strains of the perfect rod (the imperfection, a device to pick a
         # branch, only weakly breaks the sliding symmetry: hold_sliding's reaction shows how much)
         if rod.kappa0 is not None:
             e_perfect = np.broadcast_to(np.r_[0.0, 0.0, 1.0, rod.kappa0], e0.shape)
         else:
             cp = mesh.conn[own]
-            e_perfect = self.elastic.strains(getattr(mesh, "q_perfect", mesh.q_ref)[cp],
-                                             getattr(mesh, "x_perfect", mesh.x_ref)[cp])
-        lo = np.min(np.reshape(e_perfect, (-1, NDOF)), axis=0, initial=np.inf)
-        hi = np.max(np.reshape(e_perfect, (-1, NDOF)), axis=0, initial=-np.inf)
-        comm = layout.comm.tompi4py()
+            e_perfect = self.elastic.strains(mesh.q_perfect[cp], mesh.x_perfect[cp])
+        e_perfect = np.reshape(e_perfect, (-1, NDOF))
         from mpi4py import MPI
-        lo_all, hi_all = np.empty(NDOF), np.empty(NDOF)
-        comm.Allreduce(np.ascontiguousarray(lo, dtype=float), lo_all, op=MPI.MIN)
-        comm.Allreduce(np.ascontiguousarray(hi, dtype=float), hi_all, op=MPI.MAX)
-        lo, hi = lo_all, hi_all
+        ext = np.concatenate([-np.min(e_perfect, axis=0, initial=np.inf),
+                              np.max(e_perfect, axis=0, initial=-np.inf)])
+        layout.comm.tompi4py().Allreduce(MPI.IN_PLACE, ext, op=MPI.MAX)   # (-min, max) over ranks
+        lo, hi = -ext[:NDOF], ext[NDOF:]
         self.uniform = bool(np.all(hi - lo <= 1e-9 * (1.0 + np.abs(hi) + np.abs(lo))))
 
     def hold_sliding(self):
@@ -221,7 +216,7 @@ class RodProblem:
         node opposite node 0 that lies most along its tangent at its current value.  Called
         when the path leaves a symmetric state (branch switching); a circle does not feel
         it.  Its reaction (the force the discretisation's weak pinning would exert, zero in the
-        continuous problem) is reported as ``gauge_reaction``.  Collective."""
+        continuous problem) is reported by gauge_report (summary.json ``gauge``).  Collective."""
         m = self.mesh
         if (self.gauge is not None or not m.closed or not self.scene.rod.closed_gauge
                 or not self.uniform):
@@ -393,7 +388,7 @@ class RodProblem:
         dr = self.layout.to_local(Y)[:, 0:3]             # X_new = X - Y (line search basic)
         scale = 1.0
         for _ in range(10):
-            d_trial = comm.bcast(c.deepest(r - scale * dr), root=0)
+            d_trial = c.deepest(r - scale * dr)        # allreduce MAX: the same on every rank
             if d_trial <= d_allow:
                 break
             scale *= 0.5

@@ -195,7 +195,6 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     out.newton_its += lm.newton_its
     out.energies += lm.energies[1:]
     out.log += lm.log[1:]
-    out.lm_steps = lm.steps
     return out
 
 
