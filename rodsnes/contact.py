@@ -67,6 +67,21 @@ Formulas used (per slave Gauss point in contact, d > 0; "x" = the 2(p+1) nodal p
   the exclusion boundary; a closest point that lands exactly on a node where the curve is smooth
   (C^1) is treated as a bound (measure-zero set; the interior formula applies a hair away).
 
+Segments (contact zones, ``segments=True``, the default of -contact).  Instead of the nqc fixed
+Gauss points, E_c is integrated over the zones {s : d(s) > 0} of every slave element: found by
+sampling (nseg points), refining the maxima of d (root of d') and the roots of d, then split
+wherever the kind of closest point changes (``_kind``: a master node, the interior of a master
+element, a bound), because there d(s) has a kink (node crossed or stuck to, bound reached) or
+the closest point jumps to another strand.  Each piece gets nqz Gauss points.  Kinds name master
+nodes, not element ends, so the tie between the two elements sharing a node is no change; cuts
+are found by bisection to 1e-13 in xi, from both sides of a change, and move continuously with
+the configuration: the residual is a continuous function of the nodes (tested on a rod with C0
+kinks at every node).  The residual and tangent keep the pointwise formulas above: the
+integrand vanishes at zone ends, and is continuous across a cut at a node.  Where the closest
+point jumps between two strands (a point touching the turns above and below it), the integrand
+of the residual jumps, and the tangent leaves out the motion of that switch point (it would
+couple the two master strands): Newton then converges linearly near such a state.
+
 Sign conventions of the outputs: ``vec`` is dE_c/dx (the residual, i.e. minus the contact force on
 the nodes); the caller adds both the slave and the master block (node ids may repeat when the two
 elements share a node or coincide).
@@ -558,10 +573,10 @@ class ContactKernel:
 
     def _solve1d(self, ctx, o, a, b, fa, fb, which, iters=40, target=None):
         """Illinois (modified regula falsi) root of f on [a, b], f(a), f(b) of opposite signs,
-        vectorised; f = d (which 0), d' (which 1), sbar - target (which 2, periodic for a
-        ring) of the slave points of own index o, or (which 3, by bisection) +1 / -1 as the
-        closest point is or is not on pool element target[:, 0] with interior flag
-        target[:, 1].  Bisection where a value is not finite.  Returns the root."""
+        vectorised; f = d (which 0) or d' (which 1) of the slave points of own index o, or (which
+        3, by bisection) +1 / -1 as the kind of closest point (``_kind``) is or is not target
+        (target < 0: is not -1 - target).  Bisection where a value is not finite.  Returns the
+        root (to 1e-13 in xi)."""
         a, b, fa, fb = (np.array(v, dtype=float) for v in (a, b, fa, fb))
         x = 0.5 * (a + b)
         dx_tol = 1e-13
@@ -579,10 +594,9 @@ class ContactKernel:
                 fc = cl["d"]
             elif which == 1:
                 fc = self._ddxi(ctx, o[act], cl)
-            elif which == 2:
-                fc = self._sbar_offset(ctx, cl, target[act])
-            else:               # +1 while the closest point is of the same kind as at a
-                fc = np.where((cl["m"] == target[act, 0]) & (cl["interior"] == target[act, 1].astype(bool)), 1.0, -1.0)
+            else:
+                kind, tg = self._kind(ctx, cl), target[act]
+                fc = np.where(np.where(tg >= 0, kind == tg, kind != -1 - tg), 1.0, -1.0)
             x[act] = c
             left = np.sign(fc) == np.sign(FA)
             # replace the end with the same sign; halve the other end's value if it stays twice
@@ -599,57 +613,48 @@ class ContactKernel:
             act = act[~done]
         return x
 
-    def _sbar_offset(self, ctx, cl, target):
-        """sbar - target (periodic difference on a ring; NaN without a closest point)."""
+    def _kind(self, ctx, cl):
+        """Canonical kind of the closest points: 2 k at master node k (an element end; both
+        elements sharing the node give the same kind, so a tie between them is no change),
+        2 m + 1 strictly inside element m, -2 - m on a bound inside element m (an exclusion
+        boundary), -1 without a closest point.  A change of kind along s is a kink of d(s)
+        (node, bound) or a jump of the closest point to another strand."""
         m = cl["m"]
-        ok = m >= 0
-        sb = np.where(ok, ctx["pool_ids"][np.maximum(m, 0)] * self.h + (cl["xi_m"] + 1.0) * 0.5 * self.h, np.nan)
-        off = sb - target
+        e = ctx["pool_ids"][np.maximum(m, 0)]
+        xi = cl["xi_m"]
+        node = np.where(xi <= -1.0, e, e + 1)
         if self.closed:
-            off = np.mod(off + 0.5 * self.L, self.L) - 0.5 * self.L
-        return off
+            node = np.mod(node, self.nelem)
+        kind = np.where(cl["interior"], 2 * e + 1,
+                        np.where(np.abs(xi) >= 1.0, 2 * node, -2 - e))
+        return np.where(m >= 0, kind, -1)
 
     def _split_zones(self, ctx, oz, za, zb):
-        """Split the zones where the integrand has a kink, which Gauss points must not straddle:
-        where the closest point passes from a master element to the next (a master node: N_m
-        (xibar(s)) has a kink; Illinois on sbar - s_node), jumps to another strand, or moves
-        between the interior and a bound (rod end, exclusion boundary) (bisection).  Looked for
-        between nqz + 2 points of each zone."""
-        h, nel = self.h, self.nelem
+        """Split the zones where the integrand has a kink or a jump, which Gauss points must not
+        straddle: wherever the kind of closest point (``_kind``) changes, i.e. where it crosses
+        a master node (N_m(xibar(s)) has a kink), sticks to or leaves a node (a C0 kink of the
+        centreline seen from its convex side), reaches or leaves a bound (rod end, exclusion
+        boundary), or jumps to another strand.  The kinds are compared between nqz + 2 points
+        of each zone; between two points of different kinds a and b, bisection finds both the
+        first point that is not a and the last one that is not b, so that a node the closest
+        point sticks to over a short stretch gives its two cuts.  Every cut is a continuous
+        function of the configuration (to 1e-13 in xi), and so is the zone quadrature."""
         n = self.nqz + 2
         t = np.linspace(0.0, 1.0, n)
         Xs = za[:, None] + (zb - za)[:, None] * t[None, :]
-        o = np.repeat(oz, n)
-        cl = self._closest(ctx, o, Xs.ravel())
-        me = np.where(cl["m"] >= 0, ctx["pool_ids"][np.maximum(cl["m"], 0)], -1).reshape(-1, n)
-        m1, m2 = me[:, :-1], me[:, 1:]
-        fwd = (m1 >= 0) & (m2 >= 0) & (np.mod(m2 - m1, nel) == 1)
-        bwd = (m1 >= 0) & (m2 >= 0) & (np.mod(m1 - m2, nel) == 1)
-        cuts = []
-        # a jump to another strand or between an interior closest point and a bound (rod end,
-        # exclusion boundary): d(s) has a kink there; bisection on the kind of closest point
-        mm = cl["m"].reshape(-1, n)
-        it = cl["interior"].reshape(-1, n)
-        xim = cl["xi_m"].reshape(-1, n)
-        other = (mm[:, :-1] != mm[:, 1:]) & ~(fwd | bwd) | (it[:, :-1] != it[:, 1:])
-        ki, kj = np.nonzero(other)
-        if ki.size:
-            tgt = np.stack([mm[ki, kj], it[ki, kj].astype(float)], axis=1)
-            c2 = self._solve1d(ctx, oz[ki], Xs[ki, kj], Xs[ki, kj + 1], np.ones(len(ki)),
-                                  -np.ones(len(ki)), 3, iters=45, target=tgt)
-            cuts.append((ki, c2))
-        zi, ji = np.nonzero(fwd | bwd)
-        if zi.size == 0 and not cuts:
+        cl = self._closest(ctx, np.repeat(oz, n), Xs.ravel())
+        kind = self._kind(ctx, cl).reshape(-1, n)
+        ki, kj = np.nonzero(kind[:, :-1] != kind[:, 1:])
+        if ki.size == 0:
             return oz, za, zb
-        if zi.size:
-            node = np.where(fwd[zi, ji], m2[zi, ji], m1[zi, ji]) * h      # arclength of the node
-            cut = self._solve1d(ctx, oz[zi], Xs[zi, ji], Xs[zi, ji + 1],
-                                   self._sbar_offset(ctx, {"m": mm[zi, ji], "xi_m": xim[zi, ji]}, node),
-                                   self._sbar_offset(ctx, {"m": mm[zi, ji + 1], "xi_m": xim[zi, ji + 1]}, node),
-                                   2, target=node)
-            cuts.append((zi, cut))
-        zid = np.concatenate([np.arange(len(za)), np.arange(len(za))] + [c[0] for c in cuts])
-        pts = np.concatenate([za, zb] + [c[1] for c in cuts])
+        ka, kb = kind[ki, kj], kind[ki, kj + 1]
+        one = np.ones(len(ki))
+        cut = self._solve1d(ctx, np.concatenate([oz[ki], oz[ki]]),
+                            np.tile(Xs[ki, kj], 2), np.tile(Xs[ki, kj + 1], 2),
+                            np.tile(one, 2), -np.tile(one, 2), 3, iters=60,
+                            target=np.concatenate([ka, -1 - kb]))
+        zid = np.concatenate([np.arange(len(za)), np.arange(len(za)), ki, ki])
+        pts = np.concatenate([za, zb, cut])
         srt = np.lexsort((pts, zid))
         zid, pts = zid[srt], pts[srt]
         same = zid[1:] == zid[:-1]

@@ -230,10 +230,14 @@ class ContactTerm:
         positions r_loc (local nodes), or of the last evaluation.  Collective.  The deepest
         point of a zone may lie between the Gauss points: the zone points count too."""
         out = self.last if r_loc is None else self.evaluate(r_loc, tangent=False)
+        return self.comm.allreduce(self.deepest_local(out), op=MPI.MAX)
+
+    @staticmethod
+    def deepest_local(out):
+        """max d over this rank's Gauss and zone points of an evaluation ``out``."""
         gap = out["gap"]
-        dloc = max(float(gap.max()) if gap.size else -np.inf,
+        return max(float(gap.max()) if gap.size else -np.inf,
                    float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
-        return self.comm.allreduce(dloc, op=MPI.MAX)
 
     def qp_fields(self):
         out = self.last

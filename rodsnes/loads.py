@@ -67,3 +67,13 @@ class Loads:
         if self.gravity_weights is not None:
             P -= lam * float(np.einsum("a,eai,i->", self.gravity_weights, r_loc[self.lconn], self.g))
         return P
+
+
+def nonconservative(loads):
+    """Why energy is not a merit function for these loads (None if it is)."""
+    if getattr(loads, "end_force_follower", False) and np.any(np.asarray(loads.end_force)):
+        return "the follower end force is not conservative, so energy cannot guide the relaxation"
+    if np.any(np.asarray(getattr(loads, "end_moment", (0, 0, 0)))):
+        return ("a dead end moment is not conservative for 3-D rotations (and has no potential "
+                "here), so energy cannot guide the relaxation")
+    return None

@@ -15,7 +15,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from . import elastic, fe, so3
-from .loads import Loads
+from .loads import Loads, nonconservative
 from .partition import NDOF
 
 
@@ -190,6 +190,9 @@ class RodProblem:
         self.extra_terms = []
         self.on_pattern_change = None
         self.step_limit = contact.step_limit if contact is not None else 0.0
+        # energy as the line search's merit function (precheck, limit 3): only where the loads
+        # have a potential (loads.nonconservative)
+        self.energy_descent = contact is not None and nonconservative(scene.loads) is None
         self.gauge = None                   # (node, component, global row) of hold_sliding
         # uniform stress-free strains of the perfect rod (the imperfection, a device to pick a
         # branch, only weakly breaks the sliding symmetry: hold_sliding's reaction shows how much)
@@ -357,19 +360,27 @@ class RodProblem:
 
     def precheck(self, X, Y):
         """Line-search pre-check for contact scenes; returns True when the step was changed
-        (scaled: the direction is kept).  Two limits:
+        (scaled: the direction is kept).  Three limits:
 
         1. no node near a possible contact (a node of an element with contact candidates) moves
            by more than ``step_limit`` (half the contact radius), so one step cannot carry a
            strand through another before the penalty sees it;
         2. the step may not deepen the deepest penetration d_max = max (2 eps - distance) beyond
-           max(2 d_max(X), 2 % of the contact diameter): the step is halved until it does not
-           (at most 10 times).  A Newton step linearised before a new contact exists would push
-           the strands into each other, and the penalty answers with a residual 1e3 x larger
-           (the plectoneme: |F| 19 -> 8e3, then 40 iterations of chaos).
+           max(2 d_max(X), 2 % of the contact diameter).  A Newton step linearised before a new
+           contact exists would push the strands into each other, and the penalty answers with
+           a residual 1e3 x larger (the plectoneme: |F| 19 -> 8e3, then 40 iterations of chaos);
+        3. with conservative loads and the constrained dofs already at their values, the step
+           may not raise the total energy (beyond 1e-11 |E|, the roundoff of its sum).  Where
+           contact zones open and close from one iterate to the next, full Newton steps can
+           cycle: on the plectoneme at 2 turns |F| alternated 20 <-> 2 for 40 iterations with
+           the energy going up every other step.  Equilibria are stationary points of the energy,
+           and stable ones (the path is kept on them with -stability) minima, so a step that
+           raises it has overshot.
 
-        Far from contact, and near the solution (small steps, penetration settled), Newton is
-        untouched and converges quadratically."""
+        The step is halved (at most 10 times) until 2 and 3 hold; if 3 never holds (no descent
+        along a direction of negative curvature) the longest step that satisfies 2 is taken.
+        Far from contact, and near the solution (small steps, penetration settled, energy
+        changes at roundoff), Newton is untouched and converges quadratically."""
         if not self.step_limit:
             return False
         from mpi4py import MPI
@@ -384,19 +395,57 @@ class RodProblem:
             changed = True
         c = self.contact
         d_allow = max(2.0 * c.deepest(), 0.02 * 2.0 * c.eps)
-        r, _ = self.state.local_config(X)
-        dr = self.layout.to_local(Y)[:, 0:3]             # X_new = X - Y (line search basic)
-        scale = 1.0
-        for _ in range(10):
-            d_trial = c.deepest(r - scale * dr)        # allreduce MAX: the same on every rank
+        use_energy = self._energy_descent_applies(Y)
+        if use_energy:
+            r0, q0 = self.state.local_config(X)
+            E0 = self._energy_local(r0, q0, c.last["energy"])
+            E0 = comm.allreduce(E0)
+            slack = 1e-11 * abs(E0) + 1e-300
+        Xt = X.duplicate()
+        scale, first_ok = 1.0, None
+        for _ in range(11):
+            X.copy(Xt)
+            Xt.axpy(-scale, Y)                         # X_new = X - Y (line search basic)
+            r, q = self.state.local_config(Xt)
+            out = c.evaluate(r, tangent=False)
+            d_trial = comm.allreduce(c.deepest_local(out), op=MPI.MAX)
+            if use_energy:
+                E = comm.allreduce(self._energy_local(r, q, out["energy"]))
             if d_trial <= d_allow:
-                break
+                if first_ok is None:
+                    first_ok = scale
+                if not use_energy or E <= E0 + slack:
+                    break
             scale *= 0.5
+        else:
+            scale = first_ok if first_ok is not None else 2.0 * scale
+        Xt.destroy()
         if scale < 1.0:
             Y.scale(scale)
-            self.stats["penetration_limited_steps"] = self.stats.get("penetration_limited_steps", 0) + 1
+            key = "energy_limited_steps" if first_ok is not None and scale < first_ok \
+                else "penetration_limited_steps"
+            self.stats[key] = self.stats.get(key, 0) + 1
             changed = True
         return changed
+
+    def _energy_descent_applies(self, Y):
+        """Energy is a merit function for this step: conservative loads, and the step leaves
+        every constrained dof where it is (after the first Newton iteration of a load step)."""
+        from mpi4py import MPI
+        if not self.energy_descent:
+            return False
+        rows = self.constraints.rows_local         # supports, end rotation, sliding gauge
+        moves = bool(np.any(Y.getArray(readonly=True)[rows] != 0.0))
+        return not self.layout.comm.tompi4py().allreduce(moves, op=MPI.LOR)
+
+    def _energy_local(self, r, q, contact_energy):
+        """This rank's share of the total energy at local positions r and rotations q, with
+        the contact term's share given (it is the expensive part, evaluated once per trial)."""
+        E = self.elastic.energy(q[self.lconn], r[self.lconn]) + self.loads.potential(self.lam, r)
+        E += contact_energy
+        for term in self.extra_terms:
+            E += term.energy(r, q)
+        return E
 
     def update(self, snes, its):
         self.state.recentre()

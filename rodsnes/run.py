@@ -133,7 +133,8 @@ class Run:
              "load": self.problem.lam, "energy": self.last_energy,
              "newton_iterations": self.solver.total_its, "load_steps": len(self.history),
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
-             "ranks": self.comm.getSize(), "steps": self.history}
+             "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
+             "steps": self.history}
         tip = self._tip(self.last_fields)
         if tip is not None:
             s["tip_position"] = tip.tolist()

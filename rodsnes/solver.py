@@ -23,6 +23,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
+from .loads import nonconservative as _nonconservative
 from .partition import NDOF
 
 
@@ -89,6 +90,7 @@ class NewtonSolver:
         self._switch_failed_nneg = None     # skip new attempts until the instability grows
         self.switches = []                  # info dict of every attempted switch
         self.results = []                   # StepResults of the last run()
+        self.predictor_retries = 0          # failed predicted steps tried again from the last state
 
     def _converged(self, snes, it, norms):
         """|F| <= atol, or |F| <= roundoff floor once Newton stagnates -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
@@ -145,6 +147,8 @@ class NewtonSolver:
         onto a stable equilibrium first (switch_branch); its result then has branch_switch =
         True and the negative eigenvalues counted after the switch, and the next step starts
         from the new state with the nominal increment (no secant predictor across the switch).
+        A predicted step that fails is tried once more from the last state before its first
+        cut-back.
         A step that fails at every cut-back from a stable state (a fold: no equilibrium nearby)
         is relaxed at the load of its shortest try instead of ending the run (jump_branch; the
         result has branch_switch = jump = True)."""
@@ -158,9 +162,18 @@ class NewtonSolver:
         while lam < 1.0 - 1e-14:
             target = min(1.0, lam + dlam)
             snap = p.state.snapshot()
-            if prev is not None and self.predictor:
+            predicted = prev is not None and self.predictor
+            if predicted:
                 p.state.predict(prev[0], (target - lam) / (lam - prev[1]))
             res = self.solve_guarded(target)
+            if not res.converged and predicted and cutbacks == 0:
+                # the secant can carry a strand into another (contact) or past a turn of the
+                # path: try the same step once from the last state before cutting it back
+                # (once per step: near a fold every shorter step fails too)
+                p.state.restore(snap)
+                retry = self.solve_guarded(target)
+                res = retry
+                self.predictor_retries += 1
             if res.converged and self.check_stability:
                 from .stability import negative_eigenvalues
                 res.negative_eigenvalues = self._count_negative(negative_eigenvalues)
@@ -477,13 +490,3 @@ class NewtonSolver:
         info["seconds"] = time.perf_counter() - t0
         self.switches.append(info)
         return info
-
-
-def _nonconservative(loads):
-    """Why energy is not a merit function for these loads (None if it is)."""
-    if getattr(loads, "end_force_follower", False) and np.any(np.asarray(loads.end_force)):
-        return "the follower end force is not conservative, so energy cannot guide the relaxation"
-    if np.any(np.asarray(getattr(loads, "end_moment", (0, 0, 0)))):
-        return ("a dead end moment is not conservative for 3-D rotations (and has no potential "
-                "here), so energy cannot guide the relaxation")
-    return None

@@ -149,6 +149,58 @@ def test_first_contact_solve_same_on_two_ranks():
     assert sp["contact"]["total_force"] > 3.0
 
 
+def _energy_at(p, X):
+    """Total energy at the vector X (all ranks), as RodProblem.precheck measures it."""
+    r, q = p.state.local_config(X)
+    out = p.contact.evaluate(r, tangent=False)
+    return p.layout.comm.tompi4py().allreduce(p._energy_local(r, q, out["energy"]))
+
+
+@pytest.mark.mpi
+def test_newton_step_may_not_raise_the_energy():
+    """Line-search pre-check, limit 3: with conservative loads (here none: load 0) a step that
+    raises the total energy is halved until it does not: the Newton step from the coiled state,
+    tripled, overshoots and is cut back to a descent.  The check is off while a step moves a
+    constrained dof, and for loads without a potential (tests/test_relax.py: follower force)."""
+    run = coiled()
+    p, c = run.problem, run.contact
+    assert p.energy_descent                    # no end moment here (SETUP): nothing without a potential
+    X = p.state.X
+    p.update(None, 0)
+    p.residual(None, X, p.F)
+    p.jacobian(None, X, p.J, p.J)
+    ksp = PETSc.KSP().create(comm=p.layout.comm)
+    ksp.setOperators(p.J)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("mumps")
+    Y = X.duplicate()
+    ksp.solve(p.F, Y)                          # Newton: X_new = X - Y
+    Y.scale(3.0)
+    E0 = _energy_at(p, X)
+    Xt = X.copy()
+    Xt.axpy(-1.0, Y)
+    assert _energy_at(p, Xt) > E0 + 1e-6 * abs(E0)   # the tripled step overshoots
+    p.step_limit = 100.0                       # limit 1 off
+    p.residual(None, X, p.F)                   # ContactTerm.last at X, as inside SNES
+    n0 = Y.norm()
+    assert p.precheck(X, Y)
+    assert p.stats.get("energy_limited_steps", 0) + p.stats.get("penetration_limited_steps", 0) >= 1
+    assert Y.norm() < n0
+    X.copy(Xt)
+    Xt.axpy(-1.0, Y)
+    assert _energy_at(p, Xt) <= E0 + 1e-11 * abs(E0)
+    # the check is off while the step moves a constrained dof (the first iteration of a step)
+    p.residual(None, X, p.F)
+    Z = X.duplicate()
+    Z.set(0.0)
+    with Z as a:
+        if len(p.constraints.rows_local):
+            a[p.constraints.rows_local[0]] = 1e-3
+    assert not p._energy_descent_applies(Z) and p._energy_descent_applies(Y)
+    ksp.destroy()
+
+
 def test_newton_step_may_not_deepen_the_penetration_beyond_the_limit():
     """Line-search pre-check (RodProblem.precheck): a step that would push the free end into the
     clamped end far beyond the current penetration is halved until the deepest penetration at

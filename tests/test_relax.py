@@ -287,3 +287,33 @@ def test_sliding_gauge_only_on_uniform_closed_rings_and_it_holds_no_force():
     assert not bumpy.problem.hold_sliding()
     rod = run_case("euler", load_steps=1, outdir=run.outdir + "_open")
     assert not rod.problem.hold_sliding()
+
+
+def test_a_failed_predicted_step_is_tried_again_from_the_last_state(tmp_path):
+    """A load step that fails from the secant predictor is solved once more from the last
+    converged state, at the same load, before it is cut back (the secant can carry a strand
+    into another); summary.json counts these retries."""
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene
+    from rodsnes.solver import StepResult
+    mpi = PETSc.COMM_WORLD.tompi4py()
+    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
+    scene = read_scene(["rodsnes"], set_options("mattiasson", rod_nelem=4, load_steps=4,
+                                                output_dir=out, quiet=True))
+    run = Run(scene, PETSc.COMM_WORLD)
+    solver = run.solver
+    solve, calls = solver.solve_guarded, []
+
+    def flaky(lam):
+        calls.append(lam)
+        if len(calls) == 2:                    # the second step, from the predictor
+            return StepResult(lam, False, 40, -5, 1.0, [], 0.0)
+        return solve(lam)
+
+    solver.solve_guarded = flaky
+    assert run.execute()
+    assert calls[1] == calls[2] == 0.5 and len(calls) == 5     # retried, not cut back
+    assert solver.predictor_retries == 1 and len(run.history) == 4
+    import json
+    with open(f"{out}/summary.json") as f:
+        assert json.load(f)["predictor_retries"] == 1
