@@ -144,6 +144,8 @@ class Run:
             s["contact"] = self.last_contact
             s["contact"]["sf_builds"] = self.contact.sf_builds
             s["contact"]["pattern_refreshes"] = self.problem.stats.get("pattern_refreshes", 0)
+            for key in ("limited_steps", "penetration_limited_steps", "energy_limited_steps"):
+                s["contact"][key] = self.problem.stats.get(key, 0)      # precheck's scalings
         if getattr(self, "last_topology", None) is not None:
             s["topology"] = self.last_topology
         gauge = self.problem.gauge_report()
