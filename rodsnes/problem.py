@@ -408,13 +408,13 @@ class RodProblem:
             Xt.axpy(-scale, Y)                         # X_new = X - Y (line search basic)
             r, q = self.state.local_config(Xt)
             out = c.evaluate(r, tangent=False)
-            d_trial = comm.allreduce(c.deepest_local(out), op=MPI.MAX)
-            if use_energy:
-                E = comm.allreduce(self._energy_local(r, q, out["energy"]))
+            d_trial = comm.allreduce(c.deepest_local(out), op=MPI.MAX)   # the same on all ranks
             if d_trial <= d_allow:
                 if first_ok is None:
                     first_ok = scale
-                if not use_energy or E <= E0 + slack:
+                if not use_energy:
+                    break
+                if comm.allreduce(self._energy_local(r, q, out["energy"])) <= E0 + slack:
                     break
             scale *= 0.5
         else:
@@ -439,8 +439,9 @@ class RodProblem:
         return not self.layout.comm.tompi4py().allreduce(moves, op=MPI.LOR)
 
     def _energy_local(self, r, q, contact_energy):
-        """This rank's share of the total energy at local positions r and rotations q, with
-        the contact term's share given (it is the expensive part, evaluated once per trial)."""
+        """This rank's share of the total energy (elastic + conservative loads + contact + extra
+        terms) at local positions r and rotations q, with the contact term's share given (the
+        expensive part: precheck takes it from the evaluation it makes anyway)."""
         E = self.elastic.energy(q[self.lconn], r[self.lconn]) + self.loads.potential(self.lam, r)
         E += contact_energy
         for term in self.extra_terms:
@@ -456,13 +457,8 @@ class RodProblem:
     def energy(self):
         """Total potential energy (elastic + conservative loads + contact), all ranks."""
         r, q = self.state.local_config()
-        E = self.elastic.energy(q[self.lconn], r[self.lconn])
-        E += self.loads.potential(self.lam, r)
-        if self.contact is not None:
-            E += self.contact.energy(r)
-        for term in self.extra_terms:
-            E += term.energy(r, q)
-        return self.layout.comm.tompi4py().allreduce(E)
+        Ec = self.contact.energy(r) if self.contact is not None else 0.0
+        return self.layout.comm.tompi4py().allreduce(self._energy_local(r, q, Ec))
 
     def owned_fields(self):
         """Per owned node: positions (n,3), directors (n,3,3), material strains strain_v,

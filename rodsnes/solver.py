@@ -171,8 +171,7 @@ class NewtonSolver:
                 # path: try the same step once from the last state before cutting it back
                 # (once per step: near a fold every shorter step fails too)
                 p.state.restore(snap)
-                retry = self.solve_guarded(target)
-                res = retry
+                res = self.solve_guarded(target)
                 self.predictor_retries += 1
             if res.converged and self.check_stability:
                 from .stability import negative_eigenvalues
