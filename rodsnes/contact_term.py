@@ -57,16 +57,18 @@ class ContactTerm:
         self.sf_builds = 0
 
     # -- communication ----------------------------------------------------------------
-    def _pairs(self, r_loc, reach):
+    def _pairs(self, r_loc, reach, bounds=False):
         x_own = r_loc[self.lconn]
         cen, rad = ck.element_bounds(x_own)
         ids = self.comm.allgather(self.own_ids)
-        cens = self.comm.allgather(cen)
-        rads = self.comm.allgather(rad)
         all_ids = np.concatenate(ids)
-        pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, np.concatenate(cens),
-                                   np.concatenate(rads), reach, self.mesh.length, self.mesh.h,
-                                   self.mesh.closed, self.delta)
+        cens = np.concatenate(self.comm.allgather(cen))
+        rads = np.concatenate(self.comm.allgather(rad))
+        pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, cens, rads, reach,
+                                   self.mesh.length, self.mesh.h, self.mesh.closed, self.delta)
+        if bounds:                       # bounding spheres of all elements, by element id
+            order = np.argsort(all_ids)
+            return x_own, pairs, cens[order], rads[order]
         return x_own, pairs
 
     def _ensure_sf(self, nodes):
@@ -138,28 +140,40 @@ class ContactTerm:
         Floc[:self.layout.n_owned, 0:3] += self._send_back(leaf_force)
 
     def add_jacobian(self, r_loc, P):
+        """The kernel's tangent blocks: [slave, master] per active point, [slave, A, B] per
+        switch point, positions only (rotations do not enter the contact energy)."""
         out = self.evaluate(r_loc, tangent=True)
-        act = out["active"]
-        if not len(act):
-            return
-        m, lay = self.mesh, self.layout
-        slave = ck.element_node_ids(act[:, 0], m.order, m.nelem, m.closed)
-        master = ck.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
-        rows = lay.nat2petsc[np.concatenate([slave, master], axis=1)].astype(PETSc.IntType)
-        k = rows.shape[1]
-        K3 = out["mat"].reshape(len(act), k, 3, k, 3)
-        K6 = np.zeros((len(act), k, NDOF, k, NDOF))
-        K6[:, :, 0:3, :, 0:3] = K3
-        P.setValuesBlockedRCV(rows, rows, K6.reshape(len(act), k * NDOF, k * NDOF),
+        for elems, mat in ((out["active"], out["mat"]), (out["switch"], out["switch_mat"])):
+            if len(elems):
+                self._add_blocks(P, elems, mat)
+
+    def _add_blocks(self, P, elems, mat):
+        m = self.mesh
+        nodes = np.concatenate([ck.element_node_ids(elems[:, j], m.order, m.nelem, m.closed)
+                                for j in range(elems.shape[1])], axis=1)
+        rows = self.layout.nat2petsc[nodes].astype(PETSc.IntType)
+        n, k = rows.shape
+        K6 = np.zeros((n, k, NDOF, k, NDOF))
+        K6[:, :, 0:3, :, 0:3] = mat.reshape(n, k, 3, k, 3)
+        P.setValuesBlockedRCV(rows, rows, K6.reshape(n, k * NDOF, k * NDOF),
                               addv=PETSc.InsertMode.ADD)
 
     def energy(self, r_loc):
         return self.evaluate(r_loc, tangent=False)["energy"]
 
     def pattern_pairs(self, r_loc, reach):
-        """All ranks' candidate element pairs within ``reach``, as sorted unique rows (a, b),
-        a <= b, the same on every rank (collective)."""
-        _, pairs = self._pairs(r_loc, reach)
+        """All ranks' element pairs coupled in the Jacobian by the candidates within ``reach``,
+        as sorted unique rows (a, b), a <= b, the same on every rank (collective): every
+        candidate pair (slave, master), and every two masters of the same slave element (a
+        switch point couples them, ``ContactKernel._switch_terms``, if they lie within 4 eps + margin
+        of each other)."""
+        _, pairs, cen, rad = self._pairs(r_loc, reach, bounds=True)
+        # two closest points of one slave point both lie within 2 eps of it: masters farther
+        # apart than 4 eps never share a switch point.  The margin is the evaluation's own
+        # (reach - 2 eps), not the wider preallocation margin: these pairs would fill most
+        # of the matrix of a compact plectoneme, and ensure_pattern adds any that appear
+        pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, cen, rad,
+                                                          self.reach + 2.0 * self.eps)])
         pairs = np.concatenate(self.comm.allgather(pairs))
         if len(pairs):
             pairs = np.unique(np.sort(pairs, axis=1), axis=0)

@@ -358,7 +358,9 @@ class RodProblem:
             raise RuntimeError(f"rodsnes: {mallocs} Jacobian entries fell outside the preallocated "
                                "contact pattern (RodProblem.ensure_pattern missed a pair)")
 
-    def precheck(self, X, Y):
+    ARMIJO = 0.1        # sufficient decrease of the energy line search (precheck, limit 3)
+
+    def precheck(self, X, Y, F=None):
         """Line-search pre-check for contact scenes; returns True when the step was changed
         (scaled: the direction is kept).  Three limits:
 
@@ -370,15 +372,21 @@ class RodProblem:
            contact exists would push the strands into each other, and the penalty answers with
            a residual 1e3 x larger (the plectoneme: |F| 19 -> 8e3, then 40 iterations of chaos);
         3. with conservative loads and the constrained dofs already at their values, the step
-           may not raise the total energy (beyond 1e-11 |E|, the roundoff of its sum).  Where
+           must lower the total energy by a tenth of what its slope promises (Armijo:
+           E(s) <= E0 + 0.1 s E'(0), E'(0) = -F . Y from the residual F at X; beyond 1e-11 |E|,
+           the roundoff of its sum); a step that fails is shortened to the minimiser of the
+           quadratic through E0, E'(0) and E(s), kept within [0.1 s, 0.5 s].  Where
            contact zones open and close from one iterate to the next, full Newton steps can
            cycle: on the plectoneme at 2 turns |F| alternated 20 <-> 2 for 40 iterations with
            the energy going up every other step.  Equilibria are stationary points of the energy,
            and stable ones (the path is kept on them with -stability) minima, so a step that
            raises it has overshot.
 
-        The step is halved (at most 10 times) until 2 and 3 hold; if 3 never holds (no descent
-        along a direction of negative curvature) the longest step that satisfies 2 is taken.
+        The step is shortened (at most 10 times) until 2 and 3 hold; if 3 never holds (no
+        descent along a direction of negative curvature: then steps are halved) the longest
+        step that satisfies 2 is taken.  An overshoot that barely lowers the energy (landing
+        across the valley, the next step coming back) fails the Armijo test, and the quadratic
+        model puts the step near the bottom of the valley.
         Far from contact, and near the solution (small steps, penetration settled, energy
         changes at roundoff), Newton is untouched and converges quadratically."""
         if not self.step_limit:
@@ -401,6 +409,10 @@ class RodProblem:
             E0 = self._energy_local(r0, q0, c.last["energy"])
             E0 = comm.allreduce(E0)
             slack = 1e-11 * abs(E0) + 1e-300
+        # slope of the energy along the step X - s Y at s = 0: -F . Y (F: the residual at X,
+        # SNES's function vector; the energy gradient in the chart of the update)
+        slope = -F.dot(Y) if (use_energy and F is not None) else 0.0
+        descent = slope < 0.0
         Xt = X.duplicate()
         scale, first_ok = 1.0, None
         for _ in range(11):
@@ -414,8 +426,13 @@ class RodProblem:
                     first_ok = scale
                 if not use_energy:
                     break
-                if comm.allreduce(self._energy_local(r, q, out["energy"])) <= E0 + slack:
+                E = comm.allreduce(self._energy_local(r, q, out["energy"]))
+                if E <= E0 + self.ARMIJO * scale * min(slope, 0.0) + slack:
                     break
+                if descent:      # minimiser of the quadratic through E0, slope, E(scale)
+                    s_q = -slope * scale ** 2 / (2.0 * (E - E0 - slope * scale))
+                    scale = min(max(s_q, 0.1 * scale), 0.5 * scale)
+                    continue
             scale *= 0.5
         else:
             scale = first_ok if first_ok is not None else 2.0 * scale

@@ -37,7 +37,9 @@ class Run:
                             + np.linalg.norm(ld.end_moment) / L + np.linalg.norm(ld.gravity) * L)
         self.solver = NewtonSolver(self.problem, self.force_scale, check_stability=scene.stability)
         if self.problem.step_limit:
-            self.solver.snes.setLineSearchPreCheck(lambda X, Y: self.problem.precheck(X, Y))
+            snes = self.solver.snes
+            self.solver.snes.setLineSearchPreCheck(
+                lambda X, Y: self.problem.precheck(X, Y, snes.getFunction()[0]))
         self.outdir = scene.output.dir
         self.quiet = scene.output.quiet
         self.step = 0

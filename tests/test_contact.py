@@ -163,8 +163,9 @@ def _energy_at(p, X):
 @pytest.mark.mpi
 def test_newton_step_may_not_raise_the_energy():
     """Line-search pre-check, limit 3: with conservative loads (here none: load 0) a step that
-    raises the total energy is halved until it does not: the Newton step from the coiled state,
-    tripled, overshoots and is cut back to a descent.  The check is off while a step moves a
+    raises the total energy is shortened until it does not: the Newton step from the coiled
+    state, tripled, overshoots and is cut back to a descent (without the residual: halved; with
+    it: Armijo and the quadratic model).  The check is off while a step moves a
     constrained dof, and for loads without a potential (tests/test_relax.py: follower force)."""
     run = coiled()
     p, c = run.problem, run.contact
@@ -194,6 +195,21 @@ def test_newton_step_may_not_raise_the_energy():
     X.copy(Xt)
     Xt.axpy(-1.0, Y)
     assert _energy_at(p, Xt) <= E0 + 1e-11 * abs(E0)
+    # with the residual F at X (as SNES passes it), the energy has a slope along the step and
+    # the step must decrease it by a tenth of that (Armijo); the shortened step is the minimiser
+    # of the quadratic through E0, the slope and E(tripled step): near the Newton step itself
+    ksp.solve(p.F, Y)
+    Y.scale(3.0)
+    slope = -p.F.dot(Y)
+    assert slope < 0
+    p.residual(None, X, p.F)
+    assert p.precheck(X, Y, p.F)
+    s = Y.norm() / n0
+    # 1/3 for an exactly quadratic energy (measured 0.242 with the contact), and not a halving
+    assert 0.15 < s < 0.45 and abs(np.log2(s) - np.round(np.log2(s))) > 0.01, s
+    X.copy(Xt)
+    Xt.axpy(-1.0, Y)
+    assert _energy_at(p, Xt) <= E0 + 0.1 * s * slope
     # the check is off while the step moves a constrained dof (the first iteration of a step)
     p.residual(None, X, p.F)
     Z = X.duplicate()
