@@ -55,6 +55,8 @@ class ContactTerm:
         self.last_min_gap = np.nan
         self.near_local = np.zeros(0, dtype=np.int64)
         self.sf_builds = 0
+        self._cache = None              # (positions, evaluation, near_local) of the last one
+        self.cache_hits = 0
 
     # -- communication ----------------------------------------------------------------
     def _pairs(self, r_loc, reach, bounds=False):
@@ -108,6 +110,22 @@ class ContactTerm:
 
     # -- evaluation -------------------------------------------------------------------
     def evaluate(self, r_loc, tangent):
+        """The kernel's evaluation at local positions r_loc (collective).  Residual and Jacobian
+        at one iterate, or the line search's accepted trial and the residual after it, see the
+        same positions: the last evaluation is kept (with its tangent) and reused when every
+        rank's positions are bit for bit those it was made at."""
+        hit = self._cache is not None and self._cache[0].shape == r_loc.shape \
+            and np.array_equal(self._cache[0], r_loc)
+        if self.comm.allreduce(hit, op=MPI.LAND):
+            self.cache_hits += 1
+            out, self.near_local = self._cache[1], self._cache[2]
+            self.last = out
+            return out
+        out = self._evaluate(r_loc)
+        self._cache = (np.array(r_loc, copy=True), out, self.near_local)
+        return out
+
+    def _evaluate(self, r_loc):
         m = self.mesh
         x_own, pairs = self._pairs(r_loc, self.reach)
         other = np.unique(pairs[:, 1]) if len(pairs) else np.zeros(0, dtype=np.int64)
@@ -116,7 +134,7 @@ class ContactTerm:
         # every rank takes part in the SF collectives, even with nothing to fetch
         leaf = self._fetch(r_loc, nodes)
         x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, m.order + 1, 3))
-        out = self.kernel.evaluate(self.own_ids, x_own, other, x_other, pairs, tangent=tangent)
+        out = self.kernel.evaluate(self.own_ids, x_own, other, x_other, pairs, tangent=True)
         out["nodes"] = nodes
         # owned nodes of elements within one contact radius of touching something (gap > -eps):
         # the step limiter watches them
