@@ -37,7 +37,11 @@ class ContactTerm:
         self.comm = layout.comm.tompi4py()
         self.eps = float(c.radius if c.radius is not None else rod.radius)
         self.delta = float(c.exclusion if c.exclusion is not None else ck.default_exclusion(self.eps))
-        self.mu = float(c.penalty if c.penalty is not None else ck.default_penalty(min(rod.EI1, rod.EI2), self.eps))
+        self.penetration = float(c.penetration)     # promised largest <d> / (2 eps)
+        self.adapt = bool(c.adapt)
+        self.mu = float(c.penalty if c.penalty is not None else
+                        ck.default_penalty(min(rod.EI1, rod.EI2), self.eps, self.penetration))
+        self.penalty_raises = 0
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
         self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
@@ -57,6 +61,13 @@ class ContactTerm:
         self.sf_builds = 0
         self._cache = None              # (positions, evaluation, near_local) of the last one
         self.cache_hits = 0
+
+    def set_penalty(self, mu):
+        """Change the penalty stiffness mu (E_c = (mu/2) int <d>^2 ds); drops the cached
+        evaluation, whose residual and tangent belong to the old mu."""
+        self.mu = float(mu)
+        self.kernel.mu = self.mu
+        self._cache = None
 
     # -- communication ----------------------------------------------------------------
     def _pairs(self, r_loc, reach, bounds=False):

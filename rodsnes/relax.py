@@ -248,6 +248,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     p.extra_terms.append(term)
     c = float(c0)
     cooldown = 0            # accepted steps after a rejection during which c may not fall
+    c_floor = 0.0           # c may not fall below it: twice the last failed c, decaying 0.9x per step
     stuck = 0               # damped solves in a row that failed before any Newton step
     rejected_row = 0        # rejections in a row: beyond max_rejected_row the flow has stalled
     max_rejected_row = 12   # c grown by >= grow^12 (1.7e7) without an acceptable step
@@ -300,6 +301,10 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                                    f"damped solves in a row rejected (last SNES reason "
                                    f"{res.reason}, c = {c:.3e}, undamped |F| = {f:.3e})")
                     break
+                if not too_far:
+                    # a c that failed fails again a few steps later: keep above it for a while
+                    # (without this floor the flow falls back to it every third step)
+                    c_floor = max(c_floor, 2.0 * c)
                 c *= fac
                 cooldown = 0 if too_far else 2
                 continue
@@ -322,7 +327,11 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
             if cooldown > 0:
                 ratio = max(ratio, 1.0)
                 cooldown -= 1
-            c = max(c * ratio, c_min)
+            # the move scales as 1/c: a smaller c may not aim beyond 0.8 max_move (a step
+            # rejected as too long costs a whole damped solve)
+            ratio = max(ratio, min(move / (0.8 * max_move), 1.0))
+            c_floor *= 0.9
+            c = max(c * ratio, c_min, c_floor)
             E, f = E_new, f_new
         else:
             out.ok = f <= tol

@@ -73,6 +73,10 @@ class Run:
             a = a.reshape(-1, NDOF)
             a[:, 0:3] = pos[lay.owned_nodes]
             a[:, 3:6] = 0.0
+        mu = last["attrs"].get("contact_penalty")
+        if self.contact is not None and self.contact.adapt and mu is not None:
+            # the adapted penalty of the interrupted run (it never falls along a path)
+            self.contact.set_penalty(max(self.contact.mu, float(mu)))
         self.lam0 = float(last["attrs"]["load"])
         self.step = int(last["step"])
         self.problem.set_load(self.lam0)
@@ -89,8 +93,13 @@ class Run:
         attrs = {"load": p.lam, "energy": energy,
                  "newton_iterations": 0 if res is None else res.its,
                  "residual_norm": 0.0 if res is None else res.fnorm}
-        if res is not None and hasattr(res, "negative_eigenvalues"):
-            attrs["negative_eigenvalues"] = res.negative_eigenvalues
+        if res is not None:
+            attrs["seconds"] = res.seconds
+            if hasattr(res, "negative_eigenvalues"):
+                attrs["negative_eigenvalues"] = res.negative_eigenvalues
+            if getattr(res, "branch_switch", False):
+                attrs["branch_switch"] = 1
+                attrs["jump"] = int(bool(getattr(res, "jump", False)))
         qp = {}
         if self.contact is not None:
             r_loc, _ = p.state.local_config()
@@ -136,6 +145,7 @@ class Run:
              "newton_iterations": self.solver.total_its, "load_steps": len(self.history),
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
              "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
+             "stagnated_solves": getattr(self.solver, "stagnations", 0),
              "steps": self.history}
         tip = self._tip(self.last_fields)
         if tip is not None:
@@ -148,6 +158,10 @@ class Run:
             s["contact"]["pattern_refreshes"] = self.problem.stats.get("pattern_refreshes", 0)
             for key in ("limited_steps", "penetration_limited_steps", "energy_limited_steps"):
                 s["contact"][key] = self.problem.stats.get(key, 0)      # precheck's scalings
+            s["contact"]["penetration_promised"] = self.contact.penetration
+            s["contact"]["penalty_adapt"] = self.contact.adapt
+            s["contact"]["penalty_raises"] = self.contact.penalty_raises
+            s["contact"]["penalty_raise_failures"] = getattr(self.contact, "penalty_failures", 0)
         if getattr(self, "last_topology", None) is not None:
             s["topology"] = self.last_topology
         gauge = self.problem.gauge_report()
@@ -177,13 +191,21 @@ class Run:
                                  "residual_norm": res.fnorm, "seconds": res.seconds})
             if hasattr(res, "negative_eigenvalues"):
                 self.history[-1]["negative_eigenvalues"] = res.negative_eigenvalues
+            if getattr(res, "branch_switch", False):
+                self.history[-1]["branch_switch"] = True
+                self.history[-1]["jump"] = bool(getattr(res, "jump", False))
             self._log(res, energy)
             output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
 
         def on_fail(res, dlam):
             if not self.quiet and self.rank == 0:
-                why = ("it lands on a less stable equilibrium" if res.reason == "stability"
-                       else f"SNES reason {res.reason}, {res.its} its")
+                if res.reason == "stability":
+                    why = "it lands on a less stable equilibrium"
+                elif res.reason == "stagnation":
+                    why = (f"Newton stagnated: |F| not halved in {self.solver.stagnation_its} its, "
+                           f"{res.its} its")
+                else:
+                    why = f"SNES reason {res.reason}, {res.its} its"
                 print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
                       f"{dlam:.3e} in half", flush=True)
 

@@ -237,12 +237,22 @@ class O:
                          "the last two converged states", "load")
     load_max_cutbacks = Opt(INT, 10, "times a failed increment may be halved", "load",
                             rng="[0,inf)", note="number of step halvings")
+    load_stagnation_its = Opt(INT, 15, "a Newton solve whose residual has not halved in this many "
+                              "iterations fails (and the step is cut back); 0: only -snes_max_it",
+                              "load", rng="[0,inf)", note="a number of Newton iterations")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
                         rng="(0,1]", note="a fraction of the full load")
     # --- contact ----------------------------------------------------------------
     contact = Opt(BOOL, False, "enable frictionless self-contact", "contact")
     contact_penalty = Opt(REAL, None, "penalty stiffness", "contact", rng="(0,inf)",
                           shown="automatic", note="contact penalty stiffness")
+    contact_penetration = Opt(REAL, 0.01, "largest penetration the penalty promises, as a fraction "
+                              "of the contact diameter 2 eps: sets the default penalty and the bound "
+                              "-contact_penalty_adapt keeps", "contact", rng="(0,0.5]",
+                              note="a fraction of the contact diameter, e.g. 0.01 for 1 %")
+    contact_penalty_adapt = Opt(BOOL, True, "after a converged load step whose penetration exceeds "
+                                "-contact_penetration, raise the penalty and solve the step again",
+                                "contact", shown="true unless -contact_penalty is given")
     contact_radius = Opt(REAL, None, "contact radius (distance of closest approach / 2)",
                          "contact", rng="(0,inf)", shown="rod radius",
                          note="radius of the contact tube, in length units")
@@ -394,6 +404,8 @@ class Contact:
     exclusion: Optional[float]
     quadrature: int
     zones: bool = True
+    penetration: float = 0.01       # promised largest penetration, fraction of 2 eps
+    adapt: bool = True              # raise mu after a step that breaks the promise
 
 
 @dataclass
@@ -871,10 +883,14 @@ def _contact(c, rod):
             c.fail("%s with contact radius %g: neighbouring turns interpenetrate in the reference "
                    "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
-    return Contact(enabled=enabled, penalty=_f(c[O.contact_penalty]), radius=rc,
+    penalty = _f(c[O.contact_penalty])
+    # a penalty the user chose is kept as given unless adaptation is asked for explicitly
+    adapt = bool(c[O.contact_penalty_adapt]) if c.given(O.contact_penalty_adapt) else penalty is None
+    return Contact(enabled=enabled, penalty=penalty, radius=rc,
                    exclusion=_f(c[O.contact_exclusion]),
                    quadrature=int(q) if q is not None else rod["order"] + 2,
-                   zones=bool(c[O.contact_zones]))
+                   zones=bool(c[O.contact_zones]),
+                   penetration=float(c[O.contact_penetration]), adapt=adapt)
 
 
 def _output(c, argv):

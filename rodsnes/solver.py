@@ -5,7 +5,10 @@ Newton step (slides "Newton method on C_a": (r, R) <- (r + eta, exp(theta^x) R))
 (each overridable from the options database): full Newton steps (-snes_linesearch_type basic),
 a direct solve -ksp_type preonly -pc_type lu with MUMPS, -snes_max_it 40, and the convergence
 test of _converged: |F| below rtol (1e-10) times the force scale EI/L^2 + |loads|, or below the
-roundoff floor of the residual (3 eps x largest stiffness x L/h_node x sqrt(nodes)), or below -snes_atol.  A load step that fails is cut back (halved) and retried from
+roundoff floor of the residual (3 eps x largest stiffness x L/h_node x sqrt(nodes)), or below
+-snes_atol; a solve that has not halved its best |F| in -load_stagnation_its (15) iterations
+fails early (near a fold Newton 2-cycles between two residual levels until -snes_max_it).
+A load step that fails is cut back (halved) and retried from
 the last converged state; successful steps grow the increment again (x1.5) up to the nominal one.
 Each step starts from the secant predictor through the last two converged states
 (-load_predictor 0: from the last state), which keeps Newton on the branch it was following
@@ -75,6 +78,10 @@ class NewtonSolver:
         self.divtol = 1e12
         self.force_scale = force_scale
         self.predictor = PETSc.Options().getBool("load_predictor", True)
+        # a Newton solve that has not halved its best residual in this many iterations has
+        # stalled (at a fold it 2-cycles between two residual levels for ever): give up early
+        self.stagnation_its = PETSc.Options().getInt("load_stagnation_its", 15)
+        self.stagnated = False
         self.check_stability = check_stability
         self.f0 = None
         self.total_its = 0
@@ -103,6 +110,8 @@ class NewtonSolver:
         if it == 0:
             self.f0 = fnorm
             self.fprev = np.inf
+            self.fbest, self.best_it = fnorm, 0
+            self.stagnated = False
         atol, rtol, _, maxit = snes.getTolerances()
         fprev, self.fprev = self.fprev, fnorm
         if fnorm <= atol:
@@ -116,6 +125,11 @@ class NewtonSolver:
             return R.CONVERGED_FNORM_RELATIVE
         if fnorm > self.divtol * self.f0:
             return R.DIVERGED_DTOL
+        if fnorm < 0.5 * self.fbest:
+            self.fbest, self.best_it = fnorm, it
+        elif self.stagnation_its and it - self.best_it >= self.stagnation_its:
+            self.stagnated = True              # -load_stagnation_its: no progress, a failed step
+            return R.DIVERGED_MAX_IT
         if it >= maxit:
             return R.DIVERGED_MAX_IT
         return R.CONVERGED_ITERATING
@@ -137,6 +151,9 @@ class NewtonSolver:
         p.state.recentre()
         ok = reason > 0 and np.all(np.isfinite(hist))
         fnorm = float(hist[-1]) if len(hist) else float("nan")
+        if not ok and self.stagnated:
+            reason = "stagnation"
+            self.stagnations = getattr(self, "stagnations", 0) + 1
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None):
@@ -201,6 +218,7 @@ class NewtonSolver:
                 if res is None:
                     return results, False
                 switched = True
+            self.keep_penetration(res)
             nneg = getattr(res, "negative_eigenvalues", 0)
             prev = None if switched else (snap, lam)
             lam = target
@@ -212,6 +230,52 @@ class NewtonSolver:
             # after a switch the steps start afresh from the nominal increment
             dlam = nominal if switched else min(nominal, 1.5 * dlam)
         return results, True
+
+    def keep_penetration(self, res, max_raises=4):
+        """-contact_penalty_adapt: keep the penalty's promise at every converged load step.
+
+        While the deepest penetration max <d> / (2 eps) of the converged state exceeds
+        -contact_penetration p*, raise mu <- 1.25 mu (pen / p*) (a line contact has d ~ 1/mu, so
+        it lands near 0.8 p*; a crossing, d ~ mu^(-2/3), may need a second raise) and solve the
+        same load again from that state (at most ``max_raises`` times).  mu never falls, so a
+        load path sees a non-decreasing penalty; each step records the mu it was solved with
+        (result.h5 ``contact_penalty``).  A re-solve that fails puts back the state and mu and
+        is reported (the step stays, with its penetration).  Updates res (its, seconds, fnorm,
+        negative eigenvalues) in place."""
+        p = self.problem
+        ct = p.contact
+        if ct is None or not ct.adapt or not res.converged:
+            return
+        raised = False
+        for _ in range(max_raises):
+            r_loc, _ = p.state.local_config()
+            pen = ct.deepest(r_loc) / (2.0 * ct.eps)
+            if pen <= ct.penetration:
+                break
+            mu0, snap = ct.mu, p.state.snapshot()
+            ct.set_penalty(1.25 * mu0 * pen / ct.penetration)
+            r = self.solve_guarded(res.lam)
+            res.its += r.its
+            res.seconds += r.seconds
+            if not r.converged:
+                p.state.restore(snap)
+                ct.set_penalty(mu0)
+                p.set_load(res.lam)
+                ct.penalty_failures = getattr(ct, "penalty_failures", 0) + 1
+                self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter exceeds "
+                          f"-contact_penetration {ct.penetration:g}; the re-solve with mu = "
+                          f"{ct.mu * 1.25 * pen / ct.penetration:.4g} FAILED (reason {r.reason}): "
+                          f"the step keeps mu = {mu0:.4g}")
+                break
+            ct.penalty_raises += 1
+            raised = True
+            res.fnorm = r.fnorm
+            self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter > "
+                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> {ct.mu:.4g}, "
+                      f"solved again in {r.its} its")
+        if raised and self.check_stability:
+            from .stability import negative_eigenvalues
+            res.negative_eigenvalues = self._count_negative(negative_eigenvalues)
 
     def solve_guarded(self, lam):
         """solve_at(lam); after a PETSc error inside the solve (e.g. MUMPS failing in its solve
@@ -311,10 +375,51 @@ class NewtonSolver:
                   f"{info['energy_before']:+.6e} -> {info['energy_after']:+.6e}; {info['seconds']:.2f} s")
         return res
 
+    def _push_along(self, v, M):
+        """Move the state by s v along the mode v (destroyed here): the largest nodal
+        displacement becomes -stability_perturbation x L (a rotation-only mode: the largest
+        rotation becomes that x 2 pi; with contact at most max(eps/2, clearance/4), as a
+        pseudo-time step of relax.py), with the sign of lower energy (+ on a tie).  Returns the
+        lumped-metric norm v.M v (positions + l^2 rotations, l = L / 2 pi).  Collective; the
+        decisions use rank 0's values."""
+        from mpi4py import MPI
+        p = self.problem
+        comm = p.layout.comm.tompi4py()
+        L = p.mesh.length
+        ell = L / (2 * np.pi)
+
+        def same(x):
+            return comm.bcast(x, root=0)
+        va = v.getArray(readonly=True).reshape(-1, NDOF)
+        dr = comm.allreduce(float(np.linalg.norm(va[:, 0:3], axis=1).max(initial=0.0)), op=MPI.MAX)
+        dth = comm.allreduce(float(np.linalg.norm(va[:, 3:6], axis=1).max(initial=0.0)), op=MPI.MAX)
+        delta = self.perturbation * L
+        if p.contact is not None:       # a push may not carry a strand through another
+            r_loc, _ = p.state.local_config()
+            delta = min(delta, max(0.5 * p.contact.eps, 0.25 * p.contact.clearance(r_loc)))
+        s = same(delta / (dr if dr > 1e-2 * ell * dth else ell * dth))
+        X0 = p.state.X.copy()
+        energies = []
+        for sign in (1.0, -1.0):
+            p.state.X.axpy(sign * s, v)
+            energies.append(p.energy())
+            X0.copy(p.state.X)
+        Ep, Em = same(energies)
+        sign = -1.0 if Em < Ep - 1e-10 * (abs(Ep) + abs(Em)) else 1.0
+        p.state.X.axpy(sign * s, v)
+        X0.destroy()
+        p.state.recentre()
+        mv = comm.allreduce(float(np.sum(M * (np.einsum("ij,ij->i", va[:, 0:3], va[:, 0:3])
+                                               + ell**2 * np.einsum("ij,ij->i", va[:, 3:6], va[:, 3:6])))))
+        v.destroy()
+        return mv
+
     def jump_branch(self, lam):
         """From the last converged state (at a lower load), relax at load factor lam by the
-        implicit gradient flow of relax.py (no perturbation: the state is out of equilibrium at
-        lam) to an equilibrium; if that one is unstable, switch_branch from it.  Success: an
+        implicit gradient flow of relax.py (no push along an eigenvector: at the plectoneme's
+        fold the lowest eigenvector lowers the energy only for pushes below 1e-3 L, by 1e-8;
+        the flow follows the curved path itself) to an equilibrium; if that one is unstable,
+        switch_branch from it.  Success: an
         equilibrium at lam with 0 negative eigenvalues (then the state is there); else the
         last converged state and its load are restored.  Collective."""
         from mpi4py import MPI
@@ -339,6 +444,7 @@ class NewtonSolver:
         ell = L / (2 * np.pi)
         delta = self.perturbation * L
         M = lumped_weights(p.mesh, p.layout)
+
         F = p.layout.create_vec()
         p.residual(None, p.state.X, F)
         Fa = F.getArray(readonly=True).reshape(-1, NDOF)
@@ -428,29 +534,10 @@ class NewtonSolver:
             if not ev < 0:
                 info["message"] = f"lowest eigenvalue {ev:.3e} is not negative"
                 break
-            va = v.getArray(readonly=True).reshape(-1, NDOF)
-            dr = comm.allreduce(float(np.linalg.norm(va[:, 0:3], axis=1).max(initial=0.0)), op=MPI.MAX)
-            dth = comm.allreduce(float(np.linalg.norm(va[:, 3:6], axis=1).max(initial=0.0)), op=MPI.MAX)
-            # the largest nodal displacement becomes perturbation x L (a rotation-only mode:
-            # the largest rotation becomes perturbation x 2 pi)
-            s = same(self.perturbation * L / (dr if dr > 1e-2 * ell * dth else ell * dth))
-            X0 = p.state.X.copy()
-            energies = []
-            for sign in (1.0, -1.0):
-                p.state.X.axpy(sign * s, v)
-                energies.append(p.energy())
-                X0.copy(p.state.X)
-            Ep, Em = same(energies)
-            sign = -1.0 if Em < Ep - 1e-10 * (abs(Ep) + abs(Em)) else 1.0
-            p.state.X.axpy(sign * s, v)
-            X0.destroy()
-            p.state.recentre()
+            mv = self._push_along(v, M)
             p.set_load(lam)
             # initial pseudo-time stiffness: H + c M positive along v with margin |ev|
             # (c M v.v >= 2 |ev|), so the first damped step doubles the departure from the saddle
-            mv = comm.allreduce(float(np.sum(M * (np.einsum("ij,ij->i", va[:, 0:3], va[:, 0:3])
-                                                   + ell**2 * np.einsum("ij,ij->i", va[:, 3:6], va[:, 3:6])))))
-            v.destroy()
             c0 = same(2.0 * abs(ev) / mv)
             rr = relax(self, lam, c0, tol, max_steps=self.relax_max_it)
             info["relax_steps"] += rr.steps

@@ -129,7 +129,11 @@ def test_contact_blocks_zero_at_the_first_assembly_stay_in_the_matrix():
 @pytest.mark.mpi
 def test_first_contact_solve_same_on_two_ranks():
     """The solved rollup_contact (16 elements: the free end lands on the clamped end, contact
-    across ranks): the same load steps, Newton iterations and tip on COMM_WORLD as serial."""
+    across ranks): the same load steps, Newton iterations and tip on COMM_WORLD as serial.
+    Under mpirun only: in a serial session both runs would be serial (tests/test_planar_contact.py
+    solves this scene serially against the exact reference)."""
+    if PETSc.COMM_WORLD.getSize() == 1:
+        pytest.skip("compares 2 ranks with 1: runs under mpirun -n 2 (make test-mpi)")
     kw = dict(rod_nelem=16)
     par = run_case("rollup_contact", **kw)
     ser = run_case("rollup_contact", comm=PETSc.COMM_SELF,
@@ -205,8 +209,10 @@ def test_newton_step_may_not_raise_the_energy():
     p.residual(None, X, p.F)
     assert p.precheck(X, Y, p.F)
     s = Y.norm() / n0
-    # 1/3 for an exactly quadratic energy (measured 0.242 with the contact), and not a halving
-    assert 0.15 < s < 0.45 and abs(np.log2(s) - np.round(np.log2(s))) > 0.01, s
+    # 1/3 for an exactly quadratic energy; with the contact the quadratic model's minimiser, kept
+    # within [0.1, 0.5] of the trial (measured 0.1 at the default penalty, 0.242 at 5x it), and
+    # not a halving
+    assert 0.1 - 1e-12 <= s < 0.45 and abs(np.log2(s) - np.round(np.log2(s))) > 0.01, s
     X.copy(Xt)
     Xt.axpy(-1.0, Y)
     assert _energy_at(p, Xt) <= E0 + 0.1 * s * slope

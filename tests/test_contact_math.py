@@ -153,10 +153,11 @@ def test_default_parameters():
     assert C.default_exclusion(0.2) == pytest.approx(0.2 * np.pi)
     EI, eps = 3.0, 0.05
     mu = C.default_penalty(EI, eps)
-    assert mu == pytest.approx(25 * EI / eps ** 4)
-    # the typical tight-contact line force EI/eps^3, carried as 2 mu d in a two-sided contact
-    # (see test_gap_parallel_segments), penetrates 1 % of the diameter
-    assert (EI / eps ** 3) / (2 * mu) == pytest.approx(0.01 * 2 * eps)
+    assert mu == pytest.approx(5 * EI / eps ** 4)
+    # the tight-contact line force 0.2 EI/eps^3 (measured on the plectoneme), carried as 2 mu d
+    # in a two-sided contact (see test_gap_parallel_segments), penetrates 1 % of the diameter
+    assert (0.2 * EI / eps ** 3) / (2 * mu) == pytest.approx(0.01 * 2 * eps)
+    assert C.default_penalty(EI, eps, penetration=0.005) == pytest.approx(2 * mu)
 
 
 # ------------------------------------------------------------------------------------------

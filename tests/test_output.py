@@ -294,3 +294,37 @@ def test_mpi_interleaved_matches_serial(parallel_io, n, nq, layout):
         comm.Barrier()
         if comm.rank == 0:
             shutil.rmtree(base, ignore_errors=True)
+
+
+def test_path_report_tables_a_path(tmp_path):
+    """tools/path_report.py on a written path: steps, median/max Newton iterations and seconds per
+    range of the link, jumps, largest residual and penetration over the path, and the last
+    step's contact force distribution (median, 90th percentile, max and where it acts)."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import path_report
+    its = [0, 3, 5, 40, 7, 9]
+    w = output.ResultWriter(str(tmp_path), None, N, META)
+    qs = (np.arange(NQ) + 0.5) * META["length"] / NQ
+    for k in range(6):
+        _, node, _ = fake_step(k)
+        f = np.where((qs > 0.5) & (qs < 1.0), 10.0 * qs * k, 0.0)     # acts on (0.5, 1.0)
+        attrs = dict(load=0.2 * k, energy=1.0 * k, link=0.5 * k, newton_iterations=its[k],
+                     seconds=0.5 * its[k], residual_norm=1e-10 * (k + 1), contact_max_penetration=0.002 * k)
+        if k == 3:
+            attrs.update(branch_switch=1, jump=1)
+        w.write_step(k, attrs, np.arange(N), node, qp_owned=np.arange(NQ),
+                     qp_fields=dict(qp_s=qs, gap=f / 1e3, contact_force=f), n_qp=NQ)
+    w.close()
+    text = path_report.report(str(tmp_path), edges=[0, 1, 2, 3])
+    lines = text.splitlines()
+    assert "| 0 - 1 | 2 | 4 | 5 | 2 | 0 (0) |" in lines                  # links 0.5, 1.0
+    assert "| 1 - 2 | 2 | 23.5 | 40 | 11.8 | 1 (1) |" in lines           # 1.5 (the jump), 2.0
+    assert "| 2 - 3 | 1 | 9 | 9 | 4.5 | 0 (0) |" in lines
+    assert "5 load steps, 64 Newton iterations" in text
+    assert "largest residual of a converged step 6.00e-10 (step 5)" in text
+    assert "largest penetration 1.000% of the diameter" in text
+    on = f > 0
+    dist = path_report.contact_distribution(output.read_step(str(tmp_path), -1))
+    assert dist["active"] == on.sum() and dist["max"] == f.max()
+    assert dist["median"] == pytest.approx(np.median(f[on]))
+    assert dist["intervals"] == [(qs[on][0], qs[on][-1])]

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from conftest import run_case
+from rodsnes import output
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -186,3 +187,30 @@ def test_rollup_contact_against_the_planar_reference(solved, hard):
     s, gap = np.asarray(d["qp_s"]), np.asarray(d["gap"])
     near = np.minimum(s, ROD.L - s) < ROD.L / out["nelem"]
     assert np.all(np.abs(gap[~near]) > 0.1 * ROD.eps)
+
+
+def test_adapted_penalty_keeps_the_promised_penetration():
+    """-contact_penalty_adapt: started from mu = 2e5 (25x softer than the default), at which the
+    penalty law (the reference) lets the ends overlap by 2 % of the diameter, every load step
+    ends within -contact_penetration (1 %); mu rises only (measured: 5 raises, 2e5 -> 7.8e5)
+    and the final overlap is the one the penalty law gives at the final mu.  (With 8 elements this
+    soft penalty lets the tip slide onto the first turn: another equilibrium.)"""
+    mu0, target = 2e5, 0.01
+    assert ref.solve_end_contact_penalty(ROD, mu0).d0 / (2 * ROD.eps) > 1.5 * target
+    run = run_case("rollup_contact", contact_penalty=mu0, contact_penalty_adapt=1, **CI)
+    assert run.ok
+    steps = [a for k, a in _step_attrs(run.outdir) if k > 0]
+    pen = np.array([a["contact_max_penetration"] for a in steps])
+    mu = np.array([a["contact_penalty"] for a in steps])
+    assert pen.max() <= target * (1 + 1e-12)
+    assert np.all(np.diff(mu) >= 0) and mu[0] == mu0 and mu[-1] > 2 * mu0
+    s = output.read_summary(run.outdir)["contact"]
+    assert s["penalty_raises"] >= 1 and s["penalty_raise_failures"] == 0
+    assert s["penalty"] == mu[-1]
+    d0 = ref.solve_end_contact_penalty(ROD, mu[-1]).d0
+    assert pen[-1] * 2 * ROD.eps == pytest.approx(d0, rel=0.05)
+
+
+def _step_attrs(outdir):
+    h = output.read_history(outdir)
+    return [(d["step"], d["attrs"]) for d in h]

@@ -230,9 +230,15 @@ def test_twisted_ring_beyond_michell_leaves_the_unstable_circle():
     having no contact term, passes through itself: the link changes by 2 and the energy ends
     below the circle's.  (A writhed equilibrium needs self-contact: the bifurcation is
     subcritical.)"""
-    run = run_case("michell", load_twist_turns=2.5, stability=True)
+    # 12 elements (the case has 24): the same fold, jump and crossing in half the time
+    run = run_case("michell", load_twist_turns=2.5, stability=True, rod_nelem=12)
     assert run.ok
-    circle = run_case("michell", load_twist_turns=2.5, outdir=run.outdir + "_plain")
+    # the attempts beyond the fold (no equilibrium near) stop at -load_stagnation_its (15)
+    # iterations without progress, not at -snes_max_it (40); then the jump
+    assert run.solver.stagnations >= 3
+    assert run.summary(converged=True)["stagnated_solves"] == run.solver.stagnations
+    assert any(sw.get("jump") for sw in run.solver.switches)
+    circle = run_case("michell", load_twist_turns=2.5, rod_nelem=12, outdir=run.outdir + "_plain")
     assert circle.ok
     assert run.last_energy < 0.5 * circle.last_energy
     assert abs(abs(run.last_topology["link"] - circle.last_topology["link"]) - 2) < 1e-6
@@ -317,3 +323,32 @@ def test_a_failed_predicted_step_is_tried_again_from_the_last_state(tmp_path):
     import json
     with open(f"{out}/summary.json") as f:
         assert json.load(f)["predictor_retries"] == 1
+
+
+def test_newton_that_stops_gaining_fails_early():
+    """-load_stagnation_its N: a solve whose best |F| has not halved in N iterations fails (and
+    the load step is cut back) instead of running to -snes_max_it.  The residual sequence is the
+    one measured at the fold of the Michell ring (cases/michell.opts, load 0.6871): Newton
+    2-cycles between ~2e-3 and ~1e-7 and never converges.  A slow but steady solve (|F| halved
+    every 6 iterations) is left alone; N = 0 switches the test off."""
+    from petsc4py import PETSc
+    R = PETSc.SNES.ConvergedReason
+    run = run_case("rollup", rod_nelem=2, load_steps=1)
+    sv = run.solver
+    assert sv.stagnation_its == 15
+
+    def feed(norms):
+        for it, f in enumerate(norms):
+            r = sv._converged(sv.snes, it, (0.0, 0.0, f))
+            if r != R.CONVERGED_ITERATING:
+                return it, r
+        return None, None
+
+    cycle = [4.8e-3, 2.4e-7, 2.1e-3, 9.2e-8] + [2.5e-3, 1.1e-7, 1.7e-3, 9.2e-8] * 8
+    it, r = feed(cycle)
+    assert (it, r) == (3 + 15, R.DIVERGED_MAX_IT) and sv.stagnated      # best 9.2e-8 at it 3
+    slow = [1.0 * 0.5 ** (k / 5.5) for k in range(35)]
+    assert feed(slow) == (None, None) and not sv.stagnated
+    sv.stagnation_its = 0
+    assert feed(cycle) == (None, None)
+

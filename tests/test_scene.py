@@ -270,6 +270,8 @@ VALIDATION = [
     ({"contact_radius": "-0.01"}, ["-contact_radius = -0.01: must be > 0"]),
     ({"contact_exclusion": "-0.1"}, ["-contact_exclusion = -0.1: must be >= 0"]),
     ({"contact_quadrature": "0"}, ["-contact_quadrature = 0: must be >= 1"]),
+    ({"contact_penetration": "0"}, ["-contact_penetration = 0: must be in (0, 0.5]", "a fraction of the contact diameter"]),
+    ({"contact_penetration": "1"}, ["-contact_penetration = 1: must be in (0, 0.5]"]),
     ({"rod_shape": "arc", "rod_arc_angle": "400"},
      ["-rod_arc_angle = 400: must be in (0, 360]", "use -rod_shape circle"]),
     ({"rod_shape": "arc", "rod_arc_radius": "0.1"},
@@ -379,6 +381,18 @@ def test_contact_options(read):
     assert read({"contact_quadrature": "7"}).contact.quadrature == 7
 
 
+def test_penalty_adaptation_defaults(read):
+    """The promise (-contact_penetration, default 1 %) is kept by raising mu unless the user
+    chose mu; an explicit -contact_penalty_adapt decides either way."""
+    c = read({"contact": None}).contact
+    assert (c.penetration, c.adapt) == (0.01, True)
+    assert read({"contact": None, "contact_penalty": "1e4"}).contact.adapt is False
+    c = read({"contact": None, "contact_penalty": "1e4", "contact_penalty_adapt": "1",
+              "contact_penetration": "0.005"}).contact
+    assert (c.penetration, c.adapt, c.penalty) == (0.005, True, 1e4)
+    assert read({"contact": None, "contact_penalty_adapt": "false"}).contact.adapt is False
+
+
 def test_output_options(read, tmp_path):
     s = read({"output_dir": "/tmp/x", "restart": str(tmp_path), "case_name": "mycase",
               "quiet": None})
@@ -474,7 +488,7 @@ def test_help_text_lists_every_option_once():
     assert "  -contact <false>: " in text
     for title in scene.SECTIONS.values():
         assert title in text
-    assert len(scene.OPTIONS) == 51
+    assert len(scene.OPTIONS) == 54
 
 
 def test_option_table_is_consistent():

@@ -4,7 +4,7 @@
     .venv/bin/python tools/penalty_sweep.py cases/rollup_contact.opts --factors 1,10,100,1000 \
         --out docs/penalty_sweep_rollup_contact [-- -rod_nelem 24 ...extra rodsnes options]
 
-Runs ``rodsnes`` once per factor (``-contact_penalty`` = factor x the default 25 EI/eps^4 read
+Runs ``rodsnes`` once per factor (``-contact_penalty`` = factor x the default 5 EI/eps^4 read
 from the first run's summary) and writes OUT.csv and OUT.md: factor, mu, max penetration (fraction
 of 2 eps), min gap, total contact force, complementarity, Newton iterations, load steps, wall
 time, converged.  The penalty method promises penetration ~ 1/mu at a fixed contact force.
@@ -24,7 +24,9 @@ def run(case, outdir, extra, mu=None, np_=1):
     """One rodsnes run into a fresh outdir (never a stale summary.json); its summary."""
     if os.path.isdir(outdir):
         shutil.rmtree(outdir)
-    cmd = solver_command() + ["-options_file", case, "-output_dir", outdir, "-quiet"] + list(extra)
+    # a sweep holds mu fixed: no -contact_penalty_adapt (it would raise the soft ones)
+    cmd = solver_command() + ["-options_file", case, "-output_dir", outdir, "-quiet",
+                              "-contact_penalty_adapt", "0"] + list(extra)
     if mu is not None:
         cmd += ["-contact_penalty", repr(mu)]
     if np_ > 1:
