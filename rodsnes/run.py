@@ -44,6 +44,7 @@ class Run:
         self.quiet = scene.output.quiet
         self.step = 0
         self.lam0 = 0.0
+        self.nneg0 = 0              # negative eigenvalues of the restart state (-stability)
         self.history = []
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
@@ -78,6 +79,7 @@ class Run:
             # the adapted penalty of the interrupted run (it never falls along a path)
             self.contact.set_penalty(max(self.contact.mu, float(mu)))
         self.lam0 = float(last["attrs"]["load"])
+        self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
         self.step = int(last["step"])
         self.problem.set_load(self.lam0)
 
@@ -209,7 +211,8 @@ class Run:
                 print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
                       f"{dlam:.3e} in half", flush=True)
 
-        results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail)
+        results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
+                                       nneg0=self.nneg0)
         reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))

@@ -156,7 +156,7 @@ class NewtonSolver:
             self.stagnations = getattr(self, "stagnations", 0) + 1
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
-    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None):
+    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0):
         """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
 
         on_step(result) is called after every converged step (write output there).  With
@@ -168,14 +168,19 @@ class NewtonSolver:
         cut-back.
         A step that fails at every cut-back from a stable state (a fold: no equilibrium nearby)
         is relaxed at the load of its shortest try instead of ending the run (jump_branch; the
-        result has branch_switch = jump = True)."""
+        result has branch_switch = jump = True).
+        nneg0: negative eigenvalues of the starting state (a restart from an unstable step,
+        where the uninterrupted run had stayed on the unstable branch: no new switch attempt
+        until the instability grows, as there)."""
         p = self.problem
         nominal = 1.0 / steps      # the same load grid when a run is restarted from lam0
         lam, dlam = lam0, nominal
         cutbacks = 0
         results = self.results = []
         prev = None            # (snapshot, lambda) of the previous converged step
-        nneg = 0               # negative eigenvalues of the last converged step (-stability)
+        nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
+        if nneg > 0:
+            self._switch_failed_nneg = nneg
         while lam < 1.0 - 1e-14:
             target = min(1.0, lam + dlam)
             snap = p.state.snapshot()
