@@ -41,7 +41,8 @@ class ContactTerm:
         self.adapt = bool(c.adapt)
         self.mu = float(c.penalty if c.penalty is not None else
                         ck.default_penalty(min(rod.EI1, rod.EI2), self.eps, self.penetration))
-        self.penalty_raises = 0
+        self.penalty_raises = 0         # -contact_penalty_adapt: re-solves with a raised mu
+        self.penalty_failures = 0       # ... that failed (state and mu put back)
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
         self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,

@@ -674,6 +674,15 @@ def read_history(outdir, steps=None):
     return _retry_read(outdir, _all)
 
 
+def read_step_attrs(outdir):
+    """(step, attrs) of every complete step, attributes only: no datasets read (a long path)."""
+    def _attrs(f):
+        return [(k, {a: _from_attr(v) for a, v in f["steps"][_step_name(k)].attrs.items()})
+                for k in _steps_of(f)]
+
+    return _retry_read(outdir, _attrs)
+
+
 # --------------------------------------------------------------------------- derived node data
 def node_arclength(meta):
     """Reference arclength of the nodes, assuming the uniform mesh with equispaced Lagrange nodes

@@ -88,20 +88,26 @@ class Run:
             return None
         return self.layout.allgather_nodes(fields["positions"])[-1]
 
+    @staticmethod
+    def _step_record(res):
+        """What a converged step reports, in result.h5 and in summary.json's history: Newton
+        iterations, residual, seconds, negative eigenvalues (-stability), switch/jump flags."""
+        rec = {"newton_iterations": res.its, "residual_norm": res.fnorm, "seconds": res.seconds}
+        if hasattr(res, "negative_eigenvalues"):
+            rec["negative_eigenvalues"] = res.negative_eigenvalues
+        if getattr(res, "branch_switch", False):
+            rec["branch_switch"] = True
+            rec["jump"] = bool(getattr(res, "jump", False))
+        return rec
+
     def _write(self, res):
         p = self.problem
         fields = p.owned_fields()
         energy = p.energy()
-        attrs = {"load": p.lam, "energy": energy,
-                 "newton_iterations": 0 if res is None else res.its,
-                 "residual_norm": 0.0 if res is None else res.fnorm}
-        if res is not None:
-            attrs["seconds"] = res.seconds
-            if hasattr(res, "negative_eigenvalues"):
-                attrs["negative_eigenvalues"] = res.negative_eigenvalues
-            if getattr(res, "branch_switch", False):
-                attrs["branch_switch"] = 1
-                attrs["jump"] = int(bool(getattr(res, "jump", False)))
+        attrs = {"load": p.lam, "energy": energy, "newton_iterations": 0, "residual_norm": 0.0}
+        if res is not None:       # HDF5 attributes: the switch flags as 0/1
+            attrs.update({k: int(v) if isinstance(v, bool) else v
+                          for k, v in self._step_record(res).items()})
         qp = {}
         if self.contact is not None:
             r_loc, _ = p.state.local_config()
@@ -147,7 +153,7 @@ class Run:
              "newton_iterations": self.solver.total_its, "load_steps": len(self.history),
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
              "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
-             "stagnated_solves": getattr(self.solver, "stagnations", 0),
+             "stagnated_solves": self.solver.stagnations,
              "steps": self.history}
         tip = self._tip(self.last_fields)
         if tip is not None:
@@ -163,7 +169,7 @@ class Run:
             s["contact"]["penetration_promised"] = self.contact.penetration
             s["contact"]["penalty_adapt"] = self.contact.adapt
             s["contact"]["penalty_raises"] = self.contact.penalty_raises
-            s["contact"]["penalty_raise_failures"] = getattr(self.contact, "penalty_failures", 0)
+            s["contact"]["penalty_raise_failures"] = self.contact.penalty_failures
         if getattr(self, "last_topology", None) is not None:
             s["topology"] = self.last_topology
         gauge = self.problem.gauge_report()
@@ -189,13 +195,7 @@ class Run:
         def on_step(res):
             self.step += 1
             energy = self._write(res)
-            self.history.append({"load": res.lam, "newton_iterations": res.its,
-                                 "residual_norm": res.fnorm, "seconds": res.seconds})
-            if hasattr(res, "negative_eigenvalues"):
-                self.history[-1]["negative_eigenvalues"] = res.negative_eigenvalues
-            if getattr(res, "branch_switch", False):
-                self.history[-1]["branch_switch"] = True
-                self.history[-1]["jump"] = bool(getattr(res, "jump", False))
+            self.history.append({"load": res.lam, **self._step_record(res)})
             self._log(res, energy)
             output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
 

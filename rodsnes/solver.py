@@ -81,7 +81,8 @@ class NewtonSolver:
         # a Newton solve that has not halved its best residual in this many iterations has
         # stalled (at a fold it 2-cycles between two residual levels for ever): give up early
         self.stagnation_its = PETSc.Options().getInt("load_stagnation_its", 15)
-        self.stagnated = False
+        self.stagnated = False              # the last solve stopped at that test
+        self.stagnations = 0                # solves stopped at it
         self.check_stability = check_stability
         self.f0 = None
         self.total_its = 0
@@ -153,7 +154,7 @@ class NewtonSolver:
         fnorm = float(hist[-1]) if len(hist) else float("nan")
         if not ok and self.stagnated:
             reason = "stagnation"
-            self.stagnations = getattr(self, "stagnations", 0) + 1
+            self.stagnations += 1
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0):
@@ -258,7 +259,8 @@ class NewtonSolver:
             if pen <= ct.penetration:
                 break
             mu0, snap = ct.mu, p.state.snapshot()
-            ct.set_penalty(1.25 * mu0 * pen / ct.penetration)
+            mu1 = 1.25 * mu0 * pen / ct.penetration
+            ct.set_penalty(mu1)
             r = self.solve_guarded(res.lam)
             res.its += r.its
             res.seconds += r.seconds
@@ -266,17 +268,17 @@ class NewtonSolver:
                 p.state.restore(snap)
                 ct.set_penalty(mu0)
                 p.set_load(res.lam)
-                ct.penalty_failures = getattr(ct, "penalty_failures", 0) + 1
+                ct.penalty_failures += 1
                 self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter exceeds "
                           f"-contact_penetration {ct.penetration:g}; the re-solve with mu = "
-                          f"{ct.mu * 1.25 * pen / ct.penetration:.4g} FAILED (reason {r.reason}): "
+                          f"{mu1:.4g} FAILED (reason {r.reason}): "
                           f"the step keeps mu = {mu0:.4g}")
                 break
             ct.penalty_raises += 1
             raised = True
             res.fnorm = r.fnorm
             self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter > "
-                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> {ct.mu:.4g}, "
+                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> {mu1:.4g}, "
                       f"solved again in {r.its} its")
         if raised and self.check_stability:
             from .stability import negative_eigenvalues
@@ -449,7 +451,6 @@ class NewtonSolver:
         ell = L / (2 * np.pi)
         delta = self.perturbation * L
         M = lumped_weights(p.mesh, p.layout)
-
         F = p.layout.create_vec()
         p.residual(None, p.state.X, F)
         Fa = F.getArray(readonly=True).reshape(-1, NDOF)
@@ -507,14 +508,11 @@ class NewtonSolver:
         unstable equilibrium is restored.  Returns an info dict (switched, negative_after,
         energies, eigen and relaxation statistics).  Collective; every branch decision uses
         broadcast or allreduced values."""
-        from mpi4py import MPI
         from .relax import lumped_weights, relax
         from .stability import lowest_eigenpair, negative_eigenvalues
         p = self.problem
         comm = p.layout.comm.tompi4py()
         t0 = time.perf_counter()
-        L = p.mesh.length
-        ell = L / (2 * np.pi)
         p.hold_sliding()          # a closed uniform ring: no creeping along its sliding symmetry
         snap0 = p.state.snapshot()
         p.set_load(lam)

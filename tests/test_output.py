@@ -75,6 +75,8 @@ def check_steps(outdir, steps=3, n=N, nq=NQ):
             np.testing.assert_array_equal(got[a], v, err_msg=a)
     assert output.read_step(outdir)["step"] == steps - 1
     assert output.read_step(outdir, -2)["step"] == steps - 2
+    assert output.read_step_attrs(outdir) == [(k, output.read_step(outdir, k)["attrs"])
+                                              for k in range(steps)]
 
 
 def test_roundtrip_scrambled_ownership(tmp_path):

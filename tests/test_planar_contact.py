@@ -199,7 +199,7 @@ def test_adapted_penalty_keeps_the_promised_penetration():
     assert ref.solve_end_contact_penalty(ROD, mu0).d0 / (2 * ROD.eps) > 1.5 * target
     run = run_case("rollup_contact", contact_penalty=mu0, contact_penalty_adapt=1, **CI)
     assert run.ok
-    steps = [a for k, a in _step_attrs(run.outdir) if k > 0]
+    steps = [a for k, a in output.read_step_attrs(run.outdir) if k > 0]
     pen = np.array([a["contact_max_penetration"] for a in steps])
     mu = np.array([a["contact_penalty"] for a in steps])
     assert pen.max() <= target * (1 + 1e-12)
@@ -209,8 +209,3 @@ def test_adapted_penalty_keeps_the_promised_penetration():
     assert s["penalty"] == mu[-1]
     d0 = ref.solve_end_contact_penalty(ROD, mu[-1]).d0
     assert pen[-1] * 2 * ROD.eps == pytest.approx(d0, rel=0.05)
-
-
-def _step_attrs(outdir):
-    h = output.read_history(outdir)
-    return [(d["step"], d["attrs"]) for d in h]

@@ -27,18 +27,7 @@ import numpy as np
 from rodsnes import output
 
 
-def step_attrs(outdir):
-    """List of (step, attrs) for every complete step, attributes only (fast on long paths)."""
-    def _read(f):
-        out = []
-        for k in output._steps_of(f):
-            g = f["steps"][output._step_name(k)]
-            out.append((k, {a: output._from_attr(v) for a, v in g.attrs.items()}))
-        return out
-    return output._retry_read(outdir, _read)
-
-
-def intervals(s, active, gap=None):
+def intervals(s, active):
     """Arclength intervals [a, b] covered by consecutive active points of the sorted s."""
     order = np.argsort(s)
     s, active = np.asarray(s)[order], np.asarray(active)[order]
@@ -80,11 +69,11 @@ def timings_from_summaries(files):
 
 
 def report(outdir, by=None, edges=None, summaries=()):
-    rows = step_attrs(outdir)
-    known = timings_from_summaries(summaries)
+    rows = output.read_step_attrs(outdir)
+    timings = timings_from_summaries(summaries)
     for _, a in rows:
-        if "seconds" not in a and round(float(a.get("load", -1)), 12) in known:
-            a["seconds"] = known[round(float(a["load"]), 12)]
+        if "seconds" not in a and round(float(a.get("load", -1)), 12) in timings:
+            a["seconds"] = timings[round(float(a["load"]), 12)]
     meta = output.read_meta(outdir)
     path = [(k, a) for k, a in rows if k > 0]
     if not path:
