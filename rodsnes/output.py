@@ -137,7 +137,8 @@ def _open_h5(path, mode, **kw):
 
 
 def _collective(comm, fn, *args):
-    """Run ``fn`` on rank 0 only and re-raise its exception on every rank (no deadlock on error)."""
+    """Run ``fn`` on rank 0 only and re-raise its exception on every rank (no deadlock on error);
+    every rank returns rank 0's result."""
     err = None
     out = None
     if comm.rank == 0:
@@ -150,7 +151,7 @@ def _collective(comm, fn, *args):
     err = comm.bcast(err, root=0)
     if err is not None:
         raise RuntimeError(f"rank 0 failed: {err}")
-    return out
+    return comm.bcast(out, root=0)
 
 
 def _attr_value(v):

@@ -45,6 +45,8 @@ class Run:
         self.step = 0
         self.lam0 = 0.0
         self.nneg0 = 0              # negative eigenvalues of the restart state (-stability)
+        self.dlam0 = None           # the restart's first increment (None: the nominal one)
+        self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.history = []
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
@@ -69,11 +71,7 @@ class Run:
             from .scene import SceneError
             raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
                              f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
-        st.q_ref[:] = so3.quat_from_rot(dirs[lay.local_nodes])
-        with st.X as a:
-            a = a.reshape(-1, NDOF)
-            a[:, 0:3] = pos[lay.owned_nodes]
-            a[:, 3:6] = 0.0
+        self._set_state(st.q_ref, st.X, pos, dirs)
         mu = last["attrs"].get("contact_penalty")
         if self.contact is not None and self.contact.adapt and mu is not None:
             # the adapted penalty of the interrupted run (it never falls along a path)
@@ -82,6 +80,25 @@ class Run:
         self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
         self.step = int(last["step"])
         self.problem.set_load(self.lam0)
+        # the steps the interrupted run would have taken next: its next increment, and the
+        # secant predictor through the step before (none after a branch switch or jump)
+        dlam = last["attrs"].get("next_increment")
+        self.dlam0 = None if dlam is None else float(dlam)
+        if self.step >= 1 and not last["attrs"].get("branch_switch", 0):
+            before = output.read_step(rdir, self.step - 1)
+            q, X = st.q_ref.copy(), st.X.duplicate()
+            self._set_state(q, X, np.asarray(before["positions"]), np.asarray(before["directors"]))
+            self.prev0 = ((q, X), float(before["attrs"]["load"]))
+
+    def _set_state(self, q_ref, X, pos, dirs):
+        """Nodal rotations q_ref (local nodes) and X = (r, theta = 0) (owned nodes) from the
+        gathered positions and directors of a step in result.h5."""
+        lay = self.layout
+        q_ref[:] = so3.quat_from_rot(dirs[lay.local_nodes])
+        with X as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] = pos[lay.owned_nodes]
+            a[:, 3:6] = 0.0
 
     def _tip(self, fields):
         if self.mesh.closed:
@@ -91,8 +108,11 @@ class Run:
     @staticmethod
     def _step_record(res):
         """What a converged step reports, in result.h5 and in summary.json's history: Newton
-        iterations, residual, seconds, negative eigenvalues (-stability), switch/jump flags."""
+        iterations, residual, seconds, the increment the next step starts from, negative
+        eigenvalues (-stability), switch/jump flags."""
         rec = {"newton_iterations": res.its, "residual_norm": res.fnorm, "seconds": res.seconds}
+        if hasattr(res, "next_increment"):
+            rec["next_increment"] = res.next_increment
         if hasattr(res, "negative_eigenvalues"):
             rec["negative_eigenvalues"] = res.negative_eigenvalues
         if getattr(res, "branch_switch", False):
@@ -212,7 +232,7 @@ class Run:
                       f"{dlam:.3e} in half", flush=True)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
-                                       nneg0=self.nneg0)
+                                       nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0)
         reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))

@@ -157,7 +157,8 @@ class NewtonSolver:
             self.stagnations += 1
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
-    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0):
+    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0,
+            dlam0=None, prev0=None):
         """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
 
         on_step(result) is called after every converged step (write output there).  With
@@ -172,13 +173,16 @@ class NewtonSolver:
         result has branch_switch = jump = True).
         nneg0: negative eigenvalues of the starting state (a restart from an unstable step,
         where the uninterrupted run had stayed on the unstable branch: no new switch attempt
-        until the instability grows, as there)."""
+        until the instability grows, as there).
+        dlam0, prev0: the first increment and the (snapshot, lambda) of the step before lam0,
+        for a restart that takes the steps the interrupted run would have taken (every result
+        carries next_increment, the increment its successor starts from)."""
         p = self.problem
         nominal = 1.0 / steps      # the same load grid when a run is restarted from lam0
-        lam, dlam = lam0, nominal
+        lam, dlam = lam0, (nominal if dlam0 is None else min(nominal, dlam0))
         cutbacks = 0
         results = self.results = []
-        prev = None            # (snapshot, lambda) of the previous converged step
+        prev = prev0           # (snapshot, lambda) of the previous converged step
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
         if nneg > 0:
             self._switch_failed_nneg = nneg
@@ -229,12 +233,12 @@ class NewtonSolver:
             prev = None if switched else (snap, lam)
             lam = target
             self.total_its += res.its
+            cutbacks = 0
+            # after a switch the steps start afresh from the nominal increment
+            dlam = res.next_increment = nominal if switched else min(nominal, 1.5 * dlam)
             results.append(res)
             if on_step is not None:
                 on_step(res)
-            cutbacks = 0
-            # after a switch the steps start afresh from the nominal increment
-            dlam = nominal if switched else min(nominal, 1.5 * dlam)
         return results, True
 
     def keep_penetration(self, res, max_raises=4):

@@ -1,48 +1,75 @@
 """-restart DIR resumes from the last complete step of DIR and ends where an uninterrupted run ends."""
+import os
 import shutil
+import tempfile
 
 import h5py
 import numpy as np
+import pytest
+from mpi4py import MPI
 
 from conftest import gathered_positions, run_case
 
 
-def test_restart_from_an_interrupted_run_matches_the_uninterrupted_one(tmp_path):
-    full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
-    assert full.ok
-    # an interrupted run: the same file, but only two steps were complete when it stopped
-    cut = tmp_path / "cut"
-    shutil.copytree(tmp_path / "full", cut)
-    with h5py.File(cut / "result.h5", "r+") as f:
-        f.attrs["last_step"] = 2
-    resumed = run_case("mattiasson", outdir=str(cut), load_steps=4, restart=str(cut))
-    assert resumed.ok
-    assert [h["load"] for h in resumed.history] == [0.75, 1.0]
-    assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
-    with h5py.File(cut / "result.h5", "r") as f:
-        assert f.attrs["last_step"] == 4
-        assert sorted(f["steps"]) == ["00000", "00001", "00002", "00003", "00004"]
-        assert f["steps/00003"].attrs["load"] == 0.75
+@pytest.mark.mpi
+def test_restart_from_an_interrupted_run_matches_the_uninterrupted_one():
+    """Collective: on 2 ranks the restart appends to rank 0's file (every rank learns last_step)."""
+    comm = MPI.COMM_WORLD
+    base = comm.bcast(tempfile.mkdtemp(prefix="rodsnes_restart_") if comm.rank == 0 else None, root=0)
+    try:
+        full = run_case("mattiasson", outdir=os.path.join(base, "full"), load_steps=4)
+        assert full.ok
+        # an interrupted run: the same file, but only two steps were complete when it stopped
+        cut = os.path.join(base, "cut")
+        if comm.rank == 0:
+            shutil.copytree(os.path.join(base, "full"), cut)
+            with h5py.File(os.path.join(cut, "result.h5"), "r+") as f:
+                f.attrs["last_step"] = 2
+        comm.Barrier()
+        resumed = run_case("mattiasson", outdir=cut, load_steps=4, restart=cut)
+        assert resumed.ok
+        assert [h["load"] for h in resumed.history] == [0.75, 1.0]
+        assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
+        if comm.rank == 0:
+            with h5py.File(os.path.join(cut, "result.h5"), "r") as f:
+                assert f.attrs["last_step"] == 4
+                assert sorted(f["steps"]) == ["00000", "00001", "00002", "00003", "00004"]
+                assert f["steps/00003"].attrs["load"] == 0.75
+    finally:
+        comm.Barrier()
+        if comm.rank == 0:
+            shutil.rmtree(base, ignore_errors=True)
 
 
-
-def test_restart_from_an_unstable_step_keeps_its_eigenvalue_count(tmp_path):
+def test_restart_from_an_unstable_step_takes_the_steps_the_run_would_have_taken(tmp_path):
     """-stability without switching: the Michell ring near sqrt(3) turns stays on the circle,
-    accepted with negative eigenvalues after the cut-backs.  A restart from such a step starts
-    from that count (Run.nneg0; no new switch attempt until the instability grows), so it does
-    not take its own state for a loss of stability and cut every step back."""
+    accepted with negative eigenvalues after the cut-backs.  A restart from such a step, in
+    the middle of the increments growing again after the cut-backs, starts (1) from that
+    eigenvalue count (Run.nneg0; no new switch attempt until the instability grows), so it
+    does not take its own state for a loss of stability and cut every step back; (2) from the
+    increment the interrupted run would have taken next (next_increment in result.h5) and
+    (3) with the secant predictor through the step before: it takes the same load steps with
+    the same Newton iterations as the uninterrupted run."""
     kw = dict(load_twist_turns=2.5, stability=True, stability_switch="false", rod_nelem=8,
               load_steps=10, load_max_cutbacks=3)
     full = run_case("michell", outdir=str(tmp_path / "full"), **kw)
     assert full.ok
-    neg = [i + 1 for i, h in enumerate(full.history) if h["negative_eigenvalues"] > 0]
-    k = neg[-1]                                  # the last step (load 1), unstable
+    h = full.history
+    # the step with the shortest next increment among the unstable ones
+    k = 1 + min((i for i in range(len(h)) if h[i]["negative_eigenvalues"] > 0),
+                key=lambda i: h[i]["next_increment"])
+    assert h[k - 1]["next_increment"] < 1e-3 and len(h) - k > 10
     cut = tmp_path / "cut"
     shutil.copytree(tmp_path / "full", cut)
     with h5py.File(cut / "result.h5", "r+") as f:
-        f.attrs["last_step"] = k - 3
+        f.attrs["last_step"] = k
     resumed = run_case("michell", outdir=str(cut), restart=str(cut), **kw)
-    n0 = full.history[k - 4]["negative_eigenvalues"]
+    n0 = h[k - 1]["negative_eigenvalues"]
     assert n0 > 0 and resumed.nneg0 == n0
+    assert resumed.dlam0 == h[k - 1]["next_increment"] and resumed.prev0 is not None
     assert resumed.ok
-    assert all(h["negative_eigenvalues"] >= n0 for h in resumed.history)
+    assert all(r["negative_eigenvalues"] >= n0 for r in resumed.history)
+    np.testing.assert_allclose([r["load"] for r in resumed.history], [r["load"] for r in h[k:]],
+                               rtol=0, atol=1e-13)
+    assert [r["newton_iterations"] for r in resumed.history] == [r["newton_iterations"] for r in h[k:]]
+    assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-8
