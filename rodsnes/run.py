@@ -115,6 +115,8 @@ class Run:
             rec["next_increment"] = res.next_increment
         if hasattr(res, "negative_eigenvalues"):
             rec["negative_eigenvalues"] = res.negative_eigenvalues
+        if getattr(res, "damped", False):
+            rec["damped"] = True
         if getattr(res, "branch_switch", False):
             rec["branch_switch"] = True
             rec["jump"] = bool(getattr(res, "jump", False))
@@ -174,6 +176,7 @@ class Run:
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
              "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
              "stagnated_solves": self.solver.stagnations,
+             "damped_solves": self.solver.damped_solves,
              "steps": self.history}
         tip = self._tip(self.last_fields)
         if tip is not None:
@@ -223,13 +226,16 @@ class Run:
             if not self.quiet and self.rank == 0:
                 if res.reason == "stability":
                     why = "it lands on a less stable equilibrium"
+                elif str(res.reason).startswith("damped"):
+                    why = f"Levenberg-Marquardt, {res.its} steps, |F| {res.fnorm:.3e}: {res.reason}"
                 elif res.reason == "stagnation":
                     why = (f"Newton stagnated: |F| not halved in {self.solver.stagnation_its} its, "
                            f"{res.its} its")
                 else:
                     why = f"SNES reason {res.reason}, {res.its} its"
-                print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
-                      f"{dlam:.3e} in half", flush=True)
+                then = ("solving it again by Levenberg-Marquardt" if dlam is None
+                        else f"cutting the increment {dlam:.3e} in half")
+                print(f"  load {res.lam:.6f} not accepted ({why}): {then}", flush=True)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0)

@@ -240,6 +240,10 @@ class O:
     load_stagnation_its = Opt(INT, 15, "a Newton solve whose residual has not halved in this many "
                               "iterations fails (and the step is cut back); 0: only -snes_max_it",
                               "load", rng="[0,inf)", note="a number of Newton iterations")
+    load_damped_its = Opt(INT, 0, "a load step whose Newton solve failed is solved again by "
+                          "Levenberg-Marquardt, at most this many steps, before it is cut back "
+                          "(conservative loads only); 0: off", "load", rng="[0,inf)",
+                          note="a number of damped Newton steps")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
                         rng="(0,1]", note="a fraction of the full load")
     # --- contact ----------------------------------------------------------------

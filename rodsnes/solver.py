@@ -82,6 +82,10 @@ class NewtonSolver:
         # stalled (at a fold it 2-cycles between two residual levels for ever): give up early
         self.stagnation_its = PETSc.Options().getInt("load_stagnation_its", 15)
         self.stagnated = False              # the last solve stopped at that test
+        # -load_damped_its N: a failed step is solved again by Levenberg-Marquardt (solve_damped)
+        # before it is cut back (conservative loads only: energy is its merit function)
+        self.damped_its = PETSc.Options().getInt("load_damped_its", 0)
+        self.damped_solves = 0
         self.stagnations = 0                # solves stopped at it
         self.check_stability = check_stability
         self.f0 = None
@@ -95,6 +99,11 @@ class NewtonSolver:
         self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
         self.switch_refused = _nonconservative(problem.scene.loads)
         self._refusal_shown = False
+        if self.damped_its > 0 and self.switch_refused:
+            from .scene import SceneError
+            raise SceneError(f"-load_damped_its {self.damped_its}: Levenberg-Marquardt takes the "
+                             f"energy as its merit function, and {self.switch_refused}; use "
+                             f"-load_damped_its 0 with these loads")
         self._switch_failed_nneg = None     # skip new attempts until the instability grows
         self.switches = []                  # info dict of every attempted switch
         self.results = []                   # StepResults of the last run()
@@ -200,6 +209,12 @@ class NewtonSolver:
                 p.state.restore(snap)
                 res = self.solve_guarded(target)
                 self.predictor_retries += 1
+            if not res.converged and self.damped_its > 0 and not self.switch_refused:
+                # Newton failed: Levenberg-Marquardt from the last state, before a cut-back
+                if on_fail is not None:
+                    on_fail(res, None)
+                p.state.restore(snap)
+                res = self.solve_damped(target)
             if res.converged and self.check_stability:
                 from .stability import negative_eigenvalues
                 res.negative_eigenvalues = self._count_negative(negative_eigenvalues)
@@ -425,6 +440,55 @@ class NewtonSolver:
         v.destroy()
         return mv
 
+    def tolerance(self):
+        """The |F| every load step is held to: max(atol, rtol x force scale, roundoff floor)."""
+        atol, rtol, _, _ = self.snes.getTolerances()
+        return max(atol, rtol * self.force_scale, self.floor)
+
+    def _first_stiffness(self):
+        """Pseudo-time stiffness c of a first damped step (relax.py) from the current state at
+        the current load: the step (c M) dx = -F moves no node by more than about
+        -stability_perturbation x L (positions) or that / l (rotations, l = L / 2 pi).
+        Collective (rank 0's value)."""
+        from mpi4py import MPI
+        from .relax import lumped_weights
+        p = self.problem
+        comm = p.layout.comm.tompi4py()
+        ell = p.mesh.length / (2 * np.pi)
+        delta = self.perturbation * p.mesh.length
+        M = lumped_weights(p.mesh, p.layout)
+        F = p.layout.create_vec()
+        p.residual(None, p.state.X, F)
+        Fa = F.getArray(readonly=True).reshape(-1, NDOF)
+        c0 = float(np.max(np.maximum(np.linalg.norm(Fa[:, 0:3], axis=1),
+                                     np.linalg.norm(Fa[:, 3:6], axis=1) / ell) / (delta * M), initial=0.0))
+        F.destroy()
+        return max(comm.bcast(comm.allreduce(c0, op=MPI.MAX), root=0), 1e-300)
+
+    def solve_damped(self, lam):
+        """Levenberg-Marquardt at load factor lam from the current state (-load_damped_its N:
+        the fallback of a load step whose Newton solve failed, before it is cut back): steps
+        (K + c M) dx = -F kept while the energy falls, c / 3 after a kept step, x 4 after a
+        rejected one (relax.relax_phase, single_step), from the c of _first_stiffness, for at
+        most N steps, until the undamped |F| meets the step tolerance.  As c falls the steps
+        become Newton's; a soft mode next to a contact edge, along which undamped Newton throws
+        strands across the edge and 2-cycles, is bounded by c.  Returns a StepResult (reason
+        "damped"; its = Newton steps taken).  Energy is the merit function: conservative loads
+        only (the caller checks).  Collective."""
+        from .relax import relax_phase, undamped_residual_norm
+        p = self.problem
+        t0 = time.perf_counter()
+        p.set_load(lam)
+        tol = self.tolerance()
+        rr = relax_phase(self, lam, self._first_stiffness(), tol, max_steps=self.damped_its,
+                         single_step=True)
+        f = p.layout.comm.tompi4py().bcast(undamped_residual_norm(p, None), root=0)
+        res = StepResult(lam, bool(rr.ok and f <= tol), rr.newton_its, "damped" if rr.ok else "damped: "
+                         + rr.message, f, np.array([row[3] for row in rr.log]), time.perf_counter() - t0)
+        res.damped = True
+        self.damped_solves += 1
+        return res
+
     def jump_branch(self, lam):
         """From the last converged state (at a lower load), relax at load factor lam by the
         implicit gradient flow of relax.py (no push along an eigenvector: at the plectoneme's
@@ -433,8 +497,7 @@ class NewtonSolver:
         switch_branch from it.  Success: an
         equilibrium at lam with 0 negative eigenvalues (then the state is there); else the
         last converged state and its load are restored.  Collective."""
-        from mpi4py import MPI
-        from .relax import lumped_weights, relax
+        from .relax import relax
         from .stability import negative_eigenvalues
         p = self.problem
         comm = p.layout.comm.tompi4py()
@@ -447,22 +510,8 @@ class NewtonSolver:
                 "energy_before": E0, "energy_after": E0, "relax_steps": 0, "relax_rejected": 0,
                 "newton_its": 0, "message": "", "fnorm": np.nan, "relax_energies": [],
                 "relax_log": [], "energy_monotone": True}
-        atol, rtol, _, _ = self.snes.getTolerances()
-        tol = max(atol, rtol * self.force_scale, self.floor)
-        # initial pseudo-time stiffness: the first damped step moves no node by more than about
-        # -stability_perturbation x L (positions) or that / l (rotations)
-        L = p.mesh.length
-        ell = L / (2 * np.pi)
-        delta = self.perturbation * L
-        M = lumped_weights(p.mesh, p.layout)
-        F = p.layout.create_vec()
-        p.residual(None, p.state.X, F)
-        Fa = F.getArray(readonly=True).reshape(-1, NDOF)
-        c0 = float(np.max(np.maximum(np.linalg.norm(Fa[:, 0:3], axis=1),
-                                     np.linalg.norm(Fa[:, 3:6], axis=1) / ell) / (delta * M), initial=0.0))
-        F.destroy()
-        c0 = comm.bcast(comm.allreduce(c0, op=MPI.MAX), root=0)
-        rr = relax(self, lam, max(c0, 1e-300), tol, max_steps=self.relax_max_it)
+        tol = self.tolerance()
+        rr = relax(self, lam, self._first_stiffness(), tol, max_steps=self.relax_max_it)
         info.update(relax_steps=rr.steps, relax_rejected=rr.rejected, newton_its=rr.newton_its)
         info["relax_energies"].append(rr.energies)
         info["relax_log"].append(rr.log)
@@ -472,7 +521,7 @@ class NewtonSolver:
         if not rr.ok:
             info["message"] = "relaxation: " + rr.message
         else:
-            res = self.solve_guarded(lam)
+            res = self._polish(lam, tol)
             info["newton_its"] += res.its
             if not res.converged:
                 info["message"] = f"the undamped solve after relaxation failed (SNES reason {res.reason})"
@@ -501,6 +550,26 @@ class NewtonSolver:
         self.switches.append(info)
         return info
 
+    def _polish(self, lam, tol):
+        """The undamped Newton solve that ends a relaxation whose undamped |F| reached tol.
+        Next to a contact edge on a soft mode, Newton can 2-cycle away from a state that
+        already meets the tolerance (the plectoneme at 8.57 turns: the relaxed |F| 3.0e-9 <= tol
+        3.2e-9, then Newton between 3.38e-4 and 3.39e-4 as a contact zone appears and vanishes
+        in turn); the relaxed state is then kept, with its residual, which meets the tolerance
+        every load step is held to.  Returns a StepResult."""
+        from .relax import undamped_residual_norm
+        p = self.problem
+        snap = p.state.snapshot()
+        res = self.solve_guarded(lam)
+        if res.converged:
+            return res
+        p.state.restore(snap)
+        p.set_load(lam)
+        f = p.layout.comm.tompi4py().bcast(undamped_residual_norm(p, None), root=0)
+        if f <= tol:
+            res.converged, res.fnorm, res.reason = True, f, "relaxed"
+        return res
+
     def switch_branch(self, lam, nneg):
         """Leave the unstable equilibrium at load factor lam (nneg > 0 negative eigenvalues)
         for a stable one: (1) lowest eigenvector v of the energy Hessian
@@ -525,8 +594,7 @@ class NewtonSolver:
             return comm.bcast(x, root=0)
 
         E_before = same(p.energy())
-        atol, rtol, _, _ = self.snes.getTolerances()
-        tol = max(atol, rtol * self.force_scale, self.floor)
+        tol = self.tolerance()
         info = {"switched": False, "negative_before": nneg, "negative_after": nneg,
                 "energy_before": E_before, "energy_after": E_before, "attempts": 0,
                 "relax_steps": 0, "relax_rejected": 0, "newton_its": 0, "eigen_seconds": 0.0,
@@ -559,7 +627,7 @@ class NewtonSolver:
             if not rr.ok:
                 info["message"] = "relaxation: " + rr.message
                 break
-            res = self.solve_guarded(lam)
+            res = self._polish(lam, tol)
             info["newton_its"] += res.its
             if not res.converged:
                 info["message"] = f"the undamped solve after relaxation failed (SNES reason {res.reason})"
