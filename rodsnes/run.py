@@ -122,29 +122,39 @@ class Run:
             rec["jump"] = bool(getattr(res, "jump", False))
         return rec
 
-    def _write(self, res):
+    def _observe(self):
+        """The current state's fields, energy, contact report and topology (collective); sets
+        the last_* attributes that summary.json is made from.  Returns (fields, energy,
+        contact attrs, quadrature-point fields, topology)."""
         p = self.problem
         fields = p.owned_fields()
         energy = p.energy()
-        attrs = {"load": p.lam, "energy": energy, "newton_iterations": 0, "residual_norm": 0.0}
-        if res is not None:       # HDF5 attributes: the switch flags as 0/1
-            attrs.update({k: int(v) if isinstance(v, bool) else v
-                          for k, v in self._step_record(res).items()})
-        qp = {}
+        cattrs, qp = {}, {}
         if self.contact is not None:
             r_loc, _ = p.state.local_config()
             self.contact.evaluate(r_loc, tangent=False)
             self.last_contact = self.contact.summary()
-            attrs.update({"contact_" + k: v for k, v in self.last_contact.items()})
+            cattrs = {"contact_" + k: v for k, v in self.last_contact.items()}
             qp = self.contact.qp_fields()
         topo = self._topology(fields)
         if topo is not None:
-            attrs.update(topo)
             self.last_topology = topo
-        self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
-                               qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
         self.last_fields = fields
         self.last_energy = energy
+        return fields, energy, cattrs, qp, topo
+
+    def _write(self, res):
+        p = self.problem
+        fields, energy, cattrs, qp, topo = self._observe()
+        attrs = {"load": p.lam, "energy": energy, "newton_iterations": 0, "residual_norm": 0.0}
+        if res is not None:       # HDF5 attributes: the switch flags as 0/1
+            attrs.update({k: int(v) if isinstance(v, bool) else v
+                          for k, v in self._step_record(res).items()})
+        attrs.update(cattrs)
+        if topo is not None:
+            attrs.update(topo)
+        self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
+                               qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
         return energy
 
     def _topology(self, fields):
@@ -213,6 +223,8 @@ class Run:
         if not self.scene.output.restart:
             self.problem.set_load(0.0)
             self._write(None)
+        else:
+            self._observe()        # a restart that fails at once still reports its state
         ld = self.scene.loads
 
         def on_step(res):

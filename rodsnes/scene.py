@@ -289,6 +289,9 @@ class O:
     stability_relax_max_it = Opt(INT, 200, "branch switching: most pseudo-time steps of one "
                                  "relaxation", "analysis", rng="[1,inf)",
                                  note="number of relaxation steps")
+    stability_jump_overshoot = Opt(REAL, 0.0, "a fold's jump relaxes at the last converged load "
+                                   "plus at least this load increment (0: at the shortest step "
+                                   "tried)", "analysis", rng="[0,1]", note="a fraction of the full load")
 
 
 OPTIONS = tuple(v for v in vars(O).values() if isinstance(v, Opt))

@@ -95,6 +95,7 @@ class NewtonSolver:
         self.switch = bool(check_stability) and opts.getBool("stability_switch", True)
         self.perturbation = opts.getReal("stability_perturbation", 1e-2)
         self.relax_max_it = opts.getInt("stability_relax_max_it", 200)
+        self.jump_overshoot = opts.getReal("stability_jump_overshoot", 0.0)
         self.switch_attempts = 3
         self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
         self.switch_refused = _nonconservative(problem.scene.loads)
@@ -239,6 +240,10 @@ class NewtonSolver:
                 # no equilibrium near the last one, however short the step: a fold of the
                 # (stable) path, where the rod must jump; with switching, relax at the load
                 # of the shortest step tried (jump_branch), else give up
+                # (-stability_jump_overshoot: at least that far beyond the last converged load;
+                # just past a fold the rod creeps through the fold's ghost, the slower the
+                # closer, and the branch it jumps to goes on continuously beyond)
+                target = max(target, min(1.0, lam + self.jump_overshoot))
                 res = self._maybe_jump(target) if (self.switch and nneg == 0) else None
                 if res is None:
                     return results, False

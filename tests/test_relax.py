@@ -202,6 +202,24 @@ def test_twisted_clamped_rod_jumps_into_a_loop_at_the_fold():
     assert np.hypot(X[:, 1], X[:, 2]).max() > 0.2                   # a loop, not a straight rod
 
 
+def test_a_jump_with_overshoot_relaxes_beyond_the_fold():
+    """-stability_jump_overshoot 0.005: the same fold (at load 0.990), but the jump relaxes at
+    the last converged load + 0.005 (not at the shortest step tried, 1e-4 beyond it), onto the
+    same stable loop."""
+    from rodsnes.output import read_step
+    run = run_case(None, stability=True, stability_jump_overshoot=0.005, **TWISTED)
+    assert run.ok
+    res = run.solver.results
+    j = [i for i, r in enumerate(res) if getattr(r, "jump", False)]
+    assert len(j) == 1
+    j = j[0]
+    assert abs(res[j].lam - (res[j - 1].lam + 0.005)) < 1e-12
+    assert res[j].negative_eigenvalues == 0 and res[j].switch_info["energy_monotone"]
+    after = read_step(run.outdir, j + 1)["attrs"]
+    assert abs(abs(after["writhe"]) - 1) < 0.05
+    assert all(h["negative_eigenvalues"] == 0 for h in run.history)
+
+
 def test_branch_switching_is_refused_for_non_conservative_loads(capsys):
     """Energy is no merit with an end moment or a follower force: an unstable step is kept, with
     one message."""

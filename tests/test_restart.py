@@ -73,3 +73,21 @@ def test_restart_from_an_unstable_step_takes_the_steps_the_run_would_have_taken(
                                rtol=0, atol=1e-13)
     assert [r["newton_iterations"] for r in resumed.history] == [r["newton_iterations"] for r in h[k:]]
     assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-8
+
+
+def test_a_restart_that_fails_at_once_still_writes_its_summary(tmp_path):
+    """A restart whose first step fails (here Newton held to 1 iteration, no cut-back) reports
+    the state it started from in summary.json: load, energy, tip, converged = false."""
+    import json
+    full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
+    cut = tmp_path / "cut"
+    shutil.copytree(tmp_path / "full", cut)
+    with h5py.File(cut / "result.h5", "r+") as f:
+        f.attrs["last_step"] = 2
+        e2 = float(f["steps/00002"].attrs["energy"])
+    resumed = run_case("mattiasson", outdir=str(cut), load_steps=4, restart=str(cut),
+                       snes_max_it=1, load_max_cutbacks=0)
+    assert full.ok and not resumed.ok and resumed.history == []
+    s = json.loads((cut / "summary.json").read_text())
+    assert s["converged"] is False and s["load"] == 0.5 and "failure" in s
+    assert abs(s["energy"] - e2) < 1e-12 * abs(e2) and len(s["tip_position"]) == 3
