@@ -187,8 +187,13 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     out = relax_phase(solver, lam, c0, tol, max_steps=max(max_steps // 2, 1), **kw)
     if out.ok or out.steps == 0 or kw.get("single_step"):
         return out
-    lm = relax_phase(solver, lam, out.c_last, tol, max_steps=max_steps, single_step=True,
-                     **{k: v for k, v in kw.items() if k != "single_step"})
+    # the LM phase starts at the flow's last c, but its floor stays that of the first c: after
+    # failed damped solves the flow's c can have grown by 1e12 (the plectoneme's fold at 8.79
+    # turns: 4e16), and a floor of 1e-12 x that pinned LM at c = 4e4 for 200 steps, nodes moving
+    # < 2e-4 in all, |F| wandering between 0.5 and 3
+    lm_kw = {k: v for k, v in kw.items() if k != "single_step"}
+    lm_kw.setdefault("c_min", 1e-12 * c0)
+    lm = relax_phase(solver, lam, out.c_last, tol, max_steps=max_steps, single_step=True, **lm_kw)
     out.ok, out.message, out.c_last = lm.ok, lm.message, lm.c_last
     out.steps += lm.steps
     out.rejected += lm.rejected

@@ -370,3 +370,24 @@ def test_newton_that_stops_gaining_fails_early():
     sv.stagnation_its = 0
     assert feed(cycle) == (None, None)
 
+
+
+def test_levenberg_marquardt_phase_keeps_the_floor_of_the_first_stiffness(monkeypatch):
+    """relax(): the LM phase starts at the flow's last c but its floor is 1e-12 x the first c.
+    (Failed damped solves had grown the flow's c to 4e16 at the plectoneme's fold; a floor of
+    1e-12 x that pinned LM at c = 4e4 for 200 steps.)"""
+    from rodsnes import relax as rx
+    calls = []
+
+    def phase(solver, lam, c0, tol, max_steps=200, single_step=False, **kw):
+        calls.append(dict(c0=c0, single_step=single_step, **kw))
+        out = rx.RelaxResult()
+        out.steps, out.energies, out.log, out.c_last = 3, [1.0, 0.9], [(), ()], 4e16
+        out.ok = single_step
+        return out
+
+    monkeypatch.setattr(rx, "relax_phase", phase)
+    out = rx.relax(None, 0.5, 147.0, 1e-9, max_steps=20)
+    assert out.ok and len(calls) == 2
+    assert calls[1]["single_step"] and calls[1]["c0"] == 4e16
+    assert calls[1]["c_min"] == pytest.approx(1e-12 * 147.0)
