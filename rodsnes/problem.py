@@ -51,6 +51,18 @@ class RodState:
         self.q_ref[:] = snap[0]
         snap[1].copy(self.X)
 
+    def snapshot_of(self, positions, directors):
+        """A snapshot (restore() takes it) of the configuration given by the gathered nodal
+        positions (n,3) and directors (n,3,3) of a step in result.h5: q_ref on the local
+        nodes, X = (r, theta = 0) on the owned ones."""
+        q = so3.quat_from_rot(np.asarray(directors)[self.layout.local_nodes])
+        X = self.X.duplicate()
+        with X as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] = np.asarray(positions)[self.layout.owned_nodes]
+            a[:, 3:6] = 0.0
+        return q, X
+
     def predict(self, prev, ratio):
         """Secant predictor along the load path: from the converged state n (current, theta = 0)
         and the previous converged state ``prev`` (a snapshot), move to

@@ -138,12 +138,13 @@ class RelaxationTerm:
 
 class RelaxResult:
     """Outcome of :func:`relax`: ok, pseudo-time steps (accepted / rejected), Newton
-    iterations of the damped solves, energies (first, last) and the per-step log
-    (c, Newton its, energy, undamped |F|)."""
+    iterations of the damped solves, energies (first, last), the undamped |F| of the state
+    it ends at (fnorm) and the per-step log (c, Newton its, energy, undamped |F|)."""
 
     def __init__(self):
         self.ok, self.steps, self.rejected, self.newton_its = False, 0, 0, 0
         self.energies, self.log, self.message = [], [], ""
+        self.fnorm = np.nan
 
 
 def undamped_residual_norm(problem, skip, F=None):
@@ -194,7 +195,7 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     lm_kw = {k: v for k, v in kw.items() if k != "single_step"}
     lm_kw.setdefault("c_min", 1e-12 * c0)
     lm = relax_phase(solver, lam, out.c_last, tol, max_steps=max_steps, single_step=True, **lm_kw)
-    out.ok, out.message, out.c_last = lm.ok, lm.message, lm.c_last
+    out.ok, out.message, out.c_last, out.fnorm = lm.ok, lm.message, lm.c_last, lm.fnorm
     out.steps += lm.steps
     out.rejected += lm.rejected
     out.newton_its += lm.newton_its
@@ -347,5 +348,5 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
         p.extra_terms = [t for t in p.extra_terms if t is not term]
         snes.setTolerances(max_it=tols[3])
         F.destroy()
-    out.c_last = c
+    out.c_last, out.fnorm = c, f
     return out

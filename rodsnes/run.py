@@ -11,7 +11,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from . import mesh as rodmesh
-from . import output, partition, so3
+from . import output, partition
 from .partition import NDOF
 from .problem import RodProblem
 from .solver import NewtonSolver
@@ -64,14 +64,13 @@ class Run:
     def _restart(self, rdir):
         """Resume from the last converged step of an earlier run in rdir."""
         last = output.read_step(rdir, -1)
-        lay = self.layout
         st = self.problem.state
         pos, dirs = np.asarray(last["positions"]), np.asarray(last["directors"])
         if pos.shape[0] != self.mesh.n_nodes:
             from .scene import SceneError
             raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
                              f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
-        self._set_state(st.q_ref, st.X, pos, dirs)
+        st.restore(st.snapshot_of(pos, dirs))
         mu = last["attrs"].get("contact_penalty")
         if self.contact is not None and self.contact.adapt and mu is not None:
             # the adapted penalty of the interrupted run (it never falls along a path)
@@ -86,19 +85,8 @@ class Run:
         self.dlam0 = None if dlam is None else float(dlam)
         if self.step >= 1 and not last["attrs"].get("branch_switch", 0):
             before = output.read_step(rdir, self.step - 1)
-            q, X = st.q_ref.copy(), st.X.duplicate()
-            self._set_state(q, X, np.asarray(before["positions"]), np.asarray(before["directors"]))
-            self.prev0 = ((q, X), float(before["attrs"]["load"]))
-
-    def _set_state(self, q_ref, X, pos, dirs):
-        """Nodal rotations q_ref (local nodes) and X = (r, theta = 0) (owned nodes) from the
-        gathered positions and directors of a step in result.h5."""
-        lay = self.layout
-        q_ref[:] = so3.quat_from_rot(dirs[lay.local_nodes])
-        with X as a:
-            a = a.reshape(-1, NDOF)
-            a[:, 0:3] = pos[lay.owned_nodes]
-            a[:, 3:6] = 0.0
+            self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
+                          float(before["attrs"]["load"]))
 
     def _tip(self, fields):
         if self.mesh.closed:

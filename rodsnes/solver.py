@@ -82,11 +82,11 @@ class NewtonSolver:
         # stalled (at a fold it 2-cycles between two residual levels for ever): give up early
         self.stagnation_its = PETSc.Options().getInt("load_stagnation_its", 15)
         self.stagnated = False              # the last solve stopped at that test
+        self.stagnations = 0                # solves stopped at it
         # -load_damped_its N: a failed step is solved again by Levenberg-Marquardt (solve_damped)
         # before it is cut back (conservative loads only: energy is its merit function)
         self.damped_its = PETSc.Options().getInt("load_damped_its", 0)
         self.damped_solves = 0
-        self.stagnations = 0                # solves stopped at it
         self.check_stability = check_stability
         self.f0 = None
         self.total_its = 0
@@ -171,7 +171,9 @@ class NewtonSolver:
             dlam0=None, prev0=None):
         """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
 
-        on_step(result) is called after every converged step (write output there).  With
+        on_step(result) is called after every converged step (write output there), on_fail(result,
+        dlam) after every failed try (dlam = the increment about to be halved, or None when the
+        step is solved again by Levenberg-Marquardt, -load_damped_its).  With
         -stability and -stability_switch, a step accepted with negative eigenvalues is relaxed
         onto a stable equilibrium first (switch_branch); its result then has branch_switch =
         True and the negative eigenvalues counted after the switch, and the next step starts
@@ -480,16 +482,14 @@ class NewtonSolver:
         strands across the edge and 2-cycles, is bounded by c.  Returns a StepResult (reason
         "damped"; its = Newton steps taken).  Energy is the merit function: conservative loads
         only (the caller checks).  Collective."""
-        from .relax import relax_phase, undamped_residual_norm
+        from .relax import relax_phase
         p = self.problem
         t0 = time.perf_counter()
         p.set_load(lam)
-        tol = self.tolerance()
-        rr = relax_phase(self, lam, self._first_stiffness(), tol, max_steps=self.damped_its,
-                         single_step=True)
-        f = p.layout.comm.tompi4py().bcast(undamped_residual_norm(p, None), root=0)
-        res = StepResult(lam, bool(rr.ok and f <= tol), rr.newton_its, "damped" if rr.ok else "damped: "
-                         + rr.message, f, np.array([row[3] for row in rr.log]), time.perf_counter() - t0)
+        rr = relax_phase(self, lam, self._first_stiffness(), self.tolerance(),
+                         max_steps=self.damped_its, single_step=True)
+        res = StepResult(lam, rr.ok, rr.newton_its, "damped" if rr.ok else "damped: " + rr.message,
+                         rr.fnorm, np.array([row[3] for row in rr.log]), time.perf_counter() - t0)
         res.damped = True
         self.damped_solves += 1
         return res
@@ -526,7 +526,7 @@ class NewtonSolver:
         if not rr.ok:
             info["message"] = "relaxation: " + rr.message
         else:
-            res = self._polish(lam, tol)
+            res = self._polish(lam, tol, rr.fnorm)
             info["newton_its"] += res.its
             if not res.converged:
                 info["message"] = f"the undamped solve after relaxation failed (SNES reason {res.reason})"
@@ -555,14 +555,13 @@ class NewtonSolver:
         self.switches.append(info)
         return info
 
-    def _polish(self, lam, tol):
-        """The undamped Newton solve that ends a relaxation whose undamped |F| reached tol.
-        Next to a contact edge on a soft mode, Newton can 2-cycle away from a state that
-        already meets the tolerance (the plectoneme at 8.57 turns: the relaxed |F| 3.0e-9 <= tol
-        3.2e-9, then Newton between 3.38e-4 and 3.39e-4 as a contact zone appears and vanishes
-        in turn); the relaxed state is then kept, with its residual, which meets the tolerance
-        every load step is held to.  Returns a StepResult."""
-        from .relax import undamped_residual_norm
+    def _polish(self, lam, tol, f_relaxed):
+        """The undamped Newton solve that ends a relaxation, from its state with undamped |F|
+        f_relaxed (relax.RelaxResult.fnorm).  Next to a contact edge on a soft mode, Newton can
+        2-cycle away from a state that already meets the tolerance (the plectoneme at 8.57
+        turns: the relaxed |F| 3.0e-9 <= tol 3.2e-9, then Newton between 3.38e-4 and 3.39e-4 as
+        a contact zone appears and vanishes in turn); the relaxed state is then kept, with its
+        residual, if that meets the tolerance every load step is held to.  Returns a StepResult."""
         p = self.problem
         snap = p.state.snapshot()
         res = self.solve_guarded(lam)
@@ -570,9 +569,8 @@ class NewtonSolver:
             return res
         p.state.restore(snap)
         p.set_load(lam)
-        f = p.layout.comm.tompi4py().bcast(undamped_residual_norm(p, None), root=0)
-        if f <= tol:
-            res.converged, res.fnorm, res.reason = True, f, "relaxed"
+        if f_relaxed <= tol:
+            res.converged, res.fnorm, res.reason = True, f_relaxed, "relaxed"
         return res
 
     def switch_branch(self, lam, nneg):
@@ -632,7 +630,7 @@ class NewtonSolver:
             if not rr.ok:
                 info["message"] = "relaxation: " + rr.message
                 break
-            res = self._polish(lam, tol)
+            res = self._polish(lam, tol, rr.fnorm)
             info["newton_its"] += res.its
             if not res.converged:
                 info["message"] = f"the undamped solve after relaxation failed (SNES reason {res.reason})"
