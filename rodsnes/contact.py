@@ -700,16 +700,25 @@ class ContactKernel:
         return res
 
     def _ddxi(self, ctx, o, cl):
-        """d'(xi) = -nu . dr/dxi of the slave points (the closest-point motion drops out)."""
+        """d'(xi) of the slave points: -nu . dr/dxi where the closest point is stationary
+        (interior: its motion drops out) or fixed (a node); at an exclusion bound sbar = s -+
+        delta moves with s, dxi_m/dxi = 1, and d' = -nu . (dr/dxi - dr_m/dxi_m)."""
         t = np.einsum("na,nad->nd", cl["dN"], ctx["x_own"][o])
         g = np.where(np.isfinite(cl["g"]) & (cl["g"] > 0), cl["g"], 1.0)
-        return np.where(cl["m"] >= 0, -np.einsum("nd,nd->n", cl["D"], t) / g, 0.0)
+        has = cl["m"] >= 0
+        bound = has & ~cl["interior"] & (np.abs(cl["xi_m"]) < 1.0)
+        if np.any(bound):
+            dNm = _monomials(self.p, cl["xi_m"][bound])[1]
+            t[bound] -= np.einsum("nk,nkd->nd", dNm, ctx["A_pool"][cl["m"][bound]])
+        return np.where(has, -np.einsum("nd,nd->n", cl["D"], t) / g, 0.0)
 
-    def _solve1d(self, ctx, o, a, b, fa, fb, which, iters=40, target=None, bracket=False):
+    def _solve1d(self, ctx, o, a, b, fa, fb, which, iters=40, target=None, negate=None,
+                 bracket=False):
         """Illinois (modified regula falsi) root of f on [a, b], f(a), f(b) of opposite signs,
         vectorised; f = d (which 0) or d' (which 1) of the slave points of own index o, or (which
         3, by bisection) +1 / -1 as the kind of closest point (``_kind``) is or is not target
-        (target < 0: is not -1 - target).  Bisection where a value is not finite.  Returns the
+        (where ``negate``: is not target; kinds may be negative, so the flag is separate).
+        Bisection where a value is not finite.  Returns the
         root (to 1e-13 in xi), and with ``bracket`` also the final bracket ends (a on the side
         of the initial a)."""
         a, b, fa, fb = (np.array(v, dtype=float) for v in (a, b, fa, fb))
@@ -730,8 +739,8 @@ class ContactKernel:
             elif which == 1:
                 fc = self._ddxi(ctx, o[act], cl)
             else:
-                kind, tg = self._kind(ctx, cl), target[act]
-                fc = np.where(np.where(tg >= 0, kind == tg, kind != -1 - tg), 1.0, -1.0)
+                hit = self._kind(ctx, cl) == target[act]
+                fc = np.where(hit != negate[act], 1.0, -1.0)
             x[act] = c
             left = np.sign(fc) == np.sign(FA)
             # replace the end with the same sign; halve the other end's value if it stays twice
@@ -791,41 +800,70 @@ class ContactKernel:
         cut, left, right = self._solve1d(ctx, np.concatenate([oz[ki], oz[ki]]),
                                          np.tile(Xs[ki, kj], 2), np.tile(Xs[ki, kj + 1], 2),
                                          np.tile(one, 2), -np.tile(one, 2), 3, iters=60,
-                                         target=np.concatenate([ka, -1 - kb]), bracket=True)
+                                         target=np.concatenate([ka, kb]),
+                                         negate=np.repeat([False, True], len(ki)), bracket=True)
         nk = len(ki)
         distinct = np.r_[np.ones(nk, dtype=bool), np.abs(cut[nk:] - cut[:nk]) > 1e-12]
         cuts = (np.tile(oz[ki], 2)[distinct], left[distinct], right[distinct])
+        level = np.zeros(2 * nk, dtype=np.int64)
+        level[distinct] = self._cut_levels(ctx, *cuts)
+        level[~distinct] = level[:nk][~distinct[nk:]]
         zid = np.concatenate([np.arange(len(za)), np.arange(len(za)), ki, ki])
         pts = np.concatenate([za, zb, cut])
-        iscut = np.r_[np.zeros(2 * len(za), dtype=bool), np.ones(2 * nk, dtype=bool)]
+        lev = np.r_[np.zeros(2 * len(za), dtype=np.int64), level]
         srt = np.lexsort((pts, zid))
-        zid, pts, iscut = zid[srt], pts[srt], iscut[srt]
+        zid, pts, lev = zid[srt], pts[srt], lev[srt]
         same = zid[1:] == zid[:-1]
         a, b, z = pts[:-1][same], pts[1:][same], zid[:-1][same]
-        ca, cb = iscut[:-1][same], iscut[1:][same]
+        la, lb = lev[:-1][same], lev[1:][same]
         keep = b > a
-        a, b, z, ca, cb = a[keep], b[keep], z[keep], ca[keep], cb[keep]
-        a, b, z = self._grade(a, b, z, ca, cb)
+        a, b, z, la, lb = a[keep], b[keep], z[keep], la[keep], lb[keep]
+        a, b, z = self._grade(a, b, z, la, lb)
         return oz[z], a, b, cuts
 
-    def _grade(self, a, b, z, ca, cb):
-        """Pieces [a, b] graded geometrically toward their ends that are cuts (ca, cb): points
-        at distances l 2^-j, j = 1..G (l: the piece, or half of it when both ends are cuts)
-        from such an end, G = ``grade``.  Near a cut where the closest point reaches a node
-        while the slave point is close to a centre of curvature of the master, the closest point
-        races (dxibar/dxi ~ 100) and the integrand has a branch point just beyond the cut; one
-        Gauss rule over the piece then leaves a quadrature error whose change as the cut moves
-        the tangent does not see (4-9e-2 relative on a noisy cubic helix; graded with 10
-        levels, 1e-5).  The points move continuously with the cuts."""
-        G = self.grade
-        if G == 0 or not (np.any(ca) or np.any(cb)):
+    def _cut_levels(self, ctx, o, left, right):
+        """Levels of geometric grading toward every cut (``_grade``): ``grade`` + log2 of the
+        racing rate of the closest points on either side, |dxibar/dxi| = |r'(xi) . r_m'(xibar)|
+        / phi''(xibar) (phi = |r_m - r|^2 / 2; an interior closest point; 0 at a node or bound).
+        Near a fold of the distance function, where the closest point on one side ceases to
+        exist, phi'' ~ sqrt(distance to the fold), so the integrand's branch point lies ~
+        1/rate^2 beyond the cut; each level halves the distance of the last Gauss points from
+        the cut (on the plectoneme's end loop: rate 463 at a jump within one master element,
+        linearisation error of the contact tangent 1.4e-4 with 10 levels, 4e-6 with 19)."""
+        rate = np.ones(len(o))
+        for xi in (left, right):
+            cl = self._closest(ctx, o, xi)
+            inner = cl["interior"] & (cl["m"] >= 0)
+            if not np.any(inner):
+                continue
+            A = ctx["A_pool"][cl["m"][inner]]
+            _, _, H = self._fgh(cl["xi_m"][inner], A, cl["P"][inner])
+            tm = np.einsum("mk,mkd->md", _monomials(self.p, cl["xi_m"][inner])[1], A)
+            ts = np.einsum("na,nad->nd", cl["dN"][inner], ctx["x_own"][o[inner]])
+            r = np.abs(np.einsum("nd,nd->n", ts, tm)) / np.maximum(H, 1e-300)
+            rate[inner] = np.maximum(rate[inner], r)
+        extra = np.ceil(np.log2(np.minimum(rate, 2.0 ** 30)))
+        return self.grade + extra.astype(np.int64) if self.grade > 0 else np.zeros(len(o), np.int64)
+
+    def _grade(self, a, b, z, la, lb):
+        """Pieces [a, b] graded geometrically toward their ends that are cuts: points at
+        distances l 2^-j, j = 1..la (from a) and 1..lb (from b) (l: the piece, or half of it
+        when both ends are cuts; then j from 0).  Near a cut where the closest point reaches a
+        node while the slave point is close to a centre of curvature of the master, the closest
+        point races (dxibar/dxi ~ 100) and the integrand has a branch point just beyond the
+        cut; one Gauss rule over the piece then leaves a quadrature error whose change as the
+        cut moves the tangent does not see (4-9e-2 relative on a noisy cubic helix; graded with
+        10 levels, 1e-5).  The points move continuously with the cuts."""
+        G = int(max(la.max(initial=0), lb.max(initial=0)))
+        if G == 0:
             return a, b, z
-        both = ca & cb
+        both = (la > 0) & (lb > 0)
         base = np.where(both, 0.5, 1.0) * (b - a)
-        j = np.arange(1, G + 1) - both[:, None]                     # (n, G): from 0 if both
+        k = np.arange(G)
+        j = k + 1 - both[:, None]                                   # (n, G): from 0 if both
         frac = base[:, None] * 0.5 ** j
-        extra = np.concatenate([np.where(ca[:, None], a[:, None] + frac, np.nan),
-                                np.where(cb[:, None], b[:, None] - frac, np.nan)], axis=1)
+        extra = np.concatenate([np.where(k < la[:, None], a[:, None] + frac, np.nan),
+                                np.where(k < lb[:, None], b[:, None] - frac, np.nan)], axis=1)
         ii, jj = np.nonzero(np.isfinite(extra))
         pid = np.concatenate([np.arange(len(a)), np.arange(len(a)), ii])
         pts = np.concatenate([a, b, extra[ii, jj]])
@@ -860,19 +898,24 @@ class ContactKernel:
         d = cls["d"].reshape(nc, S)
         dd = self._ddxi(ctx, o, cls).reshape(nc, S)          # d' at the samples
         # refine the discrete maxima of d within eps of contact (an end sample too: the peak
-        # may lie between it and its neighbour)
-        pad = np.full((nc, 1), -np.inf)
+        # may lie between it and its neighbour), so that a zone between two samples is found,
+        # and the discrete minima of d in contact, so that a gap between two samples in contact
+        # (d dipping below 0) splits their zone
+        pad = np.full((nc, 1), np.inf)
+        left = np.concatenate([-pad, d[:, :-1]], axis=1)
+        right = np.concatenate([d[:, 1:], -pad], axis=1)
+        ismax = (d >= left) & (d >= right) & (d > -self.eps)
         left = np.concatenate([pad, d[:, :-1]], axis=1)
         right = np.concatenate([d[:, 1:], pad], axis=1)
-        ismax = (d >= left) & (d >= right) & (d > -self.eps)
-        ei, jj = np.nonzero(ismax)
+        ismin = (d <= left) & (d <= right) & (d > 0.0) & ~ismax
+        ei, jj = np.nonzero(ismax | ismin)
         xe, de = [xi.reshape(nc, S)], [d]
         if ei.size:
             om = cand[ei]
             ja, jb = np.maximum(jj - 1, 0), np.minimum(jj + 1, S - 1)
             a, b = xs[ja], xs[jb]
             fa, fb = dd[ei, ja], dd[ei, jb]
-            brk = (fa > 0.0) & (fb < 0.0)
+            brk = np.where(ismax[ei, jj], (fa > 0.0) & (fb < 0.0), (fa < 0.0) & (fb > 0.0))
             if np.any(brk):
                 xr = self._solve1d(ctx, om[brk], a[brk], b[brk], fa[brk], fb[brk], 1)
                 dr = self._closest(ctx, om[brk], xr)["d"]
