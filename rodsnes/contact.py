@@ -706,7 +706,7 @@ class ContactKernel:
         t = np.einsum("na,nad->nd", cl["dN"], ctx["x_own"][o])
         g = np.where(np.isfinite(cl["g"]) & (cl["g"] > 0), cl["g"], 1.0)
         has = cl["m"] >= 0
-        bound = has & ~cl["interior"] & (np.abs(cl["xi_m"]) < 1.0)
+        bound = self._kind(ctx, cl) <= -2
         if np.any(bound):
             dNm = _monomials(self.p, cl["xi_m"][bound])[1]
             t[bound] -= np.einsum("nk,nkd->nd", dNm, ctx["A_pool"][cl["m"][bound]])
@@ -785,8 +785,9 @@ class ContactKernel:
         function of the configuration (to 1e-13 in xi), and so is the zone quadrature.
 
         Returns the split zones (own index, xi start, xi end) and the cuts as (own index, xi
-        left, xi right): bracket ends 1e-13 apart whose closest points are those of the two
-        sides (``_switch_terms``); a direct change a -> b gives one cut, not two."""
+        left, xi right, closest points left, closest points right): bracket ends 1e-13 apart
+        whose closest points (``_closest``) are those of the two sides (``_cut_levels``,
+        ``_switch_terms``); a direct change a -> b gives one cut, not two."""
         n = self.nqz + 2
         t = np.linspace(0.0, 1.0, n)
         Xs = za[:, None] + (zb - za)[:, None] * t[None, :]
@@ -794,7 +795,7 @@ class ContactKernel:
         kind = self._kind(ctx, cl).reshape(-1, n)
         ki, kj = np.nonzero(kind[:, :-1] != kind[:, 1:])
         if ki.size == 0:
-            return oz, za, zb, (oz[:0], za[:0], za[:0])
+            return oz, za, zb, (oz[:0], za[:0], za[:0], None, None)
         ka, kb = kind[ki, kj], kind[ki, kj + 1]
         one = np.ones(len(ki))
         cut, left, right = self._solve1d(ctx, np.concatenate([oz[ki], oz[ki]]),
@@ -804,7 +805,8 @@ class ContactKernel:
                                          negate=np.repeat([False, True], len(ki)), bracket=True)
         nk = len(ki)
         distinct = np.r_[np.ones(nk, dtype=bool), np.abs(cut[nk:] - cut[:nk]) > 1e-12]
-        cuts = (np.tile(oz[ki], 2)[distinct], left[distinct], right[distinct])
+        oc, left, right = np.tile(oz[ki], 2)[distinct], left[distinct], right[distinct]
+        cuts = (oc, left, right, self._closest(ctx, oc, left), self._closest(ctx, oc, right))
         level = np.zeros(2 * nk, dtype=np.int64)
         level[distinct] = self._cut_levels(ctx, *cuts)
         level[~distinct] = level[:nk][~distinct[nk:]]
@@ -821,7 +823,7 @@ class ContactKernel:
         a, b, z = self._grade(a, b, z, la, lb)
         return oz[z], a, b, cuts
 
-    def _cut_levels(self, ctx, o, left, right):
+    def _cut_levels(self, ctx, o, left, right, cla, clb):
         """Levels of geometric grading toward every cut (``_grade``): ``grade`` + log2 of the
         racing rate of the closest points on either side, |dxibar/dxi| = |r'(xi) . r_m'(xibar)|
         / phi''(xibar) (phi = |r_m - r|^2 / 2; an interior closest point; 0 at a node or bound).
@@ -831,8 +833,7 @@ class ContactKernel:
         the cut (on the plectoneme's end loop: rate 463 at a jump within one master element,
         linearisation error of the contact tangent 1.4e-4 with 10 levels, 4e-6 with 19)."""
         rate = np.ones(len(o))
-        for xi in (left, right):
-            cl = self._closest(ctx, o, xi)
+        for cl in (cla, clb):
             inner = cl["interior"] & (cl["m"] >= 0)
             if not np.any(inner):
                 continue
@@ -885,7 +886,7 @@ class ContactKernel:
         number of zones, and the cuts of ``_split_zones``."""
         nqc, h = self.nqc, self.h
         none = np.zeros(0, dtype=np.int64)
-        empty = (none, np.zeros(0), np.zeros(0), 0, (none, np.zeros(0), np.zeros(0)))
+        empty = (none, np.zeros(0), np.zeros(0), 0, (none, np.zeros(0), np.zeros(0), None, None))
         cand = np.flatnonzero(gap_q.max(axis=1) > -self.eps)
         if cand.size == 0:
             return empty
@@ -968,7 +969,7 @@ class ContactKernel:
         wq = (half[:, None] * self.wz[None, :] * (0.5 * h)).ravel()
         return oz, xq, wq, nz, cuts
 
-    def _switch_terms(self, ctx, o, left, right, tangent, out):
+    def _switch_terms(self, ctx, o, left, right, cla, clb, tangent, out):
         """Tangent of the switch points (module docstring, "Switch points"): at a cut c where
         the closest point jumps from (element A, xi_A) on the left to (B, xi_B) on the right,
 
@@ -979,11 +980,10 @@ class ContactKernel:
 
         over the nodes [slave element, A, B].  Cuts where the closest point moves continuously
         (a node crossed or stuck to, a bound reached) add nothing: there r_A = r_B.  Fills
-        ``out["switch"]`` (nsw, 3) element ids and, with ``tangent``, ``out["switch_mat"]``."""
+        ``out["switch"]`` (nsw, 3) element ids and, with ``tangent``, ``out["switch_mat"]``.
+        cla, clb: the closest points at left and right (``_split_zones``)."""
         if not tangent or len(o) == 0:
             return
-        cla = self._closest(ctx, o, left)
-        clb = self._closest(ctx, o, right)
         qa, qb = cla["P"] - cla["D"], clb["P"] - clb["D"]
         d = 2.0 * self.eps - 0.5 * (cla["g"] + clb["g"])
         jump = (cla["m"] >= 0) & (clb["m"] >= 0) & (d > 0.0) & \
