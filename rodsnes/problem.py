@@ -260,11 +260,12 @@ class RodProblem:
                 "reaction": float(reaction)}
 
     # -- load factor ------------------------------------------------------------------
-    def set_load(self, lam):
-        """Set lambda: prescribed motions into the state, intrinsic twist ramp into e0."""
+    def set_load(self, lam, refresh=True):
+        """Set lambda: prescribed motions into the state, intrinsic twist ramp into e0; with
+        refresh, the contact pattern follows the state (the start of a load step)."""
         self.lam = float(lam)
         self.constraints.apply(self.lam, self.state)
-        if self.contact is not None:
+        if self.contact is not None and refresh:
             self.refresh_pattern()
         if self.load_twist:
             self.elastic.set_reference(self.twisted_reference(self.e0_base))

@@ -47,6 +47,7 @@ class Run:
         self.nneg0 = 0              # negative eigenvalues of the restart state (-stability)
         self.dlam0 = None           # the restart's first increment (None: the nominal one)
         self.prev0 = None           # (snapshot, load) of the step before the restart state
+        self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
@@ -83,6 +84,9 @@ class Run:
         # secant predictor through the step before (none after a branch switch or jump)
         dlam = last["attrs"].get("next_increment")
         self.dlam0 = None if dlam is None else float(dlam)
+        arc = last["attrs"].get("arclength_from")
+        if arc is not None and self.solver.arclength:
+            self.arc0 = float(arc)      # dlam0 is then the continuation's next increment
         if self.step >= 1 and not last["attrs"].get("branch_switch", 0):
             before = output.read_step(rdir, self.step - 1)
             self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
@@ -105,6 +109,8 @@ class Run:
             rec["negative_eigenvalues"] = res.negative_eigenvalues
         if getattr(res, "damped", False):
             rec["damped"] = True
+        if getattr(res, "arclength", False):
+            rec["arclength_from"] = res.arclength_from
         if getattr(res, "branch_switch", False):
             rec["branch_switch"] = True
             rec["jump"] = bool(getattr(res, "jump", False))
@@ -238,7 +244,8 @@ class Run:
                 print(f"  load {res.lam:.6f} not accepted ({why}): {then}", flush=True)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
-                                       nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0)
+                                       nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
+                                       arc0=self.arc0)
         reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))

@@ -244,6 +244,15 @@ class O:
                           "Levenberg-Marquardt, at most this many steps, before it is cut back "
                           "(conservative loads only); 0: off", "load", rng="[0,inf)",
                           note="a number of damped Newton steps")
+    load_arclength = Opt(BOOL, False, "at a fold of the load path (every cut-back failed), follow "
+                         "the branch around it by pseudo-arclength continuation, through its "
+                         "unstable part, until it goes on stable with the load increasing "
+                         "(instead of a jump with -stability, or the end of the run)", "load")
+    load_arclength_max_steps = Opt(INT, 200, "pseudo-arclength continuation: most steps around "
+                                   "one fold", "load", rng="[1,inf)", note="a number of steps")
+    load_arclength_its = Opt(INT, 8, "pseudo-arclength continuation: Newton iterations per step "
+                             "aimed at (fewer: a longer next step, more: a shorter one)", "load",
+                             rng="[2,inf)", note="a number of Newton iterations")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
                         rng="(0,1]", note="a fraction of the full load")
     # --- contact ----------------------------------------------------------------

@@ -96,6 +96,9 @@ class NewtonSolver:
         self.perturbation = opts.getReal("stability_perturbation", 1e-2)
         self.relax_max_it = opts.getInt("stability_relax_max_it", 200)
         self.jump_overshoot = opts.getReal("stability_jump_overshoot", 0.0)
+        # -load_arclength: at a fold, follow the branch around it (arclength.py) instead
+        self.arclength = opts.getBool("load_arclength", False)
+        self.nominal = None                 # the nominal load increment of run()
         self.switch_attempts = 3
         self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
         self.switch_refused = _nonconservative(problem.scene.loads)
@@ -168,7 +171,7 @@ class NewtonSolver:
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0,
-            dlam0=None, prev0=None):
+            dlam0=None, prev0=None, arc0=None):
         """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
 
         on_step(result) is called after every converged step (write output there), on_fail(result,
@@ -188,9 +191,13 @@ class NewtonSolver:
         until the instability grows, as there).
         dlam0, prev0: the first increment and the (snapshot, lambda) of the step before lam0,
         for a restart that takes the steps the interrupted run would have taken (every result
-        carries next_increment, the increment its successor starts from)."""
+        carries next_increment, the increment its successor starts from).
+        With -load_arclength a fold is passed by pseudo-arclength continuation instead
+        (arclength.Arclength.around: the branch followed around the fold, through its unstable
+        part, until it goes on stable with the load increasing); arc0: a restart inside that
+        continuation (the fold's load; dlam0 is then its next arclength increment)."""
         p = self.problem
-        nominal = 1.0 / steps      # the same load grid when a run is restarted from lam0
+        nominal = self.nominal = 1.0 / steps   # the same load grid when a run is restarted from lam0
         lam, dlam = lam0, (nominal if dlam0 is None else min(nominal, dlam0))
         cutbacks = 0
         results = self.results = []
@@ -198,6 +205,11 @@ class NewtonSolver:
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
         if nneg > 0:
             self._switch_failed_nneg = nneg
+        if arc0 is not None:
+            ok, prev = self._around_fold(arc0, on_step, prev0, dlam0)
+            if not ok:
+                return self.results, False
+            lam, dlam, nneg = p.lam, nominal, 0
         while lam < 1.0 - 1e-14:
             target = min(1.0, lam + dlam)
             snap = p.state.snapshot()
@@ -245,6 +257,13 @@ class NewtonSolver:
                 # (-stability_jump_overshoot: at least that far beyond the last converged load;
                 # just past a fold the rod creeps through the fold's ghost, the slower the
                 # closer, and the branch it jumps to goes on continuously beyond)
+                if self.arclength:
+                    ok, prev = self._around_fold(target, on_step)
+                    if not ok:
+                        return self.results, False
+                    lam, dlam, cutbacks = p.lam, nominal, 0
+                    nneg = getattr(self.results[-1], "negative_eigenvalues", 0)
+                    continue
                 target = max(target, min(1.0, lam + self.jump_overshoot))
                 res = self._maybe_jump(target) if (self.switch and nneg == 0) else None
                 if res is None:
@@ -262,6 +281,22 @@ class NewtonSolver:
             if on_step is not None:
                 on_step(res)
         return results, True
+
+    def _around_fold(self, lam_fold, on_step, prev=None, ds=None):
+        """-load_arclength: follow the branch from the current state around the fold beyond the
+        last converged load (lam_fold: the shortest step tried); the points join the results.
+        Returns (ok, (snapshot, lambda) of the point before the last: the secant predictor's)."""
+        from .arclength import Arclength
+        self._say(f"  no equilibrium beyond load {self.problem.lam:.6f} up to {lam_fold:.6f} "
+                  "(a fold): pseudo-arclength continuation around it" if prev is None else
+                  f"  resuming the pseudo-arclength continuation around the fold at {lam_fold:.6f}")
+        arc = Arclength(self)
+        rs, ok, before = arc.around(lam_fold, on_step, prev=prev, ds=ds)
+        self.results += rs
+        if not ok:
+            self._say(f"  pseudo-arclength continuation FAILED after {arc.steps} steps at load "
+                      f"{self.problem.lam:.6f}")
+        return ok, before
 
     def keep_penetration(self, res, max_raises=4):
         """-contact_penalty_adapt: keep the penalty's promise at every converged load step.

@@ -1,0 +1,123 @@
+"""Pseudo-arclength continuation around a fold (-load_arclength, rodsnes/arclength.py).
+
+The scene: a clamped rod under a small end tension, its end turned 1.25 times (sliding end), no
+contact (test_relax's TWISTED).  The nearly straight twisted rod's path folds at load 0.990; the
+jump (-stability) relaxes from there onto a stable loop.  Pseudo-arclength continuation instead
+follows the branch: back through its unstable part (one negative eigenvalue) to a second fold
+at load 0.418, then on, stable, with the load increasing, to the loop at load 1.
+"""
+import numpy as np
+import pytest
+
+from conftest import run_case
+
+TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
+               rod_nelem=8, rod_imperfection=1e-3, bc_start="clamped", bc_end="sliding",
+               bc_end_turns=1.25, load_end_force="3,0,0", load_steps=10, load_min_step=1e-4)
+
+
+@pytest.fixture(scope="module")
+def branch():
+    """The continuation stopped inside the fold's unstable part (-load_arclength_max_steps 10),
+    restarted from its directory to the end; and the jump (-stability) to compare with."""
+    first = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=10,
+                     **TWISTED)
+    res_first = list(first.solver.results)
+    rest = run_case(None, stability=True, load_arclength=True, restart=first.outdir,
+                    outdir=first.outdir, **TWISTED)
+    jump = run_case(None, stability=True, **TWISTED)
+    return first, res_first, rest, jump
+
+
+def test_arclength_follows_the_branch_around_both_folds(branch):
+    """The arclength points: the load turns at 0.990 and at 0.418; one negative eigenvalue
+    exactly where the load falls (a simple fold changes the Hessian's inertia by one where the
+    load turns), none elsewhere; every point at the load steps' tolerance; Lk = Tw + Wr."""
+    from rodsnes.output import read_step
+    first, res_first, rest, _ = branch
+    res = res_first + list(rest.solver.results)
+    tol = first.solver.tolerance()
+    assert all(r.converged and r.fnorm <= tol for r in res)
+    arc = [i for i, r in enumerate(res) if getattr(r, "arclength", False)]
+    assert arc and arc == list(range(arc[0], arc[-1] + 1))          # one stretch
+    lam = np.array([r.lam for r in res])
+    nneg = np.array([r.negative_eigenvalues for r in res])
+    i0, i1 = arc[0] - 1, arc[-1]
+    top = i0 + int(np.argmax(lam[i0:i1 + 1]))
+    bottom = top + int(np.argmin(lam[top:i1 + 1]))
+    assert 0.990 < lam[top] < 0.9905 and 0.40 < lam[bottom] < 0.43, (lam[top], lam[bottom])
+    falling = np.diff(lam) < 0
+    for i in range(1, len(res)):
+        if i in (top + 1, bottom + 1):      # a step across a turning point: either side
+            continue
+        assert nneg[i] == (1 if falling[i - 1] else 0), (i, lam[i - 1], lam[i], nneg[i])
+    assert nneg[:top + 1].max() == 0 and nneg[bottom + 1:].max() == 0
+    assert (nneg[top + 1:bottom + 1] == 1).all()
+    assert lam[-1] == 1.0
+    for i in range(len(rest.history) + len(res_first)):
+        a = read_step(first.outdir, i + 1)["attrs"]
+        assert abs(a["link"] - (a["twist"] + a["writhe"])) < 1e-9
+
+
+def test_the_corrector_converges_like_newton_at_the_same_load():
+    """Newton on the bordered system (F = 0 and the arclength constraint) against plain Newton
+    at fixed load from the same predicted state, at the load the corrector converged to: on
+    the unstable part of the branch (a soft mode: both converge quadratically only once |F| <
+    1e-6, with |F_k+1| / |F_k|^2 up to 1e4) the corrector needs at most one iteration more per
+    step (plain Newton is given the load the corrector finds; the corrector finds it too).  A wrong border (F_lambda, the constraint row) would leave it
+    converging linearly."""
+    from rodsnes.arclength import Arclength
+    run = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=2,
+                   **TWISTED)
+    solver, p = run.solver, run.solver.problem
+    arc = Arclength(solver)
+    pairs = []
+    corrector = arc.corrector
+
+    def both(t, ds, snap_n, lam_n):
+        res = corrector(t, ds, snap_n, lam_n)
+        if res.converged:
+            keep = p.state.snapshot()
+            p.state.restore(snap_n)
+            p.state.X.axpy(ds, t[0])                 # the same predicted state
+            plain = solver.solve_at(res.lam)
+            pairs.append((res, plain))
+            p.state.restore(keep)
+            p.set_load(res.lam)
+        return res
+    arc.corrector = both
+    arc.max_steps = 5
+    prev = p.state.snapshot_of(*_positions_directors(run, -2)), solver.results[-2].lam
+    arc.around(1.0, prev=prev)
+    assert len(pairs) == 5
+    for res, plain in pairs:
+        assert plain.converged and res.negative_eigenvalues == 1
+        assert res.its <= plain.its + 1, (res.history, plain.history)
+
+
+def _positions_directors(run, i):
+    from rodsnes.output import read_step
+    st = read_step(run.outdir, i)
+    return np.asarray(st["positions"]), np.asarray(st["directors"])
+
+
+@pytest.mark.mpi
+def test_a_restart_inside_the_continuation_ends_where_the_jump_does(branch):
+    """The run stopped after 10 arclength steps on the unstable branch (one negative eigenvalue,
+    the fold's load stored with the step); the restart goes on from its last two points (secant)
+    around the second fold and ends, stable, at load 1 on the same loop as the jump: the same
+    energy to 1e-12, link, twist, writhe to 1e-8 (writhe -0.98; without contact the rod passes
+    through itself on the way, link 1.25 -> -0.75).  Serial and on 2 ranks."""
+    from rodsnes.output import read_step
+    first, res_first, rest, jump = branch
+    assert not first.ok and len([r for r in res_first if getattr(r, "arclength", False)]) == 10
+    assert res_first[-1].negative_eigenvalues == 1
+    assert rest.ok and jump.ok and any(getattr(r, "jump", False) for r in jump.solver.results)
+    lam = [r.lam for r in rest.solver.results]
+    assert getattr(rest.solver.results[0], "arclength", False) and min(lam) < 0.43
+    a, b = read_step(first.outdir, -1)["attrs"], read_step(jump.outdir, -1)["attrs"]
+    assert a["load"] == b["load"] == 1.0 and a["negative_eigenvalues"] == 0
+    assert abs(a["energy"] - b["energy"]) <= 1e-12 * abs(b["energy"])
+    for k in ("link", "twist", "writhe"):
+        assert abs(a[k] - b[k]) < 1e-8, k
+    assert abs(a["writhe"] + 0.98) < 0.01
