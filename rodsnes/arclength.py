@@ -204,11 +204,11 @@ class Arclength:
         return res
 
     # -- around a fold -------------------------------------------------------------------
-    def around(self, lam_fold, on_step=None, prev=None, ds=None, nneg=0):
+    def around(self, lam_fold, on_step=None, prev=None, ds=None):
         """Follow the branch from the current equilibrium (at load <= lam_fold) until it is past
-        the fold: a converged point with lambda > lam_fold, lambda increasing and (-stability) no
-        negative eigenvalue; or lambda reaches 1 (the last point then solved at lambda = 1 by
-        plain Newton from the point before).  prev: (snapshot, lambda) of the point before the
+        the fold: a converged point with lambda increasing, beyond lam_fold or after lambda has
+        fallen, and (-stability) no negative eigenvalue; or lambda reaches 1 (the last point
+        then solved at lambda = 1 by plain Newton from the point before).  prev: (snapshot, lambda) of the point before the
         current one on the branch, to start from the secant (a restart inside the continuation);
         None: the exact tangent.  on_step(result) after every converged point (result.arclength,
         result.arclength_from = lam_fold, result.next_increment = the next ds).  Returns
@@ -275,7 +275,9 @@ class Arclength:
             results.append(res)
             if on_step is not None:
                 on_step(res)
-            past = tl > 0 and (went_back or lam > lam_fold or lam >= 1.0 - 1e-14)
+            if lam >= 1.0 - 1e-14:          # the end of the load, stable or not
+                return results, True, prev
+            past = tl > 0 and (went_back or lam > lam_fold)
             if past and getattr(res, "negative_eigenvalues", 0) == 0:
                 return results, True, prev
         return results, False, prev

@@ -99,6 +99,7 @@ class NewtonSolver:
         # -load_arclength: at a fold, follow the branch around it (arclength.py) instead
         self.arclength = opts.getBool("load_arclength", False)
         self.nominal = None                 # the nominal load increment of run()
+        self._folds = []                    # (load, positions) where continuations started
         self.switch_attempts = 3
         self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
         self.switch_refused = _nonconservative(problem.scene.loads)
@@ -257,7 +258,7 @@ class NewtonSolver:
                 # (-stability_jump_overshoot: at least that far beyond the last converged load;
                 # just past a fold the rod creeps through the fold's ghost, the slower the
                 # closer, and the branch it jumps to goes on continuously beyond)
-                if self.arclength:
+                if self.arclength and not self._fold_seen_before():
                     ok, prev = self._around_fold(target, on_step)
                     if not ok:
                         return self.results, False
@@ -281,6 +282,27 @@ class NewtonSolver:
             if on_step is not None:
                 on_step(res)
         return results, True
+
+    def _fold_seen_before(self):
+        """True when the path stands at a fold that an earlier continuation started from:
+        within 1e-4 of its load and, node by node, within the contact radius (0.01 L without
+        contact) of its state (branches that differ by a soft mode were 0.04 - 0.1 apart at the
+        plectoneme's 8.7 turns, with energies equal to 1e-6).  The branch around it came back to
+        the path before the fold (a closed loop of equilibria: the plectoneme at 8.80 turns,
+        where the branch through the fold's unstable side rejoins a stable path at 8.64 turns
+        across a contact event), and going round again would repeat it: the fold is then
+        jumped (-stability) or the run ends.  Collective (allgathered positions)."""
+        p = self.problem
+        r = p.layout.allgather_nodes(p.owned_fields()["positions"])
+        near = p.contact.eps if p.contact is not None else 0.01 * p.mesh.length
+        seen = any(abs(p.lam - lam) <= 1e-4 and np.linalg.norm(r - r0, axis=1).max() <= near
+                   for lam, r0 in self._folds)
+        if seen:
+            self._say(f"  the continuation around the fold at load {p.lam:.6f} came back to it "
+                      "(a closed loop of equilibria): no second round")
+        else:
+            self._folds.append((p.lam, r))
+        return seen
 
     def _around_fold(self, lam_fold, on_step, prev=None, ds=None):
         """-load_arclength: follow the branch from the current state around the fold beyond the

@@ -21,10 +21,10 @@ def branch():
     """The continuation stopped inside the fold's unstable part (-load_arclength_max_steps 10),
     restarted from its directory to the end; and the jump (-stability) to compare with."""
     first = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=10,
-                     **TWISTED)
+                     load_arclength_its=12, **TWISTED)
     res_first = list(first.solver.results)
-    rest = run_case(None, stability=True, load_arclength=True, restart=first.outdir,
-                    outdir=first.outdir, **TWISTED)
+    rest = run_case(None, stability=True, load_arclength=True, load_arclength_its=12,
+                    restart=first.outdir, outdir=first.outdir, **TWISTED)
     jump = run_case(None, stability=True, **TWISTED)
     return first, res_first, rest, jump
 
@@ -121,3 +121,22 @@ def test_a_restart_inside_the_continuation_ends_where_the_jump_does(branch):
     for k in ("link", "twist", "writhe"):
         assert abs(a[k] - b[k]) < 1e-8, k
     assert abs(a["writhe"] + 0.98) < 0.01
+
+
+def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
+    """A continuation that brings the path back to the fold it started from (a closed loop of
+    equilibria) is not repeated: the second time the fold is met, it is jumped (-stability).
+    Here the continuation is replaced by one that returns at once, as if it had come round."""
+    from rodsnes.solver import NewtonSolver
+    calls = []
+
+    def around(self, lam_fold, on_step, prev=None, ds=None):
+        calls.append(self.problem.lam)
+        if len(calls) > 2:                 # round and round: fail, do not hang
+            raise RuntimeError(f"the fold was gone round {len(calls)} times")
+        return True, None
+    monkeypatch.setattr(NewtonSolver, "_around_fold", around)
+    run = run_case(None, stability=True, load_arclength=True, **TWISTED)
+    assert run.ok and len(calls) == 1 and 0.990 < calls[0] < 0.9905
+    jumps = [r for r in run.solver.results if getattr(r, "jump", False)]
+    assert len(jumps) == 1 and jumps[0].negative_eigenvalues == 0
