@@ -127,7 +127,6 @@ class Arclength:
         increasing lambda: J b = -F_lambda, t ~ (b, 1)."""
         p = self.p
         p.update(None, 0)
-        p.residual(None, p.state.X, p.F)
         p.jacobian(None, p.state.X, p.J, p.J)
         Fl = self.dF_dlambda()
         Fl.scale(-1.0)
@@ -154,6 +153,8 @@ class Arclength:
         a = p.layout.create_vec()
         b = p.layout.create_vec()
         Y = p.layout.create_vec()
+        wt = tx.copy()                         # W t_x: the constraint row, fixed for the step
+        wt.pointwiseMult(wt, self.w)
         energy_descent, p.energy_descent = p.energy_descent, False
         try:
             while True:
@@ -176,7 +177,7 @@ class Arclength:
                 if ksp.getConvergedReason() < 0:
                     reason = "linear solve failed"
                     break
-                dl = -self.dot(tx, 0.0, a, 0.0) / (self.dot(tx, 0.0, b, 0.0) + self.w_lam * tl)
+                dl = -wt.dot(a) / (wt.dot(b) + self.w_lam * tl)
                 a.axpy(dl, b)                  # dx = a + dlambda b
                 a.copy(Y)
                 Y.scale(-1.0)                  # precheck's convention: X_new = X - Y
@@ -194,7 +195,7 @@ class Arclength:
             solver.reset_linear_solver()
         finally:
             p.energy_descent = energy_descent
-            for v in (a, b, Y):
+            for v in (a, b, Y, wt):
                 v.destroy()
         p.state.recentre()
         ok = isinstance(reason, int) and reason > 0 and bool(np.all(np.isfinite(hist)))

@@ -293,7 +293,7 @@ class NewtonSolver:
         across a contact event), and going round again would repeat it: the fold is then
         jumped (-stability) or the run ends.  Collective (allgathered positions)."""
         p = self.problem
-        r = p.layout.allgather_nodes(p.owned_fields()["positions"])
+        r = p.layout.allgather_nodes(p.state.local_config()[0][:p.layout.n_owned])
         near = p.contact.eps if p.contact is not None else 0.01 * p.mesh.length
         seen = any(abs(p.lam - lam) <= 1e-4 and np.linalg.norm(r - r0, axis=1).max() <= near
                    for lam, r0 in self._folds)
