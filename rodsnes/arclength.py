@@ -109,7 +109,7 @@ class Arclength:
         d = Xa.copy()
         d.axpy(-1.0, Xb)
         with d as a:
-            a.reshape(-1, NDOF)[:, 3:6] = so3.qlog(so3.qmul(qa[:no], so3.qconj(qb[:no])))
+            a.reshape(-1, NDOF)[:, 3:6] = so3.log_relative(qa[:no], qb[:no])
         return d, lam_a - lam_b
 
     def normalise(self, tx, tl):

@@ -69,7 +69,7 @@ class RodState:
         r + ratio (r_n - r_{n-1}),  theta = ratio log(R_n R_{n-1}^T)."""
         q_prev, X_prev = prev
         no = self.layout.n_owned
-        psi = so3.qlog(so3.qmul(self.q_ref[:no], so3.qconj(q_prev[:no])))
+        psi = so3.log_relative(self.q_ref[:no], q_prev[:no])
         xp = X_prev.getArray(readonly=True).reshape(-1, NDOF)
         with self.X as a:
             a = a.reshape(-1, NDOF)

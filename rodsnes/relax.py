@@ -115,7 +115,7 @@ class RelaxationTerm:
         self.qa = np.array(q_loc[:self.no], dtype=float)
 
     def _psi(self, q_loc):
-        return so3.qlog(so3.qmul(q_loc[:self.no], so3.qconj(self.qa)))
+        return so3.log_relative(q_loc[:self.no], self.qa)
 
     def add_residual(self, r_loc, q_loc, Floc):
         no = self.no

@@ -59,6 +59,12 @@ def qlog(q):
     return fac * q[..., 1:]
 
 
+def log_relative(qa, qb):
+    """psi = log(R_a R_b^T) as a rotation vector (spatial: R_a = exp(psi^x) R_b), batched over
+    the leading axes of the unit quaternions qa, qb."""
+    return qlog(qmul(qa, qconj(qb)))
+
+
 def rot(q):
     """Rotation matrix of a (not necessarily unit) quaternion: Rq(q)/|q|^2 with
     Rq(q) = (q0^2 - |qv|^2) I + 2 qv qv^T + 2 q0 qv^x."""

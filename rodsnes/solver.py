@@ -207,10 +207,10 @@ class NewtonSolver:
         if nneg > 0:
             self._switch_failed_nneg = nneg
         if arc0 is not None:
-            ok, prev = self._around_fold(arc0, on_step, prev0, dlam0)
+            ok, prev, lam, nneg = self._around_fold(arc0, on_step, prev0, dlam0)
             if not ok:
                 return self.results, False
-            lam, dlam, nneg = p.lam, nominal, 0
+            dlam = nominal
         while lam < 1.0 - 1e-14:
             target = min(1.0, lam + dlam)
             snap = p.state.snapshot()
@@ -259,11 +259,10 @@ class NewtonSolver:
                 # just past a fold the rod creeps through the fold's ghost, the slower the
                 # closer, and the branch it jumps to goes on continuously beyond)
                 if self.arclength and not self._fold_seen_before():
-                    ok, prev = self._around_fold(target, on_step)
+                    ok, prev, lam, nneg = self._around_fold(target, on_step)
                     if not ok:
                         return self.results, False
-                    lam, dlam, cutbacks = p.lam, nominal, 0
-                    nneg = getattr(self.results[-1], "negative_eigenvalues", 0)
+                    dlam, cutbacks = nominal, 0
                     continue
                 target = max(target, min(1.0, lam + self.jump_overshoot))
                 res = self._maybe_jump(target) if (self.switch and nneg == 0) else None
@@ -307,7 +306,9 @@ class NewtonSolver:
     def _around_fold(self, lam_fold, on_step, prev=None, ds=None):
         """-load_arclength: follow the branch from the current state around the fold beyond the
         last converged load (lam_fold: the shortest step tried); the points join the results.
-        Returns (ok, (snapshot, lambda) of the point before the last: the secant predictor's)."""
+        Returns (ok, (snapshot, lambda) of the point before the last: the secant predictor's,
+        the load and the negative eigenvalues of the point it ends at, from which the load
+        steps go on with the nominal increment)."""
         from .arclength import Arclength
         self._say(f"  no equilibrium beyond load {self.problem.lam:.6f} up to {lam_fold:.6f} "
                   "(a fold): pseudo-arclength continuation around it" if prev is None else
@@ -318,7 +319,8 @@ class NewtonSolver:
         if not ok:
             self._say(f"  pseudo-arclength continuation FAILED after {arc.steps} steps at load "
                       f"{self.problem.lam:.6f}")
-        return ok, before
+        nneg = getattr(self.results[-1], "negative_eigenvalues", 0) if self.results else 0
+        return ok, before, self.problem.lam, nneg or 0
 
     def keep_penetration(self, res, max_raises=4):
         """-contact_penalty_adapt: keep the penalty's promise at every converged load step.

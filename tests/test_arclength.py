@@ -134,7 +134,7 @@ def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
         calls.append(self.problem.lam)
         if len(calls) > 2:                 # round and round: fail, do not hang
             raise RuntimeError(f"the fold was gone round {len(calls)} times")
-        return True, None
+        return True, None, self.problem.lam, 0
     monkeypatch.setattr(NewtonSolver, "_around_fold", around)
     run = run_case(None, stability=True, load_arclength=True, **TWISTED)
     assert run.ok and len(calls) == 1 and 0.990 < calls[0] < 0.9905
