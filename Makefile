@@ -26,11 +26,11 @@ demo: install
 	$(MPIRUN) $(VENV)/bin/rodsnes -options_file $(CASE)
 
 test: install
-	$(PY) -m pytest -q -p no:cacheprovider --color=no tests
+	$(PY) -m pytest -q -p no:cacheprovider --color=no -n $(NP) --dist loadfile tests
 	$(MPIRUN) tools/mpi_rank0_output.sh $(PY) -m pytest -q -p no:cacheprovider --color=no -m mpi tests
 
 test-serial: install
-	$(PY) -m pytest -q -p no:cacheprovider --color=no tests
+	$(PY) -m pytest -q -p no:cacheprovider --color=no -n $(NP) --dist loadfile tests
 
 test-mpi: install
 	$(MPIRUN) tools/mpi_rank0_output.sh $(PY) -m pytest -q -p no:cacheprovider --color=no -m mpi tests

@@ -302,7 +302,12 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                     out.message = (f"the damped solve fails at the state itself (SNES reason "
                                    f"{res.reason}) after {out.steps} pseudo-time steps")
                     break
-                if rejected_row >= max_rejected_row:
+                # stalled: rejected in a row even back at the phase's first c (a short gradient
+                # step), or for ever.  Counting rejections alone declared the plectoneme's
+                # 8.80-turn jump stalled after Levenberg-Marquardt had fallen to c = 7e-7 and
+                # was descending (E -3e-3 per step): 12 rejections x 4 only brought c back to 3
+                if rejected_row >= max_rejected_row and (c >= c0
+                                                         or rejected_row >= 3 * max_rejected_row):
                     out.message = (f"stalled after {out.steps} pseudo-time steps: {rejected_row} "
                                    f"damped solves in a row rejected (last SNES reason "
                                    f"{res.reason}, c = {c:.3e}, undamped |F| = {f:.3e})")

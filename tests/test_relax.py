@@ -391,3 +391,37 @@ def test_levenberg_marquardt_phase_keeps_the_floor_of_the_first_stiffness(monkey
     assert out.ok and len(calls) == 2
     assert calls[1]["single_step"] and calls[1]["c0"] == 4e16
     assert calls[1]["c_min"] == pytest.approx(1e-12 * 147.0)
+
+
+def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tmp_path):
+    """relax_phase (single_step): a run of rejected steps ends the phase only once c has grown
+    back to the phase's first c.  Here every step is first kept (the fake damped solve leaves
+    the state: the energy does not rise), so c falls by 3 per step to its floor 1e-12 c0; then
+    every step is rejected and c grows by 4 per rejection.  Counting 12 rejections alone
+    stopped at c = 4^12 x 1e-12 c0 = 1.7e-5 c0 (the plectoneme's 8.80-turn jump: stopped at
+    c = 3 while descending, its first c 7e5); now it goes on until a rejected step was tried
+    at c >= c0: c = 4^20 x 1e-12 c0 = 1.1 c0 is rejected the 21st time."""
+    from rodsnes import relax as rx
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene
+    from rodsnes.solver import StepResult
+    mpi = PETSc.COMM_WORLD.tompi4py()
+    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
+    scene = read_scene(["rodsnes"], set_options("mattiasson", rod_nelem=4, load_steps=4,
+                                                output_dir=out, quiet=True))
+    solver = Run(scene, PETSc.COMM_WORLD).solver
+    R = PETSc.SNES.ConvergedReason
+    calls = []
+
+    def fake(lam):           # one Newton step "taken", the state left as it is
+        calls.append(lam)
+        if len(calls) <= 40:
+            return StepResult(lam, False, 1, R.DIVERGED_MAX_IT, 1.0, [1.0], 0.0)
+        return StepResult(lam, False, 1, R.DIVERGED_FNORM_NAN, np.nan, [np.nan], 0.0)
+
+    solver.solve_guarded = fake
+    c0 = 10.0
+    rr = rx.relax_phase(solver, 0.5, c0, 1e-12, max_steps=200, single_step=True)
+    assert not rr.ok and "stalled" in rr.message
+    assert rr.steps == 40 and rr.rejected == 21
+    assert c0 <= rr.c_last < 4 * c0
