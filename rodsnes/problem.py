@@ -490,6 +490,30 @@ class RodProblem:
         Ec = self.contact.energy(r) if self.contact is not None else 0.0
         return self.layout.comm.tompi4py().allreduce(self._energy_local(r, q, Ec))
 
+    def topology(self):
+        """Link, twist and writhe (topology.topology: Gauss integral for the writhe, open rods
+        closed along their end-to-end axis) of the current state, for rings and for open rods
+        held in orientation at both ends (clamped or sliding); None for other rods.  A
+        degenerate geometry gives NaNs and its message (topology_error).  Collective: every
+        rank computes it from the allgathered nodes (the same numbers everywhere)."""
+        bc = self.scene.bc
+        if not (self.mesh.closed or (bc.start == "clamped" and bc.end in ("clamped", "sliding"))):
+            return None
+        from . import topology
+        r, q = self.state.local_config()
+        no = self.layout.n_owned
+        X = self.layout.allgather_nodes(r[:no])
+        D = self.layout.allgather_nodes(so3.rot(q[:no])[:, :, 0])
+        axis = None
+        if not self.mesh.closed:
+            axis = X[-1] - X[0]
+            axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else None
+        try:
+            t = topology.topology(X, D, self.mesh.closed, axis=axis)
+            return {"link": float(t["link"]), "twist": float(t["twist"]), "writhe": float(t["writhe"])}
+        except ValueError as err:          # degenerate geometry: report, do not stop the run
+            return {"link": np.nan, "twist": np.nan, "writhe": np.nan, "topology_error": str(err)}
+
     def owned_fields(self):
         """Per owned node: positions (n,3), directors (n,3,3), material strains strain_v,
         strain_u, and spatial stress resultants force_n = R C_v (v - v0), moment_m = R C_u (u - u0)

@@ -143,6 +143,7 @@ class RelaxResult:
 
     def __init__(self):
         self.ok, self.steps, self.rejected, self.newton_its = False, 0, 0, 0
+        self.crossings = 0      # steps rejected because the link changed
         self.energies, self.log, self.message = [], [], ""
         self.fnorm = np.nan
 
@@ -251,6 +252,10 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     def Etol(e):           # roundoff of an energy difference
         return 1e-11 * (abs(e) + E_scale)
 
+    # with contact the link cannot change (without it a strand may pass through another: the
+    # twisted rod without contact snaps into a loop through itself)
+    topo = p.topology() if p.contact is not None else None
+    link0 = None if topo is None else topo["link"]
     p.extra_terms.append(term)
     c = float(c0)
     cooldown = 0            # accepted steps after a rejection during which c may not fall
@@ -285,7 +290,13 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                 move = same(comm.allreduce(move, op=_MAX()))
                 E_new = same(undamped_energy(p, term))
                 ok = E_new <= E + Etol(E_new) and move <= max_move
-                if move > max_move and E_new <= E + Etol(E_new):
+                if ok and link0 is not None and not abs(p.topology()["link"] - link0) < 0.5:
+                    # the link changed: a strand went through another (where the exclusion
+                    # hides a tight loop's neighbour, or through a penalty that long steps
+                    # overcome): not a motion of the rod; a shorter step, and keep above this c
+                    ok = False
+                    out.crossings += 1
+                elif move > max_move and E_new <= E + Etol(E_new):
                     # too long a step, but downhill: the move scales as 1/c, aim at 0.8 max_move
                     fac = max(1.25 * move / max_move, 1.5)
                     too_far = True

@@ -130,7 +130,7 @@ class Run:
             self.last_contact = self.contact.summary()
             cattrs = {"contact_" + k: v for k, v in self.last_contact.items()}
             qp = self.contact.qp_fields()
-        topo = self._topology(fields)
+        topo = p.topology()
         if topo is not None:
             self.last_topology = topo
         self.last_fields = fields
@@ -150,28 +150,6 @@ class Run:
         self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
                                qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
         return energy
-
-    def _topology(self, fields):
-        """Link, twist, writhe (topology.py) for rings and for open rods whose both ends are
-        held in orientation (clamped or sliding: closure at infinity along the end axis)."""
-        bc = self.scene.bc
-        if not (self.mesh.closed or (bc.start == "clamped" and bc.end in ("clamped", "sliding"))):
-            return None
-        X = self.layout.gather_nodes(fields["positions"])
-        D = self.layout.gather_nodes(fields["directors"][:, :, 0])
-        topo = None
-        if self.rank == 0:
-            from . import topology
-            axis = None
-            if not self.mesh.closed:
-                axis = X[-1] - X[0]
-                axis = axis / np.linalg.norm(axis) if np.linalg.norm(axis) > 0 else None
-            try:
-                t = topology.topology(X, D, self.mesh.closed, axis=axis)
-                topo = {"link": float(t["link"]), "twist": float(t["twist"]), "writhe": float(t["writhe"])}
-            except ValueError as err:          # degenerate geometry: report, do not stop the run
-                topo = {"link": np.nan, "twist": np.nan, "writhe": np.nan, "topology_error": str(err)}
-        return self.mpi.bcast(topo, root=0)
 
     def summary(self, converged, failed_reason=None):
         s = {"case": self.scene.output.case_name, "converged": bool(converged),

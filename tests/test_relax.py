@@ -425,3 +425,41 @@ def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tm
     assert not rr.ok and "stalled" in rr.message
     assert rr.steps == 40 and rr.rejected == 21
     assert c0 <= rr.c_last < 4 * c0
+
+
+def test_a_relaxation_step_that_changes_the_link_is_rejected(tmp_path):
+    """relax_phase: a step after which the link differs from the start's by 1/2 or more (a
+    strand went through another: the plectoneme's 8.80-turn jump, Levenberg-Marquardt, went
+    from Lk 8.81 to 6.81 through its tight end loop, where the exclusion hides neighbours) is
+    rejected like a failed one.  The damped solve is faked (the state stays) and the link
+    reported changed for the 2nd and 3rd candidate steps: 2 rejections, counted as crossings.
+    (Only with contact: without it the model lets a strand through, e.g. the twisted rod
+    without contact snapping into a loop.)"""
+    from rodsnes import relax as rx
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene
+    from rodsnes.solver import StepResult
+    mpi = PETSc.COMM_WORLD.tompi4py()
+    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
+    scene = read_scene(["rodsnes"], set_options("michell", rod_nelem=8, contact=True,
+                                                output_dir=out, quiet=True))
+    run = Run(scene, PETSc.COMM_WORLD)
+    solver, p = run.solver, run.problem
+    p.set_load(0.5)                       # twisted, not in equilibrium: |F| > 0
+    link0 = p.topology()["link"]
+    R = PETSc.SNES.ConvergedReason
+    solver.solve_guarded = lambda lam: StepResult(lam, False, 1, R.DIVERGED_MAX_IT, 1.0, [1.0], 0.0)
+    calls = []
+    real = p.topology
+
+    def topology():
+        calls.append(1)
+        t = real()
+        if len(calls) in (3, 4):          # call 1: the start; 2: first step; 3, 4: crossed
+            t["link"] += 2.0
+        return t
+
+    p.topology = topology
+    rr = rx.relax_phase(solver, 0.5, 10.0, 1e-12, max_steps=6, single_step=True)
+    assert rr.crossings == 2 and rr.rejected == 2 and rr.steps == 4
+    assert abs(real()["link"] - link0) < 1e-9
