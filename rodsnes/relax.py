@@ -255,7 +255,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     # with contact the link cannot change (without it a strand may pass through another: the
     # twisted rod without contact snaps into a loop through itself)
     topo = p.topology() if p.contact is not None else None
-    link0 = None if topo is None else topo["link"]
+    link0 = None if topo is None else same(topo["link"])
     p.extra_terms.append(term)
     c = float(c0)
     cooldown = 0            # accepted steps after a rejection during which c may not fall
@@ -290,7 +290,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                 move = same(comm.allreduce(move, op=_MAX()))
                 E_new = same(undamped_energy(p, term))
                 ok = E_new <= E + Etol(E_new) and move <= max_move
-                if ok and link0 is not None and not abs(p.topology()["link"] - link0) < 0.5:
+                if ok and link0 is not None and not abs(same(p.topology()["link"]) - link0) < 0.5:
                     # the link changed: a strand went through another (where the exclusion
                     # hides a tight loop's neighbour, or through a penalty that long steps
                     # overcome): not a motion of the rod; a shorter step, and keep above this c
