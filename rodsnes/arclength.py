@@ -249,9 +249,8 @@ class Arclength:
                 p.state.restore(snap)
                 p.set_load(lam)
                 ds *= 0.5
-                if solver.quiet is False and p.layout.comm.getRank() == 0:
-                    print(f"  arclength step ds {2 * ds:.3e} from load {lam:.6f} not accepted "
-                          f"(reason {res.reason}, {res.its} its): ds halved", flush=True)
+                solver._say(f"  arclength step ds {2 * ds:.3e} from load {lam:.6f} not accepted "
+                            f"(reason {res.reason}, {res.its} its): ds halved")
                 if ds < ds_min:
                     break
                 continue

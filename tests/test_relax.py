@@ -22,6 +22,16 @@ def _small_problem_layout(case="michell", **kw):
     return mesh, Layout(PETSc.COMM_SELF, mesh)
 
 
+def _run_of(tmp_path, case, **kw):
+    """A Run of a small scene writing into tmp_path (the same directory on every rank), no solve."""
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene
+    mpi = PETSc.COMM_WORLD.tompi4py()
+    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
+    return Run(read_scene(["rodsnes"], set_options(case, output_dir=out, quiet=True, **kw)),
+               PETSc.COMM_WORLD)
+
+
 def test_relaxation_term_residual_and_tangent_match_finite_differences():
     from rodsnes import so3
     from rodsnes.relax import RelaxationTerm
@@ -317,14 +327,8 @@ def test_a_failed_predicted_step_is_tried_again_from_the_last_state(tmp_path):
     """A load step that fails from the secant predictor is solved once more from the last
     converged state, at the same load, before it is cut back (the secant can carry a strand
     into another); summary.json counts these retries."""
-    from rodsnes.run import Run
-    from rodsnes.scene import read_scene
     from rodsnes.solver import StepResult
-    mpi = PETSc.COMM_WORLD.tompi4py()
-    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
-    scene = read_scene(["rodsnes"], set_options("mattiasson", rod_nelem=4, load_steps=4,
-                                                output_dir=out, quiet=True))
-    run = Run(scene, PETSc.COMM_WORLD)
+    run = _run_of(tmp_path, "mattiasson", rod_nelem=4, load_steps=4)
     solver = run.solver
     solve, calls = solver.solve_guarded, []
 
@@ -339,7 +343,7 @@ def test_a_failed_predicted_step_is_tried_again_from_the_last_state(tmp_path):
     assert calls[1] == calls[2] == 0.5 and len(calls) == 5     # retried, not cut back
     assert solver.predictor_retries == 1 and len(run.history) == 4
     import json
-    with open(f"{out}/summary.json") as f:
+    with open(f"{run.outdir}/summary.json") as f:
         assert json.load(f)["predictor_retries"] == 1
 
 
@@ -402,14 +406,8 @@ def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tm
     c = 3 while descending, its first c 7e5); now it goes on until a rejected step was tried
     at c >= c0: c = 4^20 x 1e-12 c0 = 1.1 c0 is rejected the 21st time."""
     from rodsnes import relax as rx
-    from rodsnes.run import Run
-    from rodsnes.scene import read_scene
     from rodsnes.solver import StepResult
-    mpi = PETSc.COMM_WORLD.tompi4py()
-    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
-    scene = read_scene(["rodsnes"], set_options("mattiasson", rod_nelem=4, load_steps=4,
-                                                output_dir=out, quiet=True))
-    solver = Run(scene, PETSc.COMM_WORLD).solver
+    solver = _run_of(tmp_path, "mattiasson", rod_nelem=4, load_steps=4).solver
     R = PETSc.SNES.ConvergedReason
     calls = []
 
@@ -430,20 +428,14 @@ def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tm
 def test_a_relaxation_step_that_changes_the_link_is_rejected(tmp_path):
     """relax_phase: a step after which the link differs from the start's by 1/2 or more (a
     strand went through another: the plectoneme's 8.80-turn jump, Levenberg-Marquardt, went
-    from Lk 8.81 to 6.81 through its tight end loop, where the exclusion hides neighbours) is
+    from Lk 8.81 to 6.81, most likely in its end loop, where the motion was largest) is
     rejected like a failed one.  The damped solve is faked (the state stays) and the link
     reported changed for the 2nd and 3rd candidate steps: 2 rejections, counted as crossings.
     (Only with contact: without it the model lets a strand through, e.g. the twisted rod
     without contact snapping into a loop.)"""
     from rodsnes import relax as rx
-    from rodsnes.run import Run
-    from rodsnes.scene import read_scene
     from rodsnes.solver import StepResult
-    mpi = PETSc.COMM_WORLD.tompi4py()
-    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
-    scene = read_scene(["rodsnes"], set_options("michell", rod_nelem=8, contact=True,
-                                                output_dir=out, quiet=True))
-    run = Run(scene, PETSc.COMM_WORLD)
+    run = _run_of(tmp_path, "michell", rod_nelem=8, contact=True)
     solver, p = run.solver, run.problem
     p.set_load(0.5)                       # twisted, not in equilibrium: |F| > 0
     link0 = p.topology()["link"]
