@@ -21,6 +21,20 @@ Newton unknowns per node: (r_a, theta_a), q_a(theta) = qexp(theta_a) * q_a
     g_a  = (dE/dr_a, B(q_a)^T dE/dq_a)           (force balance, spatial moment balance)
     H_ab = T_a^T (d2E/dy_a dy_b) T_b - delta_ab 1/4 (q_a . dE/dq_a) I_3 on the theta block,
 and the consistent derivative of the spatial residual adds -1/2 (g_a)_theta^x on that block.
+
+Thickness bound on bending (with self-contact, ``set_curvature_limit``).  A rod of radius eps
+cannot bend its centreline to a radius below eps; the penalty
+
+    W_kappa = mu_kappa/2 <kappa - kappa_max>^2,   kappa = |(u1, u2)|,   kappa_max = 1 / eps,
+    S_u12  += mu_kappa <kappa - kappa_max> n,     n = (u1, u2) / kappa,
+    C_u12  += mu_kappa [ (1 - kappa_max/kappa) I + (kappa_max/kappa) n n^T ]     (kappa > kappa_max)
+
+completes the contact model: with curvature <= 1/eps, two points at arclength distance t <= pi eps
+are at least 2 eps sin(t / 2 eps) apart and no pair closer than pi eps can be double-critical
+(the curve must turn by pi between them, Schur's comparison theorem), so the exclusion
+delta = pi eps of the contact term hides no penetration (thickness >= eps in the sense of
+Gonzalez & Maddocks).  kappa is the flexure of the director frame: the centreline curvature in
+the unshearable (Kirchhoff) limit, up to O(shear strain) otherwise.
 """
 import numpy as np
 
@@ -129,6 +143,8 @@ class ElasticRod:
         self.wJ = w * (h / 2.0)
         self.C = np.asarray(stiffness, dtype=float)
         self.e0 = None
+        self.kappa_max = None           # thickness bound on bending (set_curvature_limit)
+        self.mu_kappa = 0.0
         # G maps raw nodal dofs y_a = (q_a (4), x_a (3)) to z = (p, p', r') at each point
         nn = order + 1
         G = np.zeros((nq, 11, nn, 7))
@@ -154,16 +170,56 @@ class ElasticRod:
     def set_reference(self, e0):
         self.e0 = np.asarray(e0, dtype=float)
 
+    def set_curvature_limit(self, kappa_max, mu):
+        """Penalise flexure above kappa_max with stiffness mu (W_kappa in the module docstring)."""
+        self.kappa_max, self.mu_kappa = float(kappa_max), float(mu)
+
+    def law(self, e, e0, tangent=False):
+        """Energy density W, stress S = dW/de and (tangent=True) the extra material tangent of
+        the curvature bound on the (u1, u2) block, dS_u12/du12 - 0 (None when no point exceeds it):
+
+            W = 1/2 (e - e0)^T C (e - e0) + mu_kappa/2 <kappa - kappa_max>^2."""
+        de = e - e0
+        S = de * self.C
+        W = 0.5 * np.einsum("...k,...k->...", de, S)
+        if self.kappa_max is None:
+            return W, S, None
+        ub = e[..., 3:5]
+        kappa = np.sqrt(np.einsum("...i,...i->...", ub, ub))
+        over = np.maximum(kappa - self.kappa_max, 0.0)
+        if not np.any(over > 0.0):
+            return W, S, None
+        W = W + 0.5 * self.mu_kappa * over**2
+        safe = np.where(over > 0.0, kappa, 1.0)
+        n = ub / safe[..., None]
+        S[..., 3:5] += (self.mu_kappa * over)[..., None] * n
+        if not tangent:
+            return W, S, None
+        ratio = np.where(over > 0.0, self.kappa_max / safe, 0.0)
+        active = (over > 0.0).astype(float)
+        Cb = self.mu_kappa * ((active - ratio)[..., None, None] * np.eye(2)
+                              + ratio[..., None, None] * n[..., :, None] * n[..., None, :])
+        return W, S, Cb
+
+    def curvature_excess(self, qe, xe):
+        """Largest flexure at the quadrature points as a fraction of kappa_max, minus 1
+        (<= 0: the thickness bound holds; None without a bound)."""
+        if self.kappa_max is None:
+            return None
+        u = self.strains(qe, xe)[..., 3:5]
+        kmax = float(np.sqrt(np.einsum("...i,...i->...", u, u)).max()) if u.size else 0.0
+        return kmax / self.kappa_max - 1.0
+
     def energy(self, qe, xe, e0=None):
-        """E = sum_e sum_q wJ W(e - e0)."""
+        """E = sum_e sum_q wJ W(e, e0)."""
         e0 = self.e0 if e0 is None else e0
-        de = self.strains(qe, xe) - e0
-        return 0.5 * np.einsum("q,eqk,k,eqk->", self.wJ, de, self.C, de)
+        W, _, _ = self.law(self.strains(qe, xe), e0)
+        return np.einsum("q,eq->", self.wJ, W)
 
     def stress(self, qe, xe, e0=None):
-        """Material stress resultants S = C (e - e0) = (R^T n, R^T m) at quadrature points."""
+        """Material stress resultants S = dW/de = (R^T n, R^T m) at quadrature points."""
         e0 = self.e0 if e0 is None else e0
-        return (self.strains(qe, xe) - e0) * self.C
+        return self.law(self.strains(qe, xe), e0)[1]
 
     def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False):
         """Element residuals (ne, p+1, 6) and tangents (ne, 6(p+1), 6(p+1)) in the
@@ -181,8 +237,8 @@ class ElasticRod:
             e, De, D2e = strain_measures(p, dp, dr, derivatives=2)
         else:
             e, De = strain_measures(p, dp, dr, derivatives=1)
-        S = (e - e0) * self.C
-        energy = 0.5 * np.einsum("q,eqk,eqk->e", self.wJ, e - e0, S)
+        W, S, Cb = self.law(e, e0, tangent=tangent)
+        energy = np.einsum("q,eq->e", self.wJ, W)
         Wz = np.einsum("eqkz,eqk->eqz", De, S)
         graw = np.einsum("q,qzy,eqz->ey", self.wJ, self.G, Wz).reshape(ne, nn, 7)
         B = B_matrix(qa)                                   # (ne, nn, 4, 3)
@@ -192,6 +248,8 @@ class ElasticRod:
         if not tangent:
             return energy, vec, None
         Wzz = np.einsum("eqkz,k,eqky->eqzy", De, self.C, De) + np.einsum("eqk,eqkzy->eqzy", S, D2e)
+        if Cb is not None:
+            Wzz += np.einsum("eqkz,eqkl,eqly->eqzy", De[..., 3:5, :], Cb, De[..., 3:5, :])
         Hraw = np.einsum("q,qzi,eqzy,qyj->eij", self.wJ, self.G, Wzz, self.G)
         Hraw = Hraw.reshape(ne, nn, 7, nn, 7)
         # T_a: (r, theta) -> (q, x):  q block = B theta, x block = r

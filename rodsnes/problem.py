@@ -174,6 +174,12 @@ class RodProblem:
         e0 = reference_strains(rod, mesh, mesh.conn[own], self.elastic.strains)
         self.e0_base = e0
         self.elastic.set_reference(e0.copy())
+        c = scene.contact
+        if c.enabled and c.curvature:
+            # thickness bound on bending (elastic.py): flexure above 1/eps costs EI/p per unit of
+            # squared excess, so a bending moment of twice EI/eps overshoots kappa_max by p
+            eps = c.radius if c.radius is not None else rod.radius
+            self.elastic.set_curvature_limit(1.0 / eps, max(rod.EI1, rod.EI2) / c.penetration)
         self.load_twist = getattr(scene.loads, "twist_turns", 0.0) or 0.0
         self.loads = Loads(scene.loads, mesh, layout, nq)
         self.constraints = Constraints(scene.bc, mesh, layout)
@@ -490,6 +496,19 @@ class RodProblem:
         Ec = self.contact.energy(r) if self.contact is not None else 0.0
         return self.layout.comm.tompi4py().allreduce(self._energy_local(r, q, Ec))
 
+    def max_curvature(self):
+        """Largest flexure |(u1, u2)| at the quadrature points times the contact radius eps,
+        over all ranks (<= 1: the thickness bound kappa <= 1/eps holds; the penalty lets it
+        exceed 1 by about -contact_penetration at a moment of 2 EI/eps); None without the bound.
+        Collective."""
+        from mpi4py import MPI
+        el = self.elastic
+        if el.kappa_max is None:
+            return None
+        r, q = self.state.local_config()
+        loc = el.curvature_excess(q[self.lconn], r[self.lconn]) if len(self.lconn) else -1.0
+        return 1.0 + self.layout.comm.tompi4py().allreduce(loc, op=MPI.MAX)
+
     def topology(self):
         """Link, twist and writhe (topology.topology: Gauss integral for the writhe, open rods
         closed along their end-to-end axis) of the current state, for rings and for open rods
@@ -527,7 +546,7 @@ class RodProblem:
             at_nodes = lambda q, x: elastic.strains_at_nodes(self.mesh.order, self.mesh.h, q, x)  # noqa: E731
             e0 = reference_strains(self.scene.rod, self.mesh, self.mesh.conn[self.layout.owned_elems], at_nodes)
             self._e0_nodes = nodal_average(self.layout, self.lconn, e0)
-        S = (e - self.twisted_reference(self._e0_nodes)) * self.elastic.C
+        S = self.elastic.law(e, self.twisted_reference(self._e0_nodes))[1]
         return {"positions": r[:no].copy(), "directors": R,
                 "strain_v": e[:, 0:3], "strain_u": e[:, 3:6],
                 "force_n": np.einsum("nij,nj->ni", R, S[:, 0:3]),

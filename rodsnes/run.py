@@ -128,6 +128,9 @@ class Run:
             r_loc, _ = p.state.local_config()
             self.contact.evaluate(r_loc, tangent=False)
             self.last_contact = self.contact.summary()
+            kappa = p.max_curvature()
+            if kappa is not None:
+                self.last_contact["max_curvature"] = kappa
             cattrs = {"contact_" + k: v for k, v in self.last_contact.items()}
             qp = self.contact.qp_fields()
         topo = p.topology()

@@ -272,6 +272,9 @@ class O:
     contact_exclusion = Opt(REAL, None, "arclength below which point pairs are never in contact",
                             "contact", rng="[0,inf)", shown="automatic",
                             note="an arclength, in length units")
+    contact_curvature = Opt(BOOL, True, "the contact tube also bounds bending: flexure above "
+                            "1/radius is penalised (stiffness EI / -contact_penetration), so the "
+                            "exclusion pi*radius hides no penetration", "contact")
     contact_zones = Opt(BOOL, True, "integrate the penalty over the contact zones (d > 0, found by "
                         "root finding) instead of at fixed Gauss points", "contact")
     contact_quadrature = Opt(INT, None, "points per element for the contact integral", "contact",
@@ -422,6 +425,7 @@ class Contact:
     zones: bool = True
     penetration: float = 0.01       # promised largest penetration, fraction of 2 eps
     adapt: bool = True              # raise mu after a step that breaks the promise
+    curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
 
 
 @dataclass
@@ -899,6 +903,25 @@ def _contact(c, rod):
             c.fail("%s with contact radius %g: neighbouring turns interpenetrate in the reference "
                    "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
+    if enabled and c[O.contact_curvature]:
+        rcontact = rc if rc is not None else rod["radius"]
+        bends = []                              # (reference curvature, the options that set it)
+        if rod["arc_radius"] is not None:
+            bends.append((1.0 / rod["arc_radius"], (O.rod_arc_radius,)))
+        if rod["helix_radius"] is not None and rod["helix_pitch"]:
+            cp = rod["helix_pitch"] / (2.0 * math.pi)
+            bends.append((rod["helix_radius"] / (rod["helix_radius"] ** 2 + cp ** 2),
+                          (O.rod_helix_radius, O.rod_helix_pitch)))
+        if rod["kappa0"] is not None:
+            bends.append((float(np.hypot(*rod["kappa0"][:2])), (O.rod_kappa0,)))
+        for kappa, opts in bends:
+            if kappa * rcontact > 1.0:
+                c.fail("%s: the reference centreline bends to curvature %.6g, above 1/contact "
+                       "radius = %.6g, which the contact tube's thickness bound forbids; use a "
+                       "smaller -contact_radius, a gentler reference shape, or "
+                       "-contact_curvature false" % (", ".join(c.show(o) for o in opts), kappa,
+                                                     1.0 / rcontact),
+                       *opts, O.contact_radius, O.contact_curvature)
     penalty = _f(c[O.contact_penalty])
     # a penalty the user chose is kept as given unless adaptation is asked for explicitly
     adapt = bool(c[O.contact_penalty_adapt]) if c.given(O.contact_penalty_adapt) else penalty is None
@@ -906,7 +929,8 @@ def _contact(c, rod):
                    exclusion=_f(c[O.contact_exclusion]),
                    quadrature=int(q) if q is not None else rod["order"] + 2,
                    zones=bool(c[O.contact_zones]),
-                   penetration=float(c[O.contact_penetration]), adapt=adapt)
+                   penetration=float(c[O.contact_penetration]), adapt=adapt,
+                   curvature=bool(c[O.contact_curvature]))
 
 
 def _output(c, argv):

@@ -19,12 +19,22 @@ def perturbed(qe, xe, dx, dth):
     return so3.qmul(so3.qexp(dth), qe), xe + dx
 
 
-@pytest.mark.parametrize("p", [1, 2, 3, 4])
-def test_residual_is_gradient_and_tangent_is_derivative_of_residual(p):
+@pytest.mark.parametrize("p,bound", [(1, False), (2, False), (3, False), (4, False),
+                                     (2, True), (3, True)])
+def test_residual_is_gradient_and_tangent_is_derivative_of_residual(p, bound):
+    """bound: the thickness bound on bending is active at about half of the points."""
     ne, nn, h = 2, p + 1, 0.3
     rod = elastic.ElasticRod(p, p + 1, h, STIFF)
     qe, xe = random_elements(p, ne, h)
     rod.set_reference(RNG.normal(size=(ne, p + 1, 6)) * 0.1 + [0, 0, 1, 0, 0, 0])
+    if bound:
+        kappa = np.linalg.norm(rod.strains(qe, xe)[..., 3:5], axis=-1)
+        rod.set_curvature_limit(np.median(kappa), 30.0)
+        assert 0.3 < np.mean(kappa > rod.kappa_max) < 0.7
+        E_free = rod.energy(qe, xe)
+        rod.kappa_max = None
+        assert E_free > rod.energy(qe, xe) + 1e-3        # the bound costs energy where active
+        rod.kappa_max = np.median(kappa)
     _, vec, H = rod.element_terms(qe, xe)
     eps = 1e-6
     g_fd = np.zeros_like(vec)

@@ -296,6 +296,12 @@ VALIDATION = [
                          "neighbouring turns interpenetrate"]),
     ({"rod_shape": "arc", "rod_arc_angle": "360", "rod_radius": "0.2"},
      ["not larger than the rod radius"]),
+    ({"rod_shape": "arc", "rod_arc_radius": "0.2", "contact": None, "contact_radius": "0.25"},
+     ["-rod_arc_radius = 0.2: the reference centreline bends to curvature 5, above 1/contact "
+      "radius = 4", "-contact_curvature false"]),
+    ({"rod_kappa0": "30,0,0", "contact": None, "rod_radius": "0.05"},
+     ["-rod_kappa0 = 30,0,0: the reference centreline bends to curvature 30, above 1/contact "
+      "radius = 20"]),
     ({"load_end_force": "0,0,1", "bc_end": "clamped"},
      ["-load_end_force = 0,0,1 with -bc_end clamped: the end cannot move"]),
     ({"load_end_moment": "0,0,1", "bc_end": "clamped"},
@@ -379,6 +385,11 @@ def test_contact_options(read):
                                                                            0.0, 4)
     assert s.contact_radius == 0.02
     assert read({"contact_quadrature": "7"}).contact.quadrature == 7
+    assert s.contact.curvature is True                # the thickness bound on bending, by default
+    assert read({"contact": None, "contact_curvature": "false"}).contact.curvature is False
+    # a reference arc tighter than the contact radius is fine once the bound is off
+    read({"rod_shape": "arc", "rod_arc_radius": "0.2", "contact": None, "contact_radius": "0.25",
+          "contact_curvature": "false"})
 
 
 def test_penalty_adaptation_defaults(read):
@@ -488,7 +499,7 @@ def test_help_text_lists_every_option_once():
     assert "  -contact <false>: " in text
     for title in scene.SECTIONS.values():
         assert title in text
-    assert len(scene.OPTIONS) == 59
+    assert len(scene.OPTIONS) == 60
 
 
 def test_option_table_is_consistent():
