@@ -178,8 +178,8 @@ class RodProblem:
         if c.enabled and c.curvature:
             # thickness bound on bending (elastic.py): flexure above 1/eps costs EI/p per unit of
             # squared excess, so a bending moment of twice EI/eps overshoots kappa_max by p
-            eps = c.radius if c.radius is not None else rod.radius
-            self.elastic.set_curvature_limit(1.0 / eps, max(rod.EI1, rod.EI2) / c.penetration)
+            self.elastic.set_curvature_limit(1.0 / scene.contact_radius,
+                                             max(rod.EI1, rod.EI2) / c.penetration)
         self.load_twist = getattr(scene.loads, "twist_turns", 0.0) or 0.0
         self.loads = Loads(scene.loads, mesh, layout, nq)
         self.constraints = Constraints(scene.bc, mesh, layout)
@@ -536,6 +536,7 @@ class RodProblem:
     def owned_fields(self):
         """Per owned node: positions (n,3), directors (n,3,3), material strains strain_v,
         strain_u, and spatial stress resultants force_n = R C_v (v - v0), moment_m = R C_u (u - u0)
+        (+ the thickness bound's moment where the flexure exceeds it, elastic.ElasticRod.law)
         (strains evaluated at the element nodes and averaged over the elements sharing a node)."""
         r, q = self.state.local_config()
         no = self.layout.n_owned

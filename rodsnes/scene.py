@@ -686,6 +686,12 @@ def read_scene(argv=None, options=None):
                  given=tuple(sorted(o.name for o in reader.raw)))
 
 
+def helix_curvature(radius, pitch):
+    """Curvature R / (R^2 + c^2) of a helix of radius R and rise per turn 2 pi c."""
+    c = pitch / (2.0 * math.pi)
+    return radius / (radius ** 2 + c ** 2)
+
+
 def _rod(c):
     L, r = c[O.rod_length], c[O.rod_radius]
     if r >= L / 2:
@@ -806,8 +812,7 @@ def _rod(c):
                % (c.show(O.rod_radius), c.show(O.rod_length), arc_R),
                O.rod_radius, O.rod_arc_radius)
     if hel_R is not None and hel_p:
-        cpitch = hel_p / (2.0 * math.pi)
-        kappa = hel_R / (hel_R ** 2 + cpitch ** 2)        # helix curvature R/(R^2 + c^2)
+        kappa = helix_curvature(hel_R, hel_p)
         if kappa * r >= 1.0:
             c.fail("%s, %s with %s: helix curvature %.6g exceeds 1/radius, so the rod would fold "
                    "through itself" % (c.show(O.rod_helix_radius), c.show(O.rod_helix_pitch),
@@ -909,8 +914,7 @@ def _contact(c, rod):
         if rod["arc_radius"] is not None:
             bends.append((1.0 / rod["arc_radius"], (O.rod_arc_radius,)))
         if rod["helix_radius"] is not None and rod["helix_pitch"]:
-            cp = rod["helix_pitch"] / (2.0 * math.pi)
-            bends.append((rod["helix_radius"] / (rod["helix_radius"] ** 2 + cp ** 2),
+            bends.append((helix_curvature(rod["helix_radius"], rod["helix_pitch"]),
                           (O.rod_helix_radius, O.rod_helix_pitch)))
         if rod["kappa0"] is not None:
             bends.append((float(np.hypot(*rod["kappa0"][:2])), (O.rod_kappa0,)))
