@@ -175,8 +175,8 @@ class ElasticRod:
         self.kappa_max, self.mu_kappa = float(kappa_max), float(mu)
 
     def law(self, e, e0, tangent=False):
-        """Energy density W, stress S = dW/de and (tangent=True) the extra material tangent of
-        the curvature bound on the (u1, u2) block, dS_u12/du12 - 0 (None when no point exceeds it):
+        """Energy density W, stress S = dW/de and (tangent=True) the curvature bound's part of
+        the material tangent, on the (u1, u2) block (None when no point exceeds the bound):
 
             W = 1/2 (e - e0)^T C (e - e0) + mu_kappa/2 <kappa - kappa_max>^2."""
         de = e - e0
@@ -201,14 +201,10 @@ class ElasticRod:
                               + ratio[..., None, None] * n[..., :, None] * n[..., None, :])
         return W, S, Cb
 
-    def curvature_excess(self, qe, xe):
-        """Largest flexure at the quadrature points as a fraction of kappa_max, minus 1
-        (<= 0: the thickness bound holds; None without a bound)."""
-        if self.kappa_max is None:
-            return None
+    def max_flexure(self, qe, xe):
+        """Largest flexure |(u1, u2)| at the quadrature points of the elements (0 for none)."""
         u = self.strains(qe, xe)[..., 3:5]
-        kmax = float(np.sqrt(np.einsum("...i,...i->...", u, u)).max()) if u.size else 0.0
-        return kmax / self.kappa_max - 1.0
+        return float(np.sqrt(np.einsum("...i,...i->...", u, u)).max()) if u.size else 0.0
 
     def energy(self, qe, xe, e0=None):
         """E = sum_e sum_q wJ W(e, e0)."""

@@ -506,8 +506,8 @@ class RodProblem:
         if el.kappa_max is None:
             return None
         r, q = self.state.local_config()
-        loc = el.curvature_excess(q[self.lconn], r[self.lconn]) if len(self.lconn) else -1.0
-        return 1.0 + self.layout.comm.tompi4py().allreduce(loc, op=MPI.MAX)
+        loc = el.max_flexure(q[self.lconn], r[self.lconn])
+        return self.layout.comm.tompi4py().allreduce(loc, op=MPI.MAX) / el.kappa_max
 
     def topology(self):
         """Link, twist and writhe (topology.topology: Gauss integral for the writhe, open rods

@@ -902,14 +902,13 @@ def _contact(c, rod):
     enabled = bool(c[O.contact])
     rc = _f(c[O.contact_radius])
     q = c[O.contact_quadrature]
+    rcontact = rc if rc is not None else rod["radius"]
     if enabled and rod["helix_radius"] is not None and rod["helix_pitch"]:
-        rcontact = rc if rc is not None else rod["radius"]
         if abs(rod["helix_pitch"]) < 2.0 * rcontact:
             c.fail("%s with contact radius %g: neighbouring turns interpenetrate in the reference "
                    "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
     if enabled and c[O.contact_curvature]:
-        rcontact = rc if rc is not None else rod["radius"]
         bends = []                              # (reference curvature, the options that set it)
         if rod["arc_radius"] is not None:
             bends.append((1.0 / rod["arc_radius"], (O.rod_arc_radius,)))
