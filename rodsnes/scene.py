@@ -827,6 +827,12 @@ def _rod(c):
         c.fail("%s, %s: a closed ring needs at least 3 nodes (nelem * order >= 3)"
                % (c.show(O.rod_nelem), c.show(O.rod_order)), O.rod_nelem, O.rod_order)
     kappa0 = c[O.rod_kappa0]
+    if kappa0 is not None and math.hypot(kappa0[0], kappa0[1]) * r >= 1.0:
+        c.fail("%s with %s: the intrinsic flexure |(k1, k2)| = %.6g is not below 1/radius = "
+               "%.6g, so the rod would fold through itself on the inside of its bend; use a "
+               "gentler curvature or a thinner rod"
+               % (c.show(O.rod_kappa0), c.show(O.rod_radius), math.hypot(kappa0[0], kappa0[1]),
+                  1.0 / r), O.rod_kappa0, O.rod_radius)
     rod = dict(length=float(L), radius=float(r), EA=float(EA), GA1=float(GA), GA2=float(GA),
                EI1=float(EI1), EI2=float(EI2), GJ=float(GJ),
                kappa0=None if kappa0 is None else np.array(kappa0, dtype=float),

@@ -299,9 +299,12 @@ VALIDATION = [
     ({"rod_shape": "arc", "rod_arc_radius": "0.2", "contact": None, "contact_radius": "0.25"},
      ["-rod_arc_radius = 0.2: the reference centreline bends to curvature 5, above 1/contact "
       "radius = 4", "-contact_curvature false"]),
-    ({"rod_kappa0": "30,0,0", "contact": None, "rod_radius": "0.05"},
+    ({"rod_kappa0": "30,0,0", "contact": None, "rod_radius": "0.02", "contact_radius": "0.05"},
      ["-rod_kappa0 = 30,0,0: the reference centreline bends to curvature 30, above 1/contact "
       "radius = 20"]),
+    ({"rod_kappa0": "60,80,0", "rod_radius": "0.01"},          # flexure 100 = 1/radius
+     ["-rod_kappa0 = 60,80,0 with -rod_radius = 0.01: the intrinsic flexure |(k1, k2)| = 100 "
+      "is not below 1/radius = 100", "fold through itself"]),
     ({"load_end_force": "0,0,1", "bc_end": "clamped"},
      ["-load_end_force = 0,0,1 with -bc_end clamped: the end cannot move"]),
     ({"load_end_moment": "0,0,1", "bc_end": "clamped"},
