@@ -54,6 +54,11 @@ class Run:
         append = False
         if scene.output.restart:
             self._restart(scene.output.restart)
+            if self.lam0 >= scene.loads.stop - 1e-14:
+                from .scene import SceneError
+                raise SceneError(f"-load_stop {scene.loads.stop:g}: the run restarted from "
+                                 f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
+                                 f"raise -load_stop (at most 1) or drop it", ("-load_stop", "-restart"))
             append = os.path.abspath(scene.output.restart) == os.path.abspath(self.outdir)
         if self.rank == 0:
             os.makedirs(self.outdir, exist_ok=True)
@@ -226,7 +231,7 @@ class Run:
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
-                                       arc0=self.arc0)
+                                       arc0=self.arc0, stop=ld.stop)
         reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))

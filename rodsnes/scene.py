@@ -255,6 +255,10 @@ class O:
                              rng="[2,inf)", note="a number of Newton iterations")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
                         rng="(0,1]", note="a fraction of the full load")
+    load_stop = Opt(REAL, 1.0, "end the run at this load factor (a long batch run in stages, "
+                    "each resumed with -restart, perhaps with other settings); the load grid "
+                    "of -load_steps is that of 0 -> 1", "load", rng="(0,1]",
+                    note="a fraction of the full load")
     # --- contact ----------------------------------------------------------------
     contact = Opt(BOOL, False, "enable frictionless self-contact", "contact")
     contact_penalty = Opt(REAL, None, "penalty stiffness", "contact", rng="(0,inf)",
@@ -412,6 +416,7 @@ class Loads:
     max_cutbacks: int
     min_step: float
     twist_turns: float = 0.0
+    stop: float = 1.0
 
 
 @dataclass
@@ -901,7 +906,7 @@ def _loads(c, rod, bc):
     return Loads(end_force=F, end_force_follower=bool(c[O.load_end_force_follower]),
                  end_moment=M, gravity=g, steps=int(c[O.load_steps]),
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
-                 twist_turns=float(c[O.load_twist_turns]))
+                 twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]))
 
 
 def _contact(c, rod):

@@ -172,8 +172,9 @@ class NewtonSolver:
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0,
-            dlam0=None, prev0=None, arc0=None):
-        """Step lambda from lam0 to 1 in ``steps`` nominal increments with cut-back.
+            dlam0=None, prev0=None, arc0=None, stop=1.0):
+        """Step lambda from lam0 to ``stop`` (-load_stop, 1 by default) on the grid of ``steps``
+        nominal increments of 0 -> 1, with cut-back.
 
         on_step(result) is called after every converged step (write output there), on_fail(result,
         dlam) after every failed try (dlam = the increment about to be halved, or None when the
@@ -211,8 +212,8 @@ class NewtonSolver:
             if not ok:
                 return self.results, False
             dlam = nominal
-        while lam < 1.0 - 1e-14:
-            target = min(1.0, lam + dlam)
+        while lam < stop - 1e-14:
+            target = min(stop, lam + dlam)
             snap = p.state.snapshot()
             predicted = prev is not None and self.predictor
             if predicted:

@@ -91,3 +91,43 @@ def test_a_restart_that_fails_at_once_still_writes_its_summary(tmp_path):
     s = json.loads((cut / "summary.json").read_text())
     assert s["converged"] is False and s["load"] == 0.5 and "failure" in s
     assert abs(s["energy"] - e2) < 1e-12 * abs(e2) and len(s["tip_position"]) == 3
+
+
+def test_a_run_in_stages_with_load_stop_matches_the_run_in_one_go(tmp_path):
+    """-load_stop ends a run at a load factor on the grid of -load_steps (0 -> 1); a restart
+    from it goes on with the steps the single run takes (same loads, same end state), and a
+    restart that already stands at -load_stop is refused with the option named."""
+    from rodsnes.scene import SceneError
+    full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
+    staged = str(tmp_path / "staged")
+    first = run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.5)
+    assert first.ok
+    assert [h["load"] for h in first.history] == [0.25, 0.5]
+    with pytest.raises(SceneError) as ei:
+        run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.5, restart=staged)
+    assert "-load_stop" in str(ei.value) and "-load_stop" in ei.value.options
+    second = run_case("mattiasson", outdir=staged, load_steps=4, restart=staged)
+    assert second.ok
+    assert [h["load"] for h in second.history] == [0.75, 1.0]
+    assert np.abs(gathered_positions(second) - gathered_positions(full)).max() < 1e-9
+
+
+def test_a_checkpoint_of_the_last_steps_resumes_like_the_whole_file(tmp_path):
+    """tools/checkpoint.py keeps the last two steps of result.h5 (the state and the step before
+    for the secant predictor): a restart from it into a new directory takes the same steps and
+    ends at the same state as a restart from the whole file, numbering its steps on."""
+    import sys
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tools"))
+    from checkpoint import checkpoint
+    from rodsnes import output
+    full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
+    staged = str(tmp_path / "staged")
+    assert run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.75).ok
+    assert checkpoint(staged, str(tmp_path / "ckpt")) == [2, 3]
+    assert output.read_steps(str(tmp_path / "ckpt")) == [2, 3]
+    resumed = run_case("mattiasson", outdir=str(tmp_path / "new"), load_steps=4,
+                       restart=str(tmp_path / "ckpt"))
+    assert resumed.ok
+    assert [h["load"] for h in resumed.history] == [1.0]
+    assert output.read_steps(str(tmp_path / "new"))[-1] == 4
+    assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9

@@ -266,6 +266,7 @@ VALIDATION = [
     ({"load_steps": "0"}, ["-load_steps = 0: must be >= 1"]),
     ({"load_max_cutbacks": "-1"}, ["-load_max_cutbacks = -1: must be >= 0"]),
     ({"load_min_step": "0"}, ["-load_min_step = 0: must be in (0, 1]"]),
+    ({"load_stop": "1.5"}, ["-load_stop = 1.5: must be in (0, 1]"]),
     ({"contact_penalty": "0"}, ["-contact_penalty = 0: must be > 0"]),
     ({"contact_radius": "-0.01"}, ["-contact_radius = -0.01: must be > 0"]),
     ({"contact_exclusion": "-0.1"}, ["-contact_exclusion = -0.1: must be >= 0"]),
@@ -502,7 +503,7 @@ def test_help_text_lists_every_option_once():
     assert "  -contact <false>: " in text
     for title in scene.SECTIONS.values():
         assert title in text
-    assert len(scene.OPTIONS) == 60
+    assert len(scene.OPTIONS) == 61
 
 
 def test_option_table_is_consistent():
