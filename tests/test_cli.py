@@ -16,7 +16,7 @@ def rodsnes(*args, tmp):
         if k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_")):
             del env[k]
     return subprocess.run([sys.executable, "-m", "rodsnes", *args, "-output_dir", str(tmp)],
-                          cwd=ROOT, capture_output=True, text=True, env=env, timeout=120)
+                          cwd=ROOT, capture_output=True, text=True, env=env, timeout=600)
 
 
 def test_misspelled_option_names_the_closest_valid_one(tmp_path):

@@ -159,7 +159,7 @@ def test_killed_run_keeps_earlier_steps(tmp_path, where):
         {hook}
         t.write_run({str(tmp_path)!r}, steps=3)
     """)
-    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
     assert res.returncode == -9, res.stderr
     assert output.read_steps(tmp_path) == [0, 1]
     check_steps(tmp_path, 2)

@@ -4,9 +4,13 @@ small tension), here to 1.5 turns instead of 10 with 40 elements so that it fits
 straight rod's loop formation is a fold of the stable path, which -stability passes by
 relaxation (jump_branch) into a loop in self-contact.  The full 10 turns are a batch run
 (README, "Plectoneme")."""
-import numpy as np
+import os
 
-from conftest import run_case
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from conftest import ROOT, run_case, set_options
 
 
 def test_twisted_rod_snaps_into_a_loop_in_self_contact():
@@ -35,3 +39,50 @@ def test_twisted_rod_snaps_into_a_loop_in_self_contact():
     assert 0.0 < c["max_penetration"] < 0.01
     assert run.history[-1]["negative_eigenvalues"] == 0
     assert np.isfinite(run.last_energy)
+
+
+CHECKPOINTS = os.path.join(ROOT, "cases", "checkpoints")
+
+
+def _checkpoints():
+    return sorted(d for d in os.listdir(CHECKPOINTS)
+                  if os.path.exists(os.path.join(CHECKPOINTS, d, "result.h5")))
+
+
+def test_the_plectoneme_checkpoints_are_kept():
+    """README (Plectoneme) resumes the 10-turn run from cases/checkpoints/: they must be there."""
+    assert len(_checkpoints()) >= 1
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("name", _checkpoints() if os.path.isdir(CHECKPOINTS) else [])
+def test_a_plectoneme_checkpoint_is_an_equilibrium_of_the_current_code(name, tmp_path):
+    """A checkpoint of the batch run (tools/checkpoint.py) read back by -restart, as the README's
+    resume command does, is still an equilibrium of this code's rod and contact terms: the
+    residual at the stored state within the load steps' tolerance (or twice the residual stored
+    with it), Lk = the imposed turns within 1e-2 and Tw + Wr = Lk, penetration within 1 % of
+    the diameter, the stored penalty and energy restored.  A change to the energy, the contact
+    term or the result format that moves the plectoneme's equilibria fails here."""
+    from rodsnes import output
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene, check_unknown_options
+    ckpt = os.path.join(CHECKPOINTS, name)
+    last = output.read_step(ckpt, -1)
+    comm = PETSc.COMM_WORLD
+    out = comm.tompi4py().bcast(str(tmp_path) if comm.rank == 0 else None)
+    opts = set_options("plectoneme", restart=ckpt, output_dir=out, quiet=True)
+    check_unknown_options(opts)
+    run = Run(read_scene(["rodsnes"], opts), comm)
+    p = run.problem
+    assert run.lam0 == last["attrs"]["load"] and run.step == last["step"]
+    assert run.contact.mu == last["attrs"]["contact_penalty"]
+    F = p.F.duplicate()
+    p.residual(run.solver.snes, p.state.X, F)
+    fnorm = F.norm()
+    assert fnorm <= max(run.solver.tolerance(), 2 * last["attrs"]["residual_norm"])
+    _, energy, cattrs, _, topo = run._observe()
+    assert abs(energy - last["attrs"]["energy"]) <= 1e-9 * abs(energy)
+    turns = run.scene.bc.end_turns * run.lam0
+    assert abs(topo["link"] - turns) < 1e-2
+    assert abs(topo["twist"] + topo["writhe"] - topo["link"]) < 1e-9
+    assert 0.0 < cattrs["contact_max_penetration"] <= 0.01 * (1 + 1e-6)
