@@ -49,20 +49,26 @@ def set_options(case=None, **overrides):
     return opts
 
 
-def run_case(case=None, comm=None, outdir=None, **overrides):
-    """Run a scene in-process on ``comm`` (default COMM_WORLD); returns the finished Run."""
+def build_run(case=None, comm=None, outdir=None, **overrides):
+    """A Run of a scene on ``comm`` (default COMM_WORLD), not executed, writing into outdir
+    (rank 0's, the same directory on every rank; a fresh temporary one if None)."""
     from rodsnes.run import Run
     from rodsnes.scene import read_scene, check_unknown_options
     comm = PETSc.COMM_WORLD if comm is None else comm
-    if outdir is None:
-        mpi = comm.tompi4py()
-        outdir = mpi.bcast(tempfile.mkdtemp(prefix="rodsnes_test_") if mpi.rank == 0 else None)
+    mpi = comm.tompi4py()
+    if mpi.rank == 0:
+        outdir = tempfile.mkdtemp(prefix="rodsnes_test_") if outdir is None else str(outdir)
+    outdir = mpi.bcast(outdir)
     overrides.setdefault("output_dir", outdir)
     overrides.setdefault("quiet", True)
     opts = set_options(case, **overrides)
     check_unknown_options(opts)
-    scene = read_scene(["rodsnes"], opts)
-    run = Run(scene, comm)
+    return Run(read_scene(["rodsnes"], opts), comm)
+
+
+def run_case(case=None, comm=None, outdir=None, **overrides):
+    """Run a scene in-process on ``comm`` (default COMM_WORLD); returns the finished Run."""
+    run = build_run(case, comm, outdir, **overrides)
     run.ok = run.execute()
     return run
 

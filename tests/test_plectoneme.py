@@ -8,9 +8,8 @@ import os
 
 import numpy as np
 import pytest
-from petsc4py import PETSc
 
-from conftest import ROOT, run_case, set_options
+from conftest import ROOT, build_run, run_case
 
 
 def test_twisted_rod_snaps_into_a_loop_in_self_contact():
@@ -64,15 +63,9 @@ def test_a_plectoneme_checkpoint_is_an_equilibrium_of_the_current_code(name, tmp
     the diameter, the stored penalty and energy restored.  A change to the energy, the contact
     term or the result format that moves the plectoneme's equilibria fails here."""
     from rodsnes import output
-    from rodsnes.run import Run
-    from rodsnes.scene import read_scene, check_unknown_options
     ckpt = os.path.join(CHECKPOINTS, name)
     last = output.read_step(ckpt, -1)
-    comm = PETSc.COMM_WORLD
-    out = comm.tompi4py().bcast(str(tmp_path) if comm.rank == 0 else None)
-    opts = set_options("plectoneme", restart=ckpt, output_dir=out, quiet=True)
-    check_unknown_options(opts)
-    run = Run(read_scene(["rodsnes"], opts), comm)
+    run = build_run("plectoneme", outdir=tmp_path, restart=ckpt)
     p = run.problem
     assert run.lam0 == last["attrs"]["load"] and run.step == last["step"]
     assert run.contact.mu == last["attrs"]["contact_penalty"]

@@ -9,7 +9,7 @@ from petsc4py import PETSc
 from scipy.optimize import brentq
 from scipy.special import ellipk
 
-from conftest import gathered_positions, run_case, set_options
+from conftest import build_run, gathered_positions, run_case, set_options
 
 
 def _small_problem_layout(case="michell", **kw):
@@ -20,16 +20,6 @@ def _small_problem_layout(case="michell", **kw):
     scene = read_scene(["rodsnes"], set_options(case, **kw))
     mesh = build_mesh(scene.rod, scene.bc)
     return mesh, Layout(PETSc.COMM_SELF, mesh)
-
-
-def _run_of(tmp_path, case, **kw):
-    """A Run of a small scene writing into tmp_path (the same directory on every rank), no solve."""
-    from rodsnes.run import Run
-    from rodsnes.scene import read_scene
-    mpi = PETSc.COMM_WORLD.tompi4py()
-    out = mpi.bcast(str(tmp_path) if mpi.rank == 0 else None)
-    return Run(read_scene(["rodsnes"], set_options(case, output_dir=out, quiet=True, **kw)),
-               PETSc.COMM_WORLD)
 
 
 def test_relaxation_term_residual_and_tangent_match_finite_differences():
@@ -328,7 +318,7 @@ def test_a_failed_predicted_step_is_tried_again_from_the_last_state(tmp_path):
     converged state, at the same load, before it is cut back (the secant can carry a strand
     into another); summary.json counts these retries."""
     from rodsnes.solver import StepResult
-    run = _run_of(tmp_path, "mattiasson", rod_nelem=4, load_steps=4)
+    run = build_run("mattiasson", outdir=tmp_path, rod_nelem=4, load_steps=4)
     solver = run.solver
     solve, calls = solver.solve_guarded, []
 
@@ -407,7 +397,7 @@ def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tm
     at c >= c0: c = 4^20 x 1e-12 c0 = 1.1 c0 is rejected the 21st time."""
     from rodsnes import relax as rx
     from rodsnes.solver import StepResult
-    solver = _run_of(tmp_path, "mattiasson", rod_nelem=4, load_steps=4).solver
+    solver = build_run("mattiasson", outdir=tmp_path, rod_nelem=4, load_steps=4).solver
     R = PETSc.SNES.ConvergedReason
     calls = []
 
@@ -435,7 +425,7 @@ def test_a_relaxation_step_that_changes_the_link_is_rejected(tmp_path):
     without contact snapping into a loop.)"""
     from rodsnes import relax as rx
     from rodsnes.solver import StepResult
-    run = _run_of(tmp_path, "michell", rod_nelem=8, contact=True)
+    run = build_run("michell", outdir=tmp_path, rod_nelem=8, contact=True)
     solver, p = run.solver, run.problem
     p.set_load(0.5)                       # twisted, not in equilibrium: |F| > 0
     link0 = p.topology()["link"]
