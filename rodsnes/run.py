@@ -52,9 +52,16 @@ class Run:
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
         append = False
+        if PETSc.Options().getBool("stability_switch_restart", False) and not (
+                scene.output.restart and self.solver.switch_restart):
+            from .scene import SceneError
+            raise SceneError("-stability_switch_restart relaxes the state of a -restart: give "
+                             "-restart DIR and -stability (with -stability_switch 1, the default)",
+                             ("-stability_switch_restart",))
         if scene.output.restart:
             self._restart(scene.output.restart)
-            if self.lam0 >= scene.loads.stop - 1e-14:
+            relax_only = self.solver.switch_restart and self.lam0 <= scene.loads.stop + 1e-14
+            if self.lam0 >= scene.loads.stop - 1e-14 and not relax_only:
                 from .scene import SceneError
                 raise SceneError(f"-load_stop {scene.loads.stop:g}: the run restarted from "
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
@@ -232,7 +239,7 @@ class Run:
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
                                        arc0=self.arc0, stop=ld.stop)
-        reason = None if ok else (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
+        reason = None if ok else self.solver.fail_reason or (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))
         self.writer.close()

@@ -299,6 +299,10 @@ class O:
     stability_switch = Opt(BOOL, True, "with -stability: relax a step that stays unstable onto a "
                            "stable equilibrium (branch switching; conservative loads only)",
                            "analysis")
+    stability_switch_restart = Opt(BOOL, False, "with -restart from an unstable step and "
+                                   "-stability: relax that state onto a stable equilibrium first, "
+                                   "written as a step at the same load (also at -load_stop)",
+                                   "analysis")
     stability_perturbation = Opt(REAL, 1e-2, "branch switching: initial push along the lowest "
                                  "eigenvector, largest nodal displacement / L", "analysis",
                                  rng="(0,inf)", note="a fraction of the rod length")

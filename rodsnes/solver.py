@@ -93,6 +93,9 @@ class NewtonSolver:
         # branch switching (-stability_switch, on by default with -stability): relax an unstable
         # converged step onto a stable equilibrium (switch_branch, relax.py)
         self.switch = bool(check_stability) and opts.getBool("stability_switch", True)
+        # -stability_switch_restart: a restart from an unstable step relaxes it first
+        self.switch_restart = self.switch and opts.getBool("stability_switch_restart", False)
+        self.fail_reason = None             # why run() stopped early, when not a failed step
         self.perturbation = opts.getReal("stability_perturbation", 1e-2)
         self.relax_max_it = opts.getInt("stability_relax_max_it", 200)
         self.jump_overshoot = opts.getReal("stability_jump_overshoot", 0.0)
@@ -199,6 +202,7 @@ class NewtonSolver:
         part, until it goes on stable with the load increasing); arc0: a restart inside that
         continuation (the fold's load; dlam0 is then its next arclength increment)."""
         p = self.problem
+        self.fail_reason = None
         nominal = self.nominal = 1.0 / steps   # the same load grid when a run is restarted from lam0
         lam, dlam = lam0, (nominal if dlam0 is None else min(nominal, dlam0))
         cutbacks = 0
@@ -207,6 +211,33 @@ class NewtonSolver:
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
         if nneg > 0:
             self._switch_failed_nneg = nneg
+        if self.switch_restart and arc0 is None:
+            # the restart state's inertia, counted afresh (a run without -stability stored none)
+            from .stability import negative_eigenvalues
+            p.set_load(lam)
+            nneg = self._count_negative(negative_eigenvalues)
+            if nneg == 0:
+                self._say(f"  -stability_switch_restart: the restart state at load {lam:.6f} is "
+                          f"stable (no negative eigenvalue): nothing to relax")
+        if self.switch_restart and nneg > 0 and arc0 is None:
+            # -stability_switch_restart: the restart state is unstable; relax it onto a stable
+            # equilibrium at the same load before any step (a new step, branch_switch = True)
+            self._switch_failed_nneg = None
+            res = StepResult(lam, True, 0, "restart switch", np.nan, np.array([]), 0.0)
+            res.negative_eigenvalues = nneg
+            if not self._maybe_switch(res):
+                self.fail_reason = (f"-stability_switch_restart: the branch switch at load "
+                                    f"{lam:.6f} ({nneg} negative eigenvalues) found no stable "
+                                    f"equilibrium; the restart state is unchanged")
+                return results, False
+            res.its = res.switch_info["newton_its"]     # (already in total_its)
+            self.keep_penetration(res)
+            nneg = res.negative_eigenvalues
+            prev, dlam = None, nominal
+            res.next_increment = nominal
+            results.append(res)
+            if on_step is not None:
+                on_step(res)
         if arc0 is not None:
             ok, prev, lam, nneg = self._around_fold(arc0, on_step, prev0, dlam0)
             if not ok:

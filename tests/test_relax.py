@@ -445,3 +445,33 @@ def test_a_relaxation_step_that_changes_the_link_is_rejected(tmp_path):
     rr = rx.relax_phase(solver, 0.5, 10.0, 1e-12, max_steps=6, single_step=True)
     assert rr.crossings == 2 and rr.rejected == 2 and rr.steps == 4
     assert abs(real()["link"] - link0) < 1e-9
+
+
+@pytest.mark.mpi
+def test_a_restart_from_an_unstable_state_is_relaxed_onto_a_stable_one():
+    """-stability_switch_restart: a restart from an unstable equilibrium (the twisted ring at 2.5
+    > sqrt(3) turns, left on the circle by plain load stepping, which stores no inertia) counts
+    its negative eigenvalues afresh and relaxes it onto a stable equilibrium at the same load,
+    also when the restart stands at -load_stop already: one new step, branch_switch, no
+    negative eigenvalue, the energy well below the circle's.  Without -restart, or without
+    -stability, the option is refused by name."""
+    from rodsnes.output import read_step
+    from rodsnes.scene import SceneError
+    kw = dict(load_twist_turns=2.5, rod_nelem=12)
+    circle = run_case("michell", **kw)          # rank 0's directory on every rank
+    assert circle.ok and abs(circle.last_topology["writhe"]) < 1e-3
+    nsteps = len(circle.history)
+    run = run_case("michell", outdir=circle.outdir + "_relaxed", restart=circle.outdir,
+                   stability=True, stability_switch_restart=True, **kw)
+    assert run.ok
+    assert len(run.history) == 1
+    h = run.history[0]
+    assert h["load"] == 1.0 and h["branch_switch"] and h["negative_eigenvalues"] == 0
+    assert h["residual_norm"] <= run.solver.tolerance()
+    assert run.last_energy < 0.5 * circle.last_energy
+    last = read_step(run.outdir, -1)
+    assert last["step"] == nsteps + 1 and last["attrs"]["branch_switch"]
+    for bad in (dict(stability=True), dict(restart=circle.outdir)):
+        with pytest.raises(SceneError, match="-stability_switch_restart"):
+            build_run("michell", outdir=circle.outdir + "_bad", stability_switch_restart=True,
+                      **bad, **kw)
