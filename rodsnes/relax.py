@@ -40,6 +40,14 @@ from . import fe, so3
 from .partition import NDOF
 
 
+# Newton iterations of the damped problem per Levenberg-Marquardt step: the second corrects the
+# first's linearisation error (a second-order correction).  A linearised step that turns a rod
+# by da stretches it by ~da^2/2, which the stiff axial term prices at ~EA da^4/8, so one
+# iteration is kept only for tiny da: Mattiasson's cantilever (EA = 1e6 EI/L^2), first of 10
+# load steps: 97 LM steps (12 rejected, 109 iterations) with 1, 14 (none rejected, 28) with 2.
+LM_ITS = 2
+
+
 def _MAX():
     from mpi4py import MPI
     return MPI.MAX
@@ -109,6 +117,20 @@ class RelaxationTerm:
         self.c = float(c)
         self.c_rot = self.c * self.rot_length**2 if c_rot is None else float(c_rot)
 
+    def roundoff(self, size, n_nodes):
+        """Roundoff floor of the term's residual: c M_i (x_i - a_i) with x_i, a_i of size
+        ``size`` carries an error of eps |x| c M_i per row, so over n_nodes rows
+
+            3 eps c max(M) size sqrt(n_nodes)
+
+        (the moment rows c l^2 M psi are smaller for l < size).  At c = 1.7e9 on the
+        plectoneme this is 8e-8, above the elastic floor 3.2e-9: without it every damped solve
+        with a large c failed at its iteration limit.  Collective (max over ranks)."""
+        from mpi4py import MPI
+        m = float(np.max(self.M, initial=0.0))
+        m = self.layout.comm.tompi4py().allreduce(m, op=MPI.MAX)
+        return 3 * np.finfo(float).eps * self.c * m * size * np.sqrt(n_nodes)
+
     def set_anchor(self, r_loc, q_loc):
         """Anchor at the local (owned + ghost) configuration, e.g. state.local_config()."""
         self.a = np.array(r_loc[:self.no], dtype=float)
@@ -144,6 +166,9 @@ class RelaxResult:
     def __init__(self):
         self.ok, self.steps, self.rejected, self.newton_its = False, 0, 0, 0
         self.crossings = 0      # steps rejected because the link changed
+        # rejected steps by cause: the damped solve failed, the energy rose, a node moved
+        # beyond the move limit, the link changed
+        self.causes = {"solve": 0, "uphill": 0, "too far": 0, "crossing": 0}
         self.energies, self.log, self.message = [], [], ""
         self.fnorm = np.nan
 
@@ -199,6 +224,8 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     out.ok, out.message, out.c_last, out.fnorm = lm.ok, lm.message, lm.c_last, lm.fnorm
     out.steps += lm.steps
     out.rejected += lm.rejected
+    out.crossings += lm.crossings
+    out.causes = {k: v + lm.causes[k] for k, v in out.causes.items()}
     out.newton_its += lm.newton_its
     out.energies += lm.energies[1:]
     out.log += lm.log[1:]
@@ -206,7 +233,7 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
 
 
 def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_it=12,
-                max_move=None, single_step=False):
+                max_move=None, single_step=False, progress_every=25):
     """Implicit gradient flow at load factor lam from the current state to an equilibrium of
     lower energy (module docstring).  solver: NewtonSolver (solve_at, problem); c0: initial c;
     tol: undamped |F| to stop at; max_move: largest nodal displacement of one pseudo-time step
@@ -215,12 +242,15 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     again before returning; the state is the last accepted pseudo-time step.  Collective: every decision
     uses rank 0's values of energies, norms and displacements, and SNES reasons.
 
-    single_step: Levenberg-Marquardt instead of the implicit flow: one Newton step of the damped
-    problem per pseudo-time step, (K + c M) dx = -F, kept when the energy falls (and the move
-    limit holds), c / 3 after a kept step, c x grow after a rejected one.  As c falls the steps
+    single_step: Levenberg-Marquardt instead of the implicit flow: LM_ITS (2) Newton steps of the
+    damped problem per pseudo-time step, (K + c M) dx = -F, then the same at the new point (a
+    second-order correction, same anchor), kept when the energy falls (and the move limit holds), c / 3 after a kept step, c x grow after a rejected one.  As c falls the steps
     become Newton's, so the end game converges quadratically, while a soft mode (a closed
     uniform ring sliding along itself is a symmetry of the continuous problem; only the
-    discretisation pins it) cannot throw the iterate far: its step is bounded by |F| / (c M)."""
+    discretisation pins it) cannot throw the iterate far: its step is bounded by |F| / (c M).
+
+    Every ``progress_every`` accepted steps rank 0 prints the energy, undamped |F| and c
+    (NewtonSolver._say: silent with -quiet)."""
     p = solver.problem
     comm = p.layout.comm.tompi4py()
 
@@ -265,7 +295,10 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     max_rejected_row = 12   # c grown by >= grow^12 (1.7e7) without an acceptable step
     snes = solver.snes
     tols = snes.getTolerances()
-    snes.setTolerances(max_it=1 if single_step else newton_max_it)  # more: c too small
+    floor0 = solver.floor
+    size = same(comm.allreduce(float(np.abs(p.state.local_config()[0]).max(initial=0.0)),
+                               op=_MAX())) + p.mesh.length
+    snes.setTolerances(max_it=LM_ITS if single_step else newton_max_it)  # more: c too small
     try:
         while out.steps + out.rejected < max_steps:
             if f <= tol:
@@ -273,15 +306,17 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                 break
             term.set_stiffness(c)
             term.set_anchor(*p.state.local_config())
+            solver.floor = max(floor0, term.roundoff(size, p.mesh.n_nodes))
             max_move = same(move_limit())
             snap = p.state.snapshot()
             res = solver.solve_guarded(lam)
             out.newton_its += res.its
             ok, fac, too_far = False, grow, False
+            cause = "solve"         # why a step is rejected: RelaxResult.causes
             done = res.converged
-            if single_step:      # one Newton step taken, finite: a candidate LM step
+            if single_step:      # LM_ITS Newton steps taken (or converged), finite: a candidate
                 R = PETSc.SNES.ConvergedReason
-                done = res.its == 1 and res.reason in (R.DIVERGED_MAX_IT, R.CONVERGED_FNORM_ABS,
+                done = 1 <= res.its <= LM_ITS and res.reason in (R.DIVERGED_MAX_IT, R.CONVERGED_FNORM_ABS,
                                                         R.CONVERGED_FNORM_RELATIVE) \
                     and bool(np.all(np.isfinite(res.history)))
             if done:
@@ -290,12 +325,14 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                 move = same(comm.allreduce(move, op=_MAX()))
                 E_new = same(undamped_energy(p, term))
                 ok = E_new <= E + Etol(E_new) and move <= max_move
+                cause = "uphill" if E_new > E + Etol(E_new) else "too far"
                 if ok and link0 is not None and not abs(same(p.topology()["link"]) - link0) < 0.5:
                     # the link changed: a strand went through another (where the exclusion
                     # hides a tight loop's neighbour, or through a penalty that long steps
                     # overcome): not a motion of the rod; a shorter step, and keep above this c
                     ok = False
                     out.crossings += 1
+                    cause = "crossing"
                 elif move > max_move and E_new <= E + Etol(E_new):
                     # too long a step, but downhill: the move scales as 1/c, aim at 0.8 max_move
                     fac = max(1.25 * move / max_move, 1.5)
@@ -308,6 +345,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                 p.state.restore(snap)
                 p.set_load(lam)
                 out.rejected += 1
+                out.causes[cause] += 1
                 out.log.append((c, res.its, np.nan, np.nan, str(res.reason)))
                 if stuck >= 3:      # fails at the anchor itself, whatever c: not a step size issue
                     out.message = (f"the damped solve fails at the state itself (SNES reason "
@@ -355,6 +393,13 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
             c_floor *= 0.9
             c = max(c * ratio, c_min, c_floor)
             E, f = E_new, f_new
+            if out.steps % progress_every == 0 and hasattr(solver, "_say"):
+                # a long relaxation (hundreds of steps, minutes each on a plectoneme) shows
+                # that it is on its way: rank 0 prints, unless -output_quiet
+                solver._say(f"  relaxation ({'Levenberg-Marquardt' if single_step else 'flow'})"
+                            f": {out.steps} steps ({out.rejected} rejected), E {E:.9g}, "
+                            f"undamped |F| {f:.3e}, c {c:.3e}; rejected: "
+                            + ", ".join(f"{k} {v}" for k, v in out.causes.items() if v))
         else:
             out.ok = f <= tol
         if not out.ok and not out.message:
@@ -363,6 +408,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     finally:
         p.extra_terms = [t for t in p.extra_terms if t is not term]
         snes.setTolerances(max_it=tols[3])
+        solver.floor = floor0
         F.destroy()
     out.c_last, out.fnorm = c, f
     return out

@@ -475,3 +475,38 @@ def test_a_restart_from_an_unstable_state_is_relaxed_onto_a_stable_one():
         with pytest.raises(SceneError, match="-stability_switch_restart"):
             build_run("michell", outdir=circle.outdir + "_bad", stability_switch_restart=True,
                       **bad, **kw)
+
+
+def test_damped_solves_at_a_large_stiffness_meet_the_roundoff_of_the_term(capsys):
+    """The pseudo-time term c M (x - a) carries a roundoff error eps |x| c M per row; a damped
+    solve is converged once its residual is at that floor (RelaxationTerm.roundoff), else every
+    solve at a large c fails at its iteration limit (the plectoneme's flow at c > 1e9: 8e-8
+    against the elastic floor 3.2e-9).  Mattiasson's cantilever at c = 1e12: all three steps are
+    taken (without the term's floor all three damped solves fail), the solver's own floor is
+    restored afterwards, and the progress line names the steps and rejections."""
+    from rodsnes.relax import relax_phase
+    run = build_run("mattiasson", load_steps=10, quiet=False)
+    s = run.solver
+    floor = s.floor
+    s.problem.set_load(0.1)
+    rr = relax_phase(s, 0.1, 1e12, s.tolerance(), max_steps=3, progress_every=1)
+    assert rr.steps == 3 and rr.rejected == 0 and rr.causes["solve"] == 0
+    assert s.floor == floor
+    out = capsys.readouterr().out
+    if run.comm.getRank() == 0:
+        assert "relaxation (flow): 3 steps (0 rejected)" in out
+
+
+def test_levenberg_marquardt_corrects_its_step_before_judging_it():
+    """An LM step is LM_ITS = 2 Newton iterations of the damped problem (the second corrects the
+    first's linearisation error): from the straight cantilever at a tenth of Mattiasson's load,
+    where a linearised turn stretches the stiff rod (EA = 1e6 EI/L^2) and one iteration is kept
+    only for tiny turns (97 steps, 12 rejected), LM converges in at most 20 steps."""
+    import rodsnes.relax as R
+    run = build_run("mattiasson", load_steps=10)
+    s = run.solver
+    s.problem.set_load(0.1)
+    rr = R.relax_phase(s, 0.1, s._first_stiffness(), s.tolerance(), max_steps=40,
+                       single_step=True)
+    assert R.LM_ITS == 2
+    assert rr.ok and rr.steps <= 20 and rr.rejected <= 2, (rr.steps, rr.rejected)
