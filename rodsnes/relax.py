@@ -46,6 +46,9 @@ from .partition import NDOF
 # iteration is kept only for tiny da: Mattiasson's cantilever (EA = 1e6 EI/L^2), first of 10
 # load steps: 97 LM steps (12 rejected, 109 iterations) with 1, 14 (none rejected, 28) with 2.
 LM_ITS = 2
+# kept flow steps over which the energy must fall by more than 1000 x its roundoff, else the
+# flow is pinned and relax() hands over to Levenberg-Marquardt
+PINNED_WINDOW = 25
 
 
 def _MAX():
@@ -288,6 +291,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     link0 = None if topo is None else same(topo["link"])
     p.extra_terms.append(term)
     c = float(c0)
+    E_window = E            # energy PINNED_WINDOW kept steps ago (flow only)
     cooldown = 0            # accepted steps after a rejection during which c may not fall
     c_floor = 0.0           # c may not fall below it: twice the last failed c, decaying 0.9x per step
     stuck = 0               # damped solves in a row that failed before any Newton step
@@ -395,11 +399,21 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
             E, f = E_new, f_new
             if out.steps % progress_every == 0 and hasattr(solver, "_say"):
                 # a long relaxation (hundreds of steps, minutes each on a plectoneme) shows
-                # that it is on its way: rank 0 prints, unless -output_quiet
+                # that it is on its way: rank 0 prints, unless -quiet
                 solver._say(f"  relaxation ({'Levenberg-Marquardt' if single_step else 'flow'})"
                             f": {out.steps} steps ({out.rejected} rejected), E {E:.9g}, "
                             f"undamped |F| {f:.3e}, c {c:.3e}; rejected: "
                             + ", ".join(f"{k} {v}" for k, v in out.causes.items() if v))
+            if not single_step and out.steps % PINNED_WINDOW == 0:
+                # the flow pinned: its damped solves fail below some c, the floor keeps c above
+                # it, and the kept steps no longer move (the plectoneme at 9.415 turns: c 1e11 -
+                # 2e13, E equal to 1e-6 over 125 kept steps); Levenberg-Marquardt takes over
+                if E_window - E <= 1000 * Etol(E):
+                    out.message = (f"pinned after {out.steps} pseudo-time steps: the energy fell "
+                                   f"by {E_window - E:.2e} over the last {PINNED_WINDOW} "
+                                   f"(c = {c:.3e}, undamped |F| = {f:.3e})")
+                    break
+                E_window = E
         else:
             out.ok = f <= tol
         if not out.ok and not out.message:

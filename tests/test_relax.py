@@ -510,3 +510,21 @@ def test_levenberg_marquardt_corrects_its_step_before_judging_it():
                        single_step=True)
     assert R.LM_ITS == 2
     assert rr.ok and rr.steps <= 20 and rr.rejected <= 2, (rr.steps, rr.rejected)
+
+
+def test_a_flow_that_no_longer_lowers_the_energy_is_pinned_and_stops():
+    """A flow held at a large c (here by c_min; on the plectoneme at 9.415 turns by the floor
+    over c's that failed) keeps steps that do not move: once the energy has fallen by less than
+    1000 x its roundoff over PINNED_WINDOW kept steps the phase stops ("pinned"), and relax()
+    hands over to Levenberg-Marquardt.  The same flow with c free to fall is not pinned."""
+    import rodsnes.relax as R
+    run = build_run("mattiasson", load_steps=10)
+    s = run.solver
+    s.problem.set_load(0.1)
+    snap = s.problem.state.snapshot()
+    rr = R.relax_phase(s, 0.1, 1e12, s.tolerance(), max_steps=200, c_min=1e12)
+    assert rr.steps == R.PINNED_WINDOW and rr.message.startswith("pinned"), rr.message
+    s.problem.state.restore(snap)
+    s.problem.set_load(0.1)
+    rr = R.relax_phase(s, 0.1, 1e12, s.tolerance(), max_steps=200)
+    assert rr.ok and not rr.message, rr.message
