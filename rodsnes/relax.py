@@ -49,6 +49,8 @@ LM_ITS = 2
 # kept flow steps over which the energy must fall by more than 1000 x its roundoff, else the
 # flow is pinned and relax() hands over to Levenberg-Marquardt
 PINNED_WINDOW = 25
+# with contact a kept step may not press the strands deeper than this x -contact_penetration
+PENETRATION_GUARD = 10.0
 
 
 def _MAX():
@@ -170,8 +172,8 @@ class RelaxResult:
         self.ok, self.steps, self.rejected, self.newton_its = False, 0, 0, 0
         self.crossings = 0      # steps rejected because the link changed
         # rejected steps by cause: the damped solve failed, the energy rose, a node moved
-        # beyond the move limit, the link changed
-        self.causes = {"solve": 0, "uphill": 0, "too far": 0, "crossing": 0}
+        # beyond the move limit, the link changed, the strands pressed too deep
+        self.causes = {"solve": 0, "uphill": 0, "too far": 0, "crossing": 0, "penetration": 0}
         self.energies, self.log, self.message = [], [], ""
         self.fnorm = np.nan
 
@@ -289,6 +291,13 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     # twisted rod without contact snaps into a loop through itself)
     topo = p.topology() if p.contact is not None else None
     link0 = None if topo is None else same(topo["link"])
+    # with contact no kept step may press the strands deeper than PENETRATION_GUARD x the
+    # promised penetration (or than the start, if deeper): contact must hold in large steps too
+    pen_limit = None
+    if p.contact is not None:
+        p.contact.energy(p.state.local_config()[0])
+        pen_limit = max(PENETRATION_GUARD * p.contact.penetration,
+                        same(p.contact.deepest()) / (2.0 * p.contact.eps))
     p.extra_terms.append(term)
     c = float(c0)
     E_window = E            # energy PINNED_WINDOW kept steps ago (flow only)
@@ -337,6 +346,14 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                     ok = False
                     out.crossings += 1
                     cause = "crossing"
+                elif ok and pen_limit is not None and \
+                        same(p.contact.deepest()) > pen_limit * 2.0 * p.contact.eps:
+                    # the strands pressed into each other far beyond the penalty's promise: the
+                    # Newton precheck lets each iteration double the deepest penetration, so over
+                    # many steps they can sink into each other until the link changes (the
+                    # plectoneme's switch at 9.415 turns: 21 crossings, then stalled at c = 4e26)
+                    ok = False
+                    cause = "penetration"
                 elif move > max_move and E_new <= E + Etol(E_new):
                     # too long a step, but downhill: the move scales as 1/c, aim at 0.8 max_move
                     fac = max(1.25 * move / max_move, 1.5)

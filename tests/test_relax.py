@@ -528,3 +528,31 @@ def test_a_flow_that_no_longer_lowers_the_energy_is_pinned_and_stops():
     s.problem.set_load(0.1)
     rr = R.relax_phase(s, 0.1, 1e12, s.tolerance(), max_steps=200)
     assert rr.ok and not rr.message, rr.message
+
+
+def test_a_relaxation_step_that_presses_the_strands_too_deep_is_rejected(tmp_path):
+    """relax_phase with contact: a kept step after which the deepest penetration exceeds
+    PENETRATION_GUARD x -contact_penetration (or the start's, if deeper) is rejected (the Newton
+    precheck lets each iteration double the penetration, and over the plectoneme's 150-step
+    switch at 9.415 turns the strands sank into each other until every step changed the link).
+    The damped solve is faked (the state stays) and the deepest penetration reported at 20 %
+    of the diameter for the 2nd and 3rd candidate steps: 2 rejections, by cause penetration."""
+    from rodsnes import relax as rx
+    from rodsnes.solver import StepResult
+    run = build_run("michell", outdir=tmp_path, rod_nelem=8, contact=True)
+    solver, p = run.solver, run.problem
+    p.set_load(0.5)
+    R = PETSc.SNES.ConvergedReason
+    solver.solve_guarded = lambda lam: StepResult(lam, False, 1, R.DIVERGED_MAX_IT, 1.0, [1.0], 0.0)
+    calls = []
+    real = p.contact.deepest
+
+    def deepest(r_loc=None):
+        calls.append(1)
+        d = real(r_loc)
+        return 0.2 * 2 * p.contact.eps if len(calls) in (3, 4) else d   # 1: the start
+
+    p.contact.deepest = deepest
+    assert rx.PENETRATION_GUARD * p.contact.penetration < 0.2
+    rr = rx.relax_phase(solver, 0.5, 10.0, 1e-12, max_steps=6, single_step=True)
+    assert rr.causes["penetration"] == 2 and rr.rejected == 2 and rr.steps == 4, rr.causes
