@@ -301,6 +301,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     p.extra_terms.append(term)
     c = float(c0)
     E_window = E            # energy PINNED_WINDOW kept steps ago (flow only)
+    far_move = None         # the move of the last step rejected as too far, in a row
     cooldown = 0            # accepted steps after a rejection during which c may not fall
     c_floor = 0.0           # c may not fall below it: twice the last failed c, decaying 0.9x per step
     stuck = 0               # damped solves in a row that failed before any Newton step
@@ -358,6 +359,14 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                     # too long a step, but downhill: the move scales as 1/c, aim at 0.8 max_move
                     fac = max(1.25 * move / max_move, 1.5)
                     too_far = True
+                    if far_move is not None and move > 0.7 * far_move:
+                        # it did not: c is below K's stiffness along the step, which is then
+                        # Newton's whatever c (the plectoneme's switch at 9.415 turns: c grew
+                        # x 1.5 per rejection from 2e-3 to 3e2 until the phase stalled)
+                        fac = max(fac, grow)
+                    far_move = move
+            if not too_far:
+                far_move = None
             stuck = stuck + 1 if (not res.converged and res.its == 0) else 0
             rejected_row = 0 if ok else rejected_row + 1
             if not ok:
@@ -380,7 +389,9 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                                                          or rejected_row >= 3 * max_rejected_row):
                     out.message = (f"stalled after {out.steps} pseudo-time steps: {rejected_row} "
                                    f"damped solves in a row rejected (last SNES reason "
-                                   f"{res.reason}, c = {c:.3e}, undamped |F| = {f:.3e})")
+                                   f"{res.reason}, c = {c:.3e}, undamped |F| = {f:.3e}; "
+                                   f"rejected: " + ", ".join(f"{k} {v}" for k, v in
+                                                             out.causes.items() if v) + ")")
                     break
                 if not too_far:
                     # a c that failed fails again a few steps later: keep above it for a while

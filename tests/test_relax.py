@@ -556,3 +556,29 @@ def test_a_relaxation_step_that_presses_the_strands_too_deep_is_rejected(tmp_pat
     assert rx.PENETRATION_GUARD * p.contact.penetration < 0.2
     rr = rx.relax_phase(solver, 0.5, 10.0, 1e-12, max_steps=6, single_step=True)
     assert rr.causes["penetration"] == 2 and rr.rejected == 2 and rr.steps == 4, rr.causes
+
+
+def test_a_step_too_long_whatever_c_grows_c_faster(tmp_path):
+    """relax_phase: a step rejected as too long (downhill, but a node moved beyond max_move)
+    scales c by 1.25 x move / max_move (the move ~ 1/c); when the next one moves nearly as far
+    (c is below the stiffness along the step, which is then Newton's whatever c) c grows by the
+    full factor 4.  The damped solve is faked as a rigid translation of the Michell ring by
+    1.5 max_move (the energy unchanged): c x 1.875, then x 4 at every further rejection."""
+    from rodsnes import relax as rx
+    from rodsnes.solver import StepResult
+    run = build_run("michell", outdir=tmp_path, rod_nelem=8)
+    solver, p = run.solver, run.problem
+    p.set_load(0.5)
+    R = PETSc.SNES.ConvergedReason
+    cs = []
+
+    def translate(lam):
+        cs.append(p.extra_terms[-1].c)
+        with p.state.X as a:
+            a.reshape(-1, 6)[:, 0] += 0.15
+        return StepResult(lam, False, 1, R.DIVERGED_MAX_IT, 1.0, [1.0], 0.0)
+
+    solver.solve_guarded = translate
+    rr = rx.relax_phase(solver, 0.5, 10.0, 1e-12, max_steps=5, single_step=True, max_move=0.1)
+    assert rr.steps == 0 and rr.causes["too far"] == 5
+    assert np.allclose(np.array(cs[1:]) / np.array(cs[:-1]), [1.875, 4, 4, 4])
