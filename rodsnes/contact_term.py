@@ -62,6 +62,15 @@ class ContactTerm:
         self.sf_builds = 0
         self._cache = None              # (positions, evaluation, near_local) of the last one
         self.cache_hits = 0
+        # the clamps' mounts (support.py): a rod clamped at its start and sliding at its end
+        self.supports = None
+        bc = scene.bc
+        if c.supports and not mesh.closed and bc.start == "clamped" and bc.end == "sliding":
+            from . import so3
+            from .support import SupportTerm
+            self.supports = SupportTerm(mesh, layout, self.kernel, mesh.x_init[0],
+                                        so3.rot(mesh.q_init[0])[:, 2],
+                                        so3.rot(mesh.q_init[-1])[:, 2])
 
     def set_penalty(self, mu):
         """Change the penalty stiffness mu (E_c = (mu/2) int <d>^2 ds); drops the cached
@@ -148,6 +157,9 @@ class ContactTerm:
         x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, m.order + 1, 3))
         out = self.kernel.evaluate(self.own_ids, x_own, other, x_other, pairs, tangent=True)
         out["nodes"] = nodes
+        if self.supports is not None:
+            out["support"] = self.supports.evaluate(r_loc)
+            out["energy"] += out["support"]["energy"]
         # owned nodes of elements within one contact radius of touching something (gap > -eps):
         # the step limiter watches them
         close = np.flatnonzero(out["gap"].max(axis=1) > -self.eps) if len(self.own_ids) else []
@@ -168,6 +180,8 @@ class ContactTerm:
             master_nodes = ck.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
             np.add.at(leaf_force, np.searchsorted(out["nodes"], master_nodes), out["vec"][:, n1:])
         Floc[:self.layout.n_owned, 0:3] += self._send_back(leaf_force)
+        if self.supports is not None:
+            self.supports.add_residual(out["support"], Floc)
 
     def add_jacobian(self, r_loc, P):
         """The kernel's tangent blocks: [slave, master] per active point, [slave, A, B] per
@@ -176,6 +190,8 @@ class ContactTerm:
         for elems, mat in ((out["active"], out["mat"]), (out["switch"], out["switch_mat"])):
             if len(elems):
                 self._add_blocks(P, elems, mat)
+        if self.supports is not None:
+            self.supports.add_jacobian(out["support"], P)
 
     def _add_blocks(self, P, elems, mat):
         m = self.mesh
@@ -205,6 +221,8 @@ class ContactTerm:
         pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, cen, rad,
                                                           self.reach + 2.0 * self.eps)])
         pairs = np.concatenate(self.comm.allgather(pairs))
+        if self.supports is not None:
+            pairs = np.concatenate([pairs.reshape(-1, 2), self.supports.pattern_pairs()])
         if len(pairs):
             pairs = np.unique(np.sort(pairs, axis=1), axis=0)
         return pairs.reshape(-1, 2).astype(np.int64)
@@ -267,7 +285,8 @@ class ContactTerm:
         return {"min_gap": float(-dmax), "max_penetration": float(max(dmax, 0.0) / (2 * self.eps)),
                 "total_force": float(tot[0]), "complementarity": float(tot[1]),
                 "active_points": int(tot[2]), "zones": int(tot[3]), "penalty": self.mu,
-                "radius": self.eps, "exclusion": self.delta}
+                "radius": self.eps, "exclusion": self.delta,
+                **(self.supports.summary(out["support"]) if self.supports is not None else {})}
 
     def deepest(self, r_loc=None):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
@@ -280,8 +299,12 @@ class ContactTerm:
     def deepest_local(out):
         """max d over this rank's Gauss and zone points of an evaluation ``out``."""
         gap = out["gap"]
-        return max(float(gap.max()) if gap.size else -np.inf,
+        deep = max(float(gap.max()) if gap.size else -np.inf,
                    float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
+        if "support" in out:            # the tube pressing into a clamp's mount (support.py)
+            from .support import SupportTerm
+            deep = max(deep, SupportTerm.deepest_local(out["support"]))
+        return deep
 
     def qp_fields(self):
         out = self.last

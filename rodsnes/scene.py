@@ -281,6 +281,10 @@ class O:
                             "exclusion pi*radius hides no penetration", "contact")
     contact_zones = Opt(BOOL, True, "integrate the penalty over the contact zones (d > 0, found by "
                         "root finding) instead of at fixed Gauss points", "contact")
+    contact_supports = Opt(BOOL, True, "with -bc_start clamped -bc_end sliding, the clamps' mounts "
+                           "are obstacles: the axis behind the start and beyond the end, along "
+                           "which the link is counted (a rod going round a clamp would change it)",
+                           "contact")
     contact_quadrature = Opt(INT, None, "points per element for the contact integral", "contact",
                              rng="[1,inf)", shown="order+2",
                              note="quadrature points per element")
@@ -435,6 +439,7 @@ class Contact:
     penetration: float = 0.01       # promised largest penetration, fraction of 2 eps
     adapt: bool = True              # raise mu after a step that breaks the promise
     curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
+    supports: bool = True           # the clamps' mounts as obstacles (support.py)
 
 
 @dataclass
@@ -686,7 +691,7 @@ def read_scene(argv=None, options=None):
     rod, material = _rod(c)
     bc = _bc(c, rod)
     loads = _loads(c, rod, bc)
-    contact = _contact(c, rod)
+    contact = _contact(c, rod, bc)
     output = _output(c, argv)
     c.raise_if_any()
     rod = Rod(**rod, **material)
@@ -913,7 +918,7 @@ def _loads(c, rod, bc):
                  twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]))
 
 
-def _contact(c, rod):
+def _contact(c, rod, bc):
     enabled = bool(c[O.contact])
     rc = _f(c[O.contact_radius])
     q = c[O.contact_quadrature]
@@ -940,6 +945,12 @@ def _contact(c, rod):
                        "-contact_curvature false" % (", ".join(c.show(o) for o in opts), kappa,
                                                      1.0 / rcontact),
                        *opts, O.contact_radius, O.contact_curvature)
+    if enabled and c.given(O.contact_supports) and c[O.contact_supports] and \
+            (rod["closed"] or bc.start != "clamped" or bc.end != "sliding"):
+        c.fail("%s: the clamps' mounts are modelled for an open rod clamped at its start and "
+               "sliding at its end (-bc_start clamped -bc_end sliding, here %s, %s); drop the "
+               "option or change the supports" % (c.show(O.contact_supports), bc.start, bc.end),
+               O.contact_supports, O.bc_start, O.bc_end)
     penalty = _f(c[O.contact_penalty])
     # a penalty the user chose is kept as given unless adaptation is asked for explicitly
     adapt = bool(c[O.contact_penalty_adapt]) if c.given(O.contact_penalty_adapt) else penalty is None
@@ -948,7 +959,8 @@ def _contact(c, rod):
                    quadrature=int(q) if q is not None else rod["order"] + 2,
                    zones=bool(c[O.contact_zones]),
                    penetration=float(c[O.contact_penetration]), adapt=adapt,
-                   curvature=bool(c[O.contact_curvature]))
+                   curvature=bool(c[O.contact_curvature]),
+                   supports=bool(c[O.contact_supports]))
 
 
 def _output(c, argv):

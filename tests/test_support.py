@@ -1,0 +1,153 @@
+"""The clamps' mounts as obstacles (rodsnes/support.py, -contact_supports): the half-line
+distance, the assembled tangent against finite differences of the assembled residual with the
+rod pressing on both mounts, one rank
+against two, and a relaxation that would go round the start clamp."""
+import numpy as np
+import pytest
+from mpi4py import MPI
+from petsc4py import PETSc
+from scipy.interpolate import CubicSpline
+
+from conftest import build_run
+from rodsnes import so3, support
+from rodsnes.partition import NDOF
+from rodsnes.scene import SceneError
+
+SETUP = dict(rod_nelem=16, load_steps=1, rod_imperfection=0)
+
+# waypoints of a centreline that leaves the start clamp along +x, passes behind it across the
+# start's mount (x < 0 near the axis), then beyond the sliding end across its mount (x > x_N),
+# before it arrives at x_N = 0.4 along +x (the end's cap, x_N itself, cannot be touched without
+# the tube pressing into its own last stretch: the kernel's test covers it)
+WAYPOINTS = np.array([[0.0, 0.0, 0.0], [0.12, 0.0, 0.0], [0.2, 0.15, 0.0], [0.0, 0.22, 0.01],
+                      [-0.15, 0.012, 0.008], [0.0, -0.2, 0.0], [0.4, -0.22, 0.0],
+                      [0.58, 0.01, -0.012], [0.5, 0.25, 0.0], [0.3, 0.3, -0.15],
+                      [0.2, 0.0, -0.12], [0.3, 0.0, 0.0], [0.4, 0.0, 0.0]])
+
+
+def pressed(comm=None, outdir=None, **kw):
+    """The plectoneme scene, unloaded, put on the WAYPOINTS curve: the tube presses into both
+    mounts, and nowhere into itself."""
+    run = build_run("plectoneme", comm=comm, outdir=outdir, **{**SETUP, **kw})
+    p, lay, m = run.problem, run.layout, run.mesh
+    chord = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(WAYPOINTS, axis=0), axis=1))]
+    curve = CubicSpline(chord / chord[-1], WAYPOINTS, bc_type=((1, [1.0, 0, 0]), (1, [1.0, 0, 0])))
+    u = m.s_nodes / m.length
+    x, t = curve(u), curve(u, 1)
+    q = so3.quat_from_rot(so3.frame_from_tangent(t / np.linalg.norm(t, axis=1)[:, None]))
+    p.state.q_ref[:] = q[lay.local_nodes]
+    with p.state.X as a:
+        a = a.reshape(-1, NDOF)
+        a[:, 0:3] = x[lay.owned_nodes]
+        a[:, 3:6] = 0.0
+    return run
+
+
+def test_half_line_distance_and_its_derivatives():
+    rng = np.random.default_rng(0)
+    p, e = np.array([0.3, -0.1, 0.2]), np.array([0.0, 0.6, 0.8])
+    x = p + rng.normal(scale=0.05, size=(40, 3))
+    dist, n, A = support.half_line_distance(x, p, e)
+    # the closest point by brute force over the half-line
+    t = np.linspace(0.0, 1.0, 200001)
+    brute = np.array([np.linalg.norm(xi - p - t[:, None] * e, axis=1).min() for xi in x])
+    assert np.abs(dist - brute).max() < 1e-9
+    body = (x - p) @ e > 0
+    assert body.any() and (~body).any()           # both the body and the end point are met
+    eps, mu = 0.03, 7.0
+    w = rng.uniform(0.5, 1.5, size=len(x))
+    E, g, grad, H = support.penalty(x, w, p, e, eps, mu)
+    assert (g > 0).any() and (g < 0).any()
+    h = 1e-6
+    for i in np.flatnonzero(g > 1e-4)[:6]:
+        for k in range(3):
+            dx = np.zeros_like(x)
+            dx[i, k] = h
+            Ep = support.penalty(x + dx, w, p, e, eps, mu)
+            Em = support.penalty(x - dx, w, p, e, eps, mu)
+            assert (Ep[0] - Em[0]) / (2 * h) == pytest.approx(grad[i, k], rel=1e-6, abs=1e-9)
+            assert (Ep[2][i] - Em[2][i]) / (2 * h) == pytest.approx(H[i][:, k], rel=1e-5, abs=1e-7)
+    # translating the half-line's end point is minus translating the points (d/dp = -d/dx)
+    dp = np.array([1e-6, 0.0, 0.0])
+    Ep, Em = support.penalty(x, w, p + dp, e, eps, mu)[0], support.penalty(x, w, p - dp, e, eps, mu)[0]
+    assert (Ep - Em) / 2e-6 == pytest.approx(-grad[:, 0].sum(), rel=1e-6)
+
+
+@pytest.mark.mpi
+def test_assembled_tangent_matches_finite_differences_on_the_mounts():
+    run = pressed()
+    p = run.problem
+    X = p.state.X
+    F = X.duplicate()
+    p.residual(None, X, F)
+    c = run.contact.summary()
+    assert c["support_points"] > 0 and c["support_force"] > 0 and c["support_min_gap"] < 0
+    out = run.contact.last["support"]
+    assert c["active_points"] == 0           # the tube does not touch itself
+    # each mount is pressed (on some rank)
+    loc = np.array([float(out["gap"][0].max(initial=-1)), float(out["gap"][1].max(initial=-1))])
+    tot = np.empty_like(loc)
+    run.contact.comm.Allreduce(loc, tot, op=MPI.MAX)
+    assert tot[0] > 0 and tot[1] > 0
+    J = p.layout.create_matrix(p.contact.extra_pattern(p.state.local_config()[0]))
+    p.jacobian(None, X, J, J)
+    assert J.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["mallocs"] == 0
+    rng = np.random.default_rng(5 + PETSc.COMM_WORLD.getRank())
+    v = X.duplicate()
+    with v as a:
+        a[:] = rng.normal(size=a.shape)
+        a[p.constraints.rows_local] = 0.0
+    h = 1e-7
+    Fp, Fm, Jv = X.duplicate(), X.duplicate(), X.duplicate()
+    Xp, Xm = X.copy(), X.copy()
+    Xp.axpy(h, v)
+    Xm.axpy(-h, v)
+    p.residual(None, Xp, Fp)
+    p.residual(None, Xm, Fm)
+    J.mult(v, Jv)
+    fd = Fp - Fm
+    fd.scale(1 / (2 * h))
+    assert (fd - Jv).norm() / Jv.norm() < 1e-6
+    # the same with the mounts' part alone: without it the error is that part
+    off = pressed(contact_supports="false")
+    Joff = off.problem.layout.create_matrix(off.problem.contact.extra_pattern(
+        off.problem.state.local_config()[0]))
+    off.problem.jacobian(None, off.problem.state.X, Joff, Joff)
+    Jv2 = X.duplicate()
+    Joff.mult(v, Jv2)
+    assert (fd - Jv2).norm() / Jv.norm() > 1e-3
+
+
+@pytest.mark.mpi
+def test_two_ranks_give_the_serial_mount_forces():
+    par = pressed()
+    ser = pressed(comm=PETSc.COMM_SELF, outdir=par.outdir + f"_s{PETSc.COMM_WORLD.getRank()}")
+    F1, F2 = par.problem.F.duplicate(), ser.problem.F.duplicate()
+    par.problem.residual(None, par.problem.state.X, F1)
+    ser.problem.residual(None, ser.problem.state.X, F2)
+    nat1 = par.layout.allgather_nodes(F1.getArray(readonly=True).reshape(-1, NDOF))
+    nat2 = ser.layout.allgather_nodes(F2.getArray(readonly=True).reshape(-1, NDOF))
+    assert np.abs(nat1 - nat2).max() < 1e-9 * np.abs(nat2).max()
+    assert par.problem.energy() == pytest.approx(ser.problem.energy(), rel=1e-12)
+    c1, c2 = par.contact.summary(), ser.contact.summary()
+    assert c1["support_force"] == pytest.approx(c2["support_force"], rel=1e-12)
+    assert c1["support_points"] == c2["support_points"] > 0
+
+
+def test_the_mounts_cost_energy_only_where_the_tube_presses_into_them():
+    on, off = pressed(), pressed(contact_supports="false")
+    assert on.problem.energy() > off.problem.energy()
+    # the straight rod between its clamps does not touch them
+    straight_on = build_run("plectoneme", **SETUP)
+    straight_off = build_run("plectoneme", contact_supports="false", **SETUP)
+    assert straight_on.problem.energy() == straight_off.problem.energy()
+    assert straight_on.contact.supports is not None and straight_off.contact.supports is None
+
+
+def test_mounts_asked_for_with_other_supports_are_refused():
+    with pytest.raises(SceneError, match="-contact_supports"):
+        build_run("plectoneme", bc_end="clamped", load_end_force="0,0,0", contact_supports=True,
+                  **SETUP)
+    # not asked for: silently off where they do not apply
+    run = build_run("plectoneme", bc_end="clamped", load_end_force="0,0,0", **SETUP)
+    assert run.contact.supports is None
