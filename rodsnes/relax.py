@@ -51,6 +51,9 @@ LM_ITS = 2
 PINNED_WINDOW = 25
 # with contact a kept step may not press the strands deeper than this x -contact_penetration
 PENETRATION_GUARD = 10.0
+# Levenberg-Marquardt steps in a row, kept but idle (energy not lower beyond roundoff, |F| not
+# 10 % lower), after which c is raised by grow^3 and held there by the floor
+IDLE_STEPS = 3
 
 
 def _MAX():
@@ -174,6 +177,7 @@ class RelaxResult:
         # rejected steps by cause: the damped solve failed, the energy rose, a node moved
         # beyond the move limit, the link changed, the strands pressed too deep
         self.causes = {"solve": 0, "uphill": 0, "too far": 0, "crossing": 0, "penetration": 0}
+        self.idle_raises = 0    # LM's c raised after IDLE_STEPS idle kept steps
         self.energies, self.log, self.message = [], [], ""
         self.fnorm = np.nan
 
@@ -230,6 +234,7 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     out.steps += lm.steps
     out.rejected += lm.rejected
     out.crossings += lm.crossings
+    out.idle_raises += lm.idle_raises
     out.causes = {k: v + lm.causes[k] for k, v in out.causes.items()}
     out.newton_its += lm.newton_its
     out.energies += lm.energies[1:]
@@ -306,6 +311,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     c_floor = 0.0           # c may not fall below it: twice the last failed c, decaying 0.9x per step
     stuck = 0               # damped solves in a row that failed before any Newton step
     rejected_row = 0        # rejections in a row: beyond max_rejected_row the flow has stalled
+    idle = 0                # kept LM steps in a row that went nowhere (IDLE_STEPS)
     max_rejected_row = 12   # c grown by >= grow^12 (1.7e7) without an acceptable step
     snes = solver.snes
     tols = snes.getTolerances()
@@ -424,6 +430,16 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
             ratio = max(ratio, min(move / (0.8 * max_move), 1.0))
             c_floor *= 0.9
             c = max(c * ratio, c_min, c_floor)
+            if single_step:
+                # kept steps that go nowhere: at c's floor the plectoneme's switch at 9.415
+                # turns kept 150 LM steps with E equal to 1e-11 and |F| 8.613e-2 unchanged (two
+                # Newton iterations that come back where they started: a cycle of the contact's
+                # active set); a larger c shortens the step and makes it a contraction
+                idle = idle + 1 if (E_new > E - Etol(E_new) and f_new > 0.9 * f) else 0
+                if idle >= IDLE_STEPS:
+                    c = c_floor = c * grow ** 3
+                    idle = 0
+                    out.idle_raises += 1
             E, f = E_new, f_new
             if out.steps % progress_every == 0 and hasattr(solver, "_say"):
                 # a long relaxation (hundreds of steps, minutes each on a plectoneme) shows

@@ -409,7 +409,13 @@ def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tm
 
     solver.solve_guarded = fake
     c0 = 10.0
-    rr = rx.relax_phase(solver, 0.5, c0, 1e-12, max_steps=200, single_step=True)
+    # the kept steps here go nowhere, which would raise c (IDLE_STEPS, tested below): held off
+    # so that c falls to its floor as described
+    saved, rx.IDLE_STEPS = rx.IDLE_STEPS, 10 ** 6
+    try:
+        rr = rx.relax_phase(solver, 0.5, c0, 1e-12, max_steps=200, single_step=True)
+    finally:
+        rx.IDLE_STEPS = saved
     assert not rr.ok and "stalled" in rr.message
     assert rr.steps == 40 and rr.rejected == 21
     assert c0 <= rr.c_last < 4 * c0
@@ -582,3 +588,43 @@ def test_a_step_too_long_whatever_c_grows_c_faster(tmp_path):
     rr = rx.relax_phase(solver, 0.5, 10.0, 1e-12, max_steps=5, single_step=True, max_move=0.1)
     assert rr.steps == 0 and rr.causes["too far"] == 5
     assert np.allclose(np.array(cs[1:]) / np.array(cs[:-1]), [1.875, 4, 4, 4])
+
+
+def test_levenberg_marquardt_steps_that_go_nowhere_raise_c():
+    """At c's floor the plectoneme's switch at 9.415 turns kept 150 Levenberg-Marquardt steps
+    with the energy equal to 1e-11 and |F| unchanged (two Newton iterations that return where
+    they started).  Faked here: below c = 1 the damped solve leaves the state as it is.  After
+    IDLE_STEPS such kept steps c is raised by grow^3 and the phase converges; without the
+    raise it stays below 1 and ends without an equilibrium."""
+    import rodsnes.relax as R
+    from rodsnes.solver import StepResult
+    run = build_run("mattiasson", load_steps=10)
+    s, p = run.solver, run.problem
+    p.set_load(0.1)
+    real = s.solve_guarded
+    Rs = PETSc.SNES.ConvergedReason
+    seen = []
+
+    def cycling(lam):
+        c = p.extra_terms[-1].c
+        seen.append(c)
+        if c < 1.0:
+            return StepResult(lam, False, R.LM_ITS, Rs.DIVERGED_MAX_IT, 1.0, [1.0] * 3, 0.0)
+        return real(lam)
+
+    s.solve_guarded = cycling
+    snap = p.state.snapshot()
+    rr = R.relax_phase(s, 0.1, 1e-3, s.tolerance(), max_steps=60, single_step=True, c_min=1e-9)
+    assert rr.ok, rr.message
+    assert rr.idle_raises >= 1 and max(seen) >= 1.0
+    assert all(c < 1.0 for c in seen[:R.IDLE_STEPS])
+    p.state.restore(snap)
+    p.set_load(0.1)
+    saved, R.IDLE_STEPS = R.IDLE_STEPS, 10 ** 6
+    try:
+        seen.clear()
+        rr = R.relax_phase(s, 0.1, 1e-3, s.tolerance(), max_steps=60, single_step=True,
+                           c_min=1e-9)
+    finally:
+        R.IDLE_STEPS = saved
+    assert not rr.ok and max(seen) < 1.0
