@@ -26,8 +26,9 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from . import contact as ck
-from .partition import NDOF
+from . import contact as ck, so3
+from .partition import add_position_blocks
+from .support import SupportTerm
 
 
 class ContactTerm:
@@ -66,8 +67,6 @@ class ContactTerm:
         self.supports = None
         bc = scene.bc
         if c.supports and not mesh.closed and bc.start == "clamped" and bc.end == "sliding":
-            from . import so3
-            from .support import SupportTerm
             self.supports = SupportTerm(mesh, layout, self.kernel, mesh.x_init[0],
                                         so3.rot(mesh.q_init[0])[:, 2],
                                         so3.rot(mesh.q_init[-1])[:, 2])
@@ -197,12 +196,7 @@ class ContactTerm:
         m = self.mesh
         nodes = np.concatenate([ck.element_node_ids(elems[:, j], m.order, m.nelem, m.closed)
                                 for j in range(elems.shape[1])], axis=1)
-        rows = self.layout.nat2petsc[nodes].astype(PETSc.IntType)
-        n, k = rows.shape
-        K6 = np.zeros((n, k, NDOF, k, NDOF))
-        K6[:, :, 0:3, :, 0:3] = mat.reshape(n, k, 3, k, 3)
-        P.setValuesBlockedRCV(rows, rows, K6.reshape(n, k * NDOF, k * NDOF),
-                              addv=PETSc.InsertMode.ADD)
+        add_position_blocks(P, self.layout, nodes, mat)
 
     def energy(self, r_loc):
         return self.evaluate(r_loc, tangent=False)["energy"]
@@ -302,7 +296,6 @@ class ContactTerm:
         deep = max(float(gap.max()) if gap.size else -np.inf,
                    float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
         if "support" in out:            # the tube pressing into a clamp's mount (support.py)
-            from .support import SupportTerm
             deep = max(deep, SupportTerm.deepest_local(out["support"]))
         return deep
 

@@ -173,3 +173,15 @@ def _scalar_csr(ai, aj, bs):
     r, c = r[order], c[order]
     ai_s = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=len(counts) * bs))])
     return ai_s.astype(PETSc.IntType), c.astype(PETSc.IntType)
+
+
+def add_position_blocks(P, layout, nodes, mat):
+    """Add (ADD_VALUES) the position-only tangents mat (n, 3k, 3k), rows and columns ordered
+    (node, component), of the natural node groups nodes (n, k) into the block matrix P: each
+    3 x 3 block into the position part of its 6 x 6 block."""
+    rows = layout.nat2petsc[nodes].astype(PETSc.IntType)
+    n, k = rows.shape
+    K6 = np.zeros((n, k, NDOF, k, NDOF))
+    K6[:, :, 0:3, :, 0:3] = mat.reshape(n, k, 3, k, 3)
+    P.setValuesBlockedRCV(rows, rows, K6.reshape(n, k * NDOF, k * NDOF),
+                          addv=PETSc.InsertMode.ADD)

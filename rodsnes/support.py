@@ -30,10 +30,9 @@ node) are preallocated once (``pattern_pairs``: O(N) blocks).  Pure numpy but fo
 ``SupportTerm``, which adds to the parallel residual and Jacobian (ContactTerm calls it)."""
 import numpy as np
 from mpi4py import MPI
-from petsc4py import PETSc
 
 from . import contact as ck
-from .partition import NDOF
+from .partition import add_position_blocks
 
 
 def half_line_distance(x, p, e):
@@ -152,12 +151,9 @@ class SupportTerm:
         for elems, B in zip(out["elems"], out["blocks"]):
             nodes = ck.element_node_ids(elems, m.order, m.nelem, m.closed)
             nodes = np.concatenate([nodes, np.full((len(elems), 1), self.end)], axis=1)
-            rows = self.layout.nat2petsc[nodes].astype(PETSc.IntType)
-            n, k = rows.shape
-            K6 = np.zeros((n, k, NDOF, k, NDOF))
-            K6[:, :, 0:3, :, 0:3] = B.transpose(0, 1, 3, 2, 4).reshape(n, k, 3, k, 3)
-            P.setValuesBlockedRCV(rows, rows, K6.reshape(n, k * NDOF, k * NDOF),
-                                  addv=PETSc.InsertMode.ADD)
+            n, k = nodes.shape
+            add_position_blocks(P, self.layout, nodes,
+                                B.transpose(0, 1, 3, 2, 4).reshape(n, 3 * k, 3 * k))
 
     def pattern_pairs(self):
         """Element pairs (e, last element) for every element: the end node's coupling."""

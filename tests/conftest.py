@@ -77,6 +77,51 @@ def gathered_positions(run):
     return run.layout.allgather_nodes(run.last_fields["positions"])
 
 
+def place(run, x, t):
+    """Put the rod of a built run on the natural-ordered node positions x (n, 3) with unit
+    tangents t (n, 3) (frames from the tangent, rotation increments zero)."""
+    from rodsnes import so3
+    from rodsnes.partition import NDOF
+    p, lay = run.problem, run.layout
+    p.state.q_ref[:] = so3.quat_from_rot(so3.frame_from_tangent(t))[lay.local_nodes]
+    with p.state.X as a:
+        a = a.reshape(-1, NDOF)
+        a[:, 0:3] = x[lay.owned_nodes]
+        a[:, 3:6] = 0.0
+
+
+def tangent_against_finite_differences(p, J, seed, h=1e-7):
+    """Central differences of the assembled residual of problem p at its state along a random
+    direction v (zero on the constrained rows): returns (fd, J v, v) as PETSc vectors."""
+    X = p.state.X
+    rng = np.random.default_rng(seed + PETSc.COMM_WORLD.getRank())
+    v = X.duplicate()
+    with v as a:
+        a[:] = rng.normal(size=a.shape)
+        a[p.constraints.rows_local] = 0.0
+    Fp, Fm, Jv = X.duplicate(), X.duplicate(), X.duplicate()
+    Xp, Xm = X.copy(), X.copy()
+    Xp.axpy(h, v)
+    Xm.axpy(-h, v)
+    p.residual(None, Xp, Fp)
+    p.residual(None, Xm, Fm)
+    J.mult(v, Jv)
+    fd = Fp - Fm
+    fd.scale(1 / (2 * h))
+    return fd, Jv, v
+
+
+def natural_residuals(*runs):
+    """Each run's assembled residual at its state, natural-ordered (n, NDOF) on every rank."""
+    from rodsnes.partition import NDOF
+    out = []
+    for run in runs:
+        F = run.problem.F.duplicate()
+        run.problem.residual(None, run.problem.state.X, F)
+        out.append(run.layout.allgather_nodes(F.getArray(readonly=True).reshape(-1, NDOF)))
+    return out
+
+
 @pytest.fixture(autouse=True)
 def _fresh_options():
     clear_options()

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from conftest import run_case
-from rodsnes import so3
+from conftest import natural_residuals, place, run_case, tangent_against_finite_differences
 from rodsnes.partition import NDOF
 
 SETUP = dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0")
@@ -17,17 +16,11 @@ def coiled(comm=None, outdir=None):
     """The rollup_contact rod with no load, then put on a circle of 1.05 turns whose free end
     overlaps the clamped start by a fraction of the contact diameter."""
     run = run_case("rollup_contact", comm=comm, outdir=outdir, **SETUP)
-    p, lay, m = run.problem, run.layout, run.mesh
+    m = run.mesh
     R = m.length / (2 * np.pi * 1.05)
     ph = m.s_nodes / R
     x = np.stack([R * np.sin(ph), R * (1 - np.cos(ph)) - 0.12 * m.s_nodes / m.length, 0 * ph], 1)
-    t = np.stack([np.cos(ph), np.sin(ph), 0 * ph], 1)
-    q = so3.quat_from_rot(so3.frame_from_tangent(t))
-    p.state.q_ref[:] = q[lay.local_nodes]
-    with p.state.X as a:
-        a = a.reshape(-1, NDOF)
-        a[:, 0:3] = x[lay.owned_nodes]
-        a[:, 3:6] = 0.0
+    place(run, x, np.stack([np.cos(ph), np.sin(ph), 0 * ph], 1))
     return run
 
 
@@ -41,21 +34,7 @@ def test_assembled_tangent_matches_finite_differences_in_contact():
     assert run.contact.summary()["active_points"] > 0
     J = p.layout.create_matrix(p.contact.extra_pattern(p.state.local_config()[0]))
     p.jacobian(None, X, J, J)
-    rng = np.random.default_rng(3 + PETSc.COMM_WORLD.getRank())
-    v = X.duplicate()
-    with v as a:
-        a[:] = rng.normal(size=a.shape)
-        a[p.constraints.rows_local] = 0.0
-    h = 1e-7
-    Fp, Fm, Jv = X.duplicate(), X.duplicate(), X.duplicate()
-    Xp, Xm = X.copy(), X.copy()
-    Xp.axpy(h, v)
-    Xm.axpy(-h, v)
-    p.residual(None, Xp, Fp)
-    p.residual(None, Xm, Fm)
-    J.mult(v, Jv)
-    fd = Fp - Fm
-    fd.scale(1 / (2 * h))
+    fd, Jv, _ = tangent_against_finite_differences(p, J, seed=3)
     assert (fd - Jv).norm() / Jv.norm() < 1e-6
 
 
@@ -63,11 +42,7 @@ def test_assembled_tangent_matches_finite_differences_in_contact():
 def test_two_ranks_give_the_serial_residual_energy_and_contact_forces():
     par = coiled()
     ser = coiled(comm=PETSc.COMM_SELF, outdir=par.outdir + f"_s{PETSc.COMM_WORLD.getRank()}")
-    F1, F2 = par.problem.F.duplicate(), ser.problem.F.duplicate()
-    par.problem.residual(None, par.problem.state.X, F1)
-    ser.problem.residual(None, ser.problem.state.X, F2)
-    nat1 = par.layout.allgather_nodes(F1.getArray(readonly=True).reshape(-1, NDOF))
-    nat2 = ser.layout.allgather_nodes(F2.getArray(readonly=True).reshape(-1, NDOF))
+    nat1, nat2 = natural_residuals(par, ser)
     assert np.abs(nat1 - nat2).max() < 1e-9 * np.abs(nat2).max()
     assert par.problem.energy() == pytest.approx(ser.problem.energy(), rel=1e-12)
     c1, c2 = par.contact.summary(), ser.contact.summary()

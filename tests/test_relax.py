@@ -387,7 +387,7 @@ def test_levenberg_marquardt_phase_keeps_the_floor_of_the_first_stiffness(monkey
     assert calls[1]["c_min"] == pytest.approx(1e-12 * 147.0)
 
 
-def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tmp_path):
+def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tmp_path, monkeypatch):
     """relax_phase (single_step): a run of rejected steps ends the phase only once c has grown
     back to the phase's first c.  Here every step is first kept (the fake damped solve leaves
     the state: the energy does not rise), so c falls by 3 per step to its floor 1e-12 c0; then
@@ -411,11 +411,8 @@ def test_levenberg_marquardt_is_stalled_only_once_back_at_its_first_stiffness(tm
     c0 = 10.0
     # the kept steps here go nowhere, which would raise c (IDLE_STEPS, tested below): held off
     # so that c falls to its floor as described
-    saved, rx.IDLE_STEPS = rx.IDLE_STEPS, 10 ** 6
-    try:
-        rr = rx.relax_phase(solver, 0.5, c0, 1e-12, max_steps=200, single_step=True)
-    finally:
-        rx.IDLE_STEPS = saved
+    monkeypatch.setattr(rx, "IDLE_STEPS", 10 ** 6)
+    rr = rx.relax_phase(solver, 0.5, c0, 1e-12, max_steps=200, single_step=True)
     assert not rr.ok and "stalled" in rr.message
     assert rr.steps == 40 and rr.rejected == 21
     assert c0 <= rr.c_last < 4 * c0
@@ -590,7 +587,7 @@ def test_a_step_too_long_whatever_c_grows_c_faster(tmp_path):
     assert np.allclose(np.array(cs[1:]) / np.array(cs[:-1]), [1.875, 4, 4, 4])
 
 
-def test_levenberg_marquardt_steps_that_go_nowhere_raise_c():
+def test_levenberg_marquardt_steps_that_go_nowhere_raise_c(monkeypatch):
     """At c's floor the plectoneme's switch at 9.415 turns kept 150 Levenberg-Marquardt steps
     with the energy equal to 1e-11 and |F| unchanged (two Newton iterations that return where
     they started).  Faked here: below c = 1 the damped solve leaves the state as it is.  After
@@ -620,11 +617,7 @@ def test_levenberg_marquardt_steps_that_go_nowhere_raise_c():
     assert all(c < 1.0 for c in seen[:R.IDLE_STEPS])
     p.state.restore(snap)
     p.set_load(0.1)
-    saved, R.IDLE_STEPS = R.IDLE_STEPS, 10 ** 6
-    try:
-        seen.clear()
-        rr = R.relax_phase(s, 0.1, 1e-3, s.tolerance(), max_steps=60, single_step=True,
-                           c_min=1e-9)
-    finally:
-        R.IDLE_STEPS = saved
+    monkeypatch.setattr(R, "IDLE_STEPS", 10 ** 6)
+    seen.clear()
+    rr = R.relax_phase(s, 0.1, 1e-3, s.tolerance(), max_steps=60, single_step=True, c_min=1e-9)
     assert not rr.ok and max(seen) < 1.0
