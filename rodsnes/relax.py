@@ -180,6 +180,9 @@ class RelaxResult:
         self.idle_raises = 0    # LM's c raised after IDLE_STEPS idle kept steps
         self.energies, self.log, self.message = [], [], ""
         self.fnorm = np.nan
+        self.phase = "flow"     # the phase it ended in: "flow" or "lm" (Levenberg-Marquardt)
+        self.c_last = np.nan    # the pseudo-time stiffness it ended at
+        self.c_min = np.nan     # the floor of c in that phase
 
 
 def undamped_residual_norm(problem, skip, F=None):
@@ -208,7 +211,7 @@ def undamped_energy(problem, skip):
         problem.extra_terms = saved
 
 
-def relax(solver, lam, c0, tol, max_steps=200, **kw):
+def relax(solver, lam, c0, tol, max_steps=200, lm_only=False, **kw):
     """Relax at load factor lam to an equilibrium of lower energy: the implicit gradient flow
     (:func:`relax_phase`) for up to max_steps // 2 pseudo-time steps, then, if the undamped
     residual is not yet at ``tol``, Levenberg-Marquardt steps (single_step) from where the flow
@@ -219,9 +222,23 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     which the flow creeps and the undamped Newton step overshoots.  Levenberg-Marquardt
     bounds that step and ends quadratically (the Michell ring in contact: |F| 2.9e-5 ->
     1.4e-11 in 56 steps, where the undamped Newton solve diverged).  Returns a RelaxResult
-    over both phases."""
-    out = relax_phase(solver, lam, c0, tol, max_steps=max(max_steps // 2, 1), **kw)
-    if out.ok or out.steps == 0 or kw.get("single_step"):
+    over both phases.
+
+    lm_only: Levenberg-Marquardt alone for up to max_steps (a resumed relaxation that had
+    reached it).  keep(result, final): called with the term removed, the state at the last kept
+    step, every ``progress_every`` kept steps of either phase and once more at the end
+    (final=True; result.ok tells whether it finished): Run writes an unfinished state to
+    DIR/relaxation, from where -stability_switch_restart resumes it (hours of relaxation are
+    not lost to a time limit or a stall), and removes it when the relaxation finished."""
+    keep = kw.get("keep")
+    if lm_only:
+        # a resumed relaxation (a restart from DIR/relaxation) that had reached LM goes on with it
+        out = relax_phase(solver, lam, c0, tol, max_steps=max_steps, single_step=True, **kw)
+    else:
+        out = relax_phase(solver, lam, c0, tol, max_steps=max(max_steps // 2, 1), **kw)
+    if out.ok or out.steps == 0 or kw.get("single_step") or lm_only:
+        if keep is not None:
+            keep(out, final=True)
         return out
     # the LM phase starts at the flow's last c, but its floor stays that of the first c: after
     # failed damped solves the flow's c can have grown by 1e12 (the plectoneme's fold at 8.79
@@ -239,11 +256,14 @@ def relax(solver, lam, c0, tol, max_steps=200, **kw):
     out.newton_its += lm.newton_its
     out.energies += lm.energies[1:]
     out.log += lm.log[1:]
+    out.phase, out.c_min = lm.phase, lm.c_min
+    if keep is not None:
+        keep(out, final=True)
     return out
 
 
 def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newton_max_it=12,
-                max_move=None, single_step=False, progress_every=25):
+                max_move=None, single_step=False, progress_every=25, keep=None):
     """Implicit gradient flow at load factor lam from the current state to an equilibrium of
     lower energy (module docstring).  solver: NewtonSolver (solve_at, problem); c0: initial c;
     tol: undamped |F| to stop at; max_move: largest nodal displacement of one pseudo-time step
@@ -260,7 +280,8 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
     discretisation pins it) cannot throw the iterate far: its step is bounded by |F| / (c M).
 
     Every ``progress_every`` accepted steps rank 0 prints the energy, undamped |F| and c
-    (NewtonSolver._say: silent with -quiet)."""
+    (NewtonSolver._say: silent with -quiet) and keep(result, final=False) is called, the term
+    removed (the result's c_last, c_min, phase, fnorm describe the state: relax's keep)."""
     p = solver.problem
     comm = p.layout.comm.tompi4py()
 
@@ -268,6 +289,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
         return comm.bcast(values if len(values) > 1 else values[0], root=0)
 
     out = RelaxResult()
+    out.phase = "lm" if single_step else "flow"
     fixed_move = max_move
 
     def move_limit():
@@ -282,6 +304,7 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
         return lim
     term = RelaxationTerm(p.mesh, p.layout, c0)
     c_min = 1e-12 * c0 if c_min is None else c_min
+    out.c_min = c_min
     F = p.layout.create_vec()
     p.set_load(lam)
     E, f = same(undamped_energy(p, None), undamped_residual_norm(p, None, F))
@@ -448,6 +471,13 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                             f": {out.steps} steps ({out.rejected} rejected), E {E:.9g}, "
                             f"undamped |F| {f:.3e}, c {c:.3e}; rejected: "
                             + ", ".join(f"{k} {v}" for k, v in out.causes.items() if v))
+            if keep is not None and out.steps % progress_every == 0:
+                out.c_last, out.fnorm = c, f
+                p.extra_terms = [t for t in p.extra_terms if t is not term]
+                try:
+                    keep(out, final=False)
+                finally:
+                    p.extra_terms.append(term)
             if not single_step and out.steps % PINNED_WINDOW == 0:
                 # the flow pinned: its damped solves fail below some c, the floor keeps c above
                 # it, and the kept steps no longer move (the plectoneme at 9.415 turns: c 1e11 -

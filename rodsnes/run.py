@@ -2,7 +2,11 @@
 
 Files (DIR = -output_dir): result.h5 (one group per converged step, flushed per step),
 rod.xdmf (+ rod.h5, ParaView), summary.json (rewritten atomically after every step, so a
-failed or killed run leaves the last converged state described on disk).
+failed or killed run leaves the last converged state described on disk).  A relaxation
+(branch switch or jump, -stability) keeps its state every 25 kept pseudo-time steps and when it
+ends unfinished in DIR/relaxation/result.h5 (one step, not an equilibrium: attribute
+relaxation_unfinished); -restart DIR/relaxation -stability -stability_switch_restart goes on
+with it.
 """
 import os
 import time
@@ -49,6 +53,7 @@ class Run:
         self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
+        self.resume = None          # an unfinished relaxation to go on with (-restart DIR/relaxation)
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
         append = False
@@ -67,11 +72,16 @@ class Run:
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
                                  f"raise -load_stop (at most 1) or drop it", ("-load_stop", "-restart"))
             append = os.path.abspath(scene.output.restart) == os.path.abspath(self.outdir)
+            if self.resume is not None and append:
+                self.step += 1      # the unfinished relaxation stays in the file as its step
         if self.rank == 0:
             os.makedirs(self.outdir, exist_ok=True)
         self.mpi.Barrier()
         self.writer = output.ResultWriter(self.outdir, self.mpi, self.mesh.n_nodes, meta, append=append)
+        self.meta = meta
         self.dofs = NDOF * self.mesh.n_nodes
+        if self.solver.switch:
+            self.solver.on_relaxation = self._keep_relaxation
 
     # ------------------------------------------------------------------------------
     def _restart(self, rdir):
@@ -92,6 +102,20 @@ class Run:
         self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
         self.step = int(last["step"])
         self.problem.set_load(self.lam0)
+        if last["attrs"].get("relaxation_unfinished", 0):
+            # DIR/relaxation of a relaxation that did not finish: not an equilibrium
+            a = last["attrs"]
+            if not self.solver.switch_restart:
+                from .scene import SceneError
+                raise SceneError(f"-restart {rdir}: it holds an unfinished relaxation at load "
+                                 f"{self.lam0:.6f} (undamped |F| {float(a['residual_norm']):.3e}), "
+                                 f"not an equilibrium: go on with it with -stability "
+                                 f"-stability_switch_restart, or restart from the run's own "
+                                 f"directory", ("-restart", "-stability_switch_restart"))
+            self.resume = {"phase": str(a.get("relaxation_phase", "flow")),
+                           "c": float(a["relaxation_c"]), "c_min": float(a["relaxation_c_min"])}
+            self.step -= 1          # the relaxed state, once at equilibrium, is that step
+            return
         # the steps the interrupted run would have taken next: its next increment, and the
         # secant predictor through the step before (none after a branch switch or jump)
         dlam = last["attrs"].get("next_increment")
@@ -103,6 +127,46 @@ class Run:
             before = output.read_step(rdir, self.step - 1)
             self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
                           float(before["attrs"]["load"]))
+
+    def _keep_relaxation(self, lam, info):
+        """NewtonSolver.on_relaxation: write the state of a relaxation at load lam (not an
+        equilibrium) to DIR/relaxation/result.h5, one step, replacing the one kept before, with
+        attributes relaxation_unfinished = 1, relaxation_phase / _c / _c_min (where it goes on
+        from), relaxation_steps, residual_norm (undamped |F|), negative_eigenvalues (of the
+        state it relaxes from).  Collective.  The run's own report (last_* of summary.json)
+        is left as it was.  A finished relaxation (info["ok"]) removes the directory: its
+        state goes on to the undamped solve and, at equilibrium, into result.h5."""
+        rdir = os.path.join(self.outdir, "relaxation")
+        if info["ok"]:
+            if self.rank == 0 and self.solver.relaxation_kept is not None:
+                import shutil
+                shutil.rmtree(rdir, ignore_errors=True)
+            self.mpi.Barrier()
+            self.solver.relaxation_kept = None
+            return
+        saved = {k: getattr(self, k) for k in ("last_fields", "last_energy", "last_contact",
+                                               "last_topology") if hasattr(self, k)}
+        try:
+            fields, energy, cattrs, qp, topo = self._observe()
+        finally:
+            for k, v in saved.items():
+                setattr(self, k, v)
+        attrs = {"load": lam, "energy": energy, "newton_iterations": 0,
+                 "residual_norm": info["fnorm"], "branch_switch": 1, "relaxation_unfinished": 1,
+                 "relaxation_phase": info["phase"], "relaxation_c": info["c"],
+                 "relaxation_c_min": info["c_min"], "relaxation_steps": info["steps"],
+                 "negative_eigenvalues": info["negative_eigenvalues"]}
+        attrs.update(cattrs)
+        if topo is not None:
+            attrs.update(topo)
+        with output.ResultWriter(rdir, self.mpi, self.mesh.n_nodes, self.meta, xdmf=False) as w:
+            w.write_step(self.step + 1, attrs, self.layout.owned_nodes, fields,
+                         qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
+        self.solver.relaxation_kept = rdir
+        if info["final"]:
+            self.solver._say(f"  the unfinished relaxation's state (E {energy:.9g}, undamped |F| "
+                             f"{info['fnorm']:.3e}) is in {rdir}: go on with -restart {rdir} "
+                             f"-stability -stability_switch_restart")
 
     def _tip(self, fields):
         if self.mesh.closed:
@@ -238,9 +302,12 @@ class Run:
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
-                                       arc0=self.arc0, stop=ld.stop)
+                                       arc0=self.arc0, stop=ld.stop, resume=self.resume)
         reason = None if ok else self.solver.fail_reason or (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
+        kept = self.solver.relaxation_kept
+        if not ok and kept is not None and kept not in reason:
+            reason += f"; the last relaxation's state is in {kept}"
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))
         self.writer.close()
         if self.rank == 0 and not self.quiet:

@@ -116,6 +116,11 @@ class NewtonSolver:
         self.switches = []                  # info dict of every attempted switch
         self.results = []                   # StepResults of the last run()
         self.predictor_retries = 0          # failed predicted steps tried again from the last state
+        # on_relaxation(lam, info): keeps an unfinished relaxation's state (Run writes it to
+        # DIR/relaxation; relax.relax's keep), info: phase, c, c_min, steps, fnorm, energy,
+        # negative_eigenvalues (of the state relaxed from), final, ok (finished)
+        self.on_relaxation = None
+        self.relaxation_kept = None         # where on_relaxation wrote the last one (Run)
 
     def _converged(self, snes, it, norms):
         """|F| <= atol, or |F| <= roundoff floor once Newton stagnates -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
@@ -175,7 +180,7 @@ class NewtonSolver:
         return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
 
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0,
-            dlam0=None, prev0=None, arc0=None, stop=1.0):
+            dlam0=None, prev0=None, arc0=None, stop=1.0, resume=None):
         """Step lambda from lam0 to ``stop`` (-load_stop, 1 by default) on the grid of ``steps``
         nominal increments of 0 -> 1, with cut-back.
 
@@ -197,6 +202,8 @@ class NewtonSolver:
         dlam0, prev0: the first increment and the (snapshot, lambda) of the step before lam0,
         for a restart that takes the steps the interrupted run would have taken (every result
         carries next_increment, the increment its successor starts from).
+        resume: the record of an unfinished relaxation (a restart from DIR/relaxation, with
+        -stability_switch_restart): it goes on from the restart state before any step.
         With -load_arclength a fold is passed by pseudo-arclength continuation instead
         (arclength.Arclength.around: the branch followed around the fold, through its unstable
         part, until it goes on stable with the load increasing); arc0: a restart inside that
@@ -211,7 +218,10 @@ class NewtonSolver:
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
         if nneg > 0:
             self._switch_failed_nneg = nneg
-        if self.switch_restart and arc0 is None:
+        if resume is not None:
+            # an unfinished relaxation: not an equilibrium, its inertia says nothing; go on
+            nneg = max(nneg, 1)
+        elif self.switch_restart and arc0 is None:
             # the restart state's inertia, counted afresh (a run without -stability stored none)
             from .stability import negative_eigenvalues
             p.set_load(lam)
@@ -225,10 +235,14 @@ class NewtonSolver:
             self._switch_failed_nneg = None
             res = StepResult(lam, True, 0, "restart switch", np.nan, np.array([]), 0.0)
             res.negative_eigenvalues = nneg
-            if not self._maybe_switch(res):
-                self.fail_reason = (f"-stability_switch_restart: the branch switch at load "
-                                    f"{lam:.6f} ({nneg} negative eigenvalues) found no stable "
-                                    f"equilibrium; the restart state is unchanged")
+            if not self._maybe_switch(res, resume=resume):
+                what = (f"the resumed relaxation at load {lam:.6f}" if resume is not None else
+                        f"the branch switch at load {lam:.6f} ({nneg} negative eigenvalues)")
+                self.fail_reason = (f"-stability_switch_restart: {what} found no stable "
+                                    f"equilibrium; the restart state is unchanged"
+                                    + ("" if self.relaxation_kept is None else
+                                       f"; the relaxation's last state is in "
+                                       f"{self.relaxation_kept}"))
                 return results, False
             res.its = res.switch_info["newton_its"]     # (already in total_its)
             self.keep_penetration(res)
@@ -441,7 +455,7 @@ class NewtonSolver:
         if not self.quiet and self.problem.layout.comm.getRank() == 0:
             print(text, flush=True)
 
-    def _maybe_switch(self, res):
+    def _maybe_switch(self, res, resume=None):
         """Try switch_branch for the accepted step ``res`` (negative eigenvalues > 0); update res.
         Returns True when the state moved onto a stable equilibrium."""
         res.branch_switch = False
@@ -454,7 +468,7 @@ class NewtonSolver:
             return False
         if self._switch_failed_nneg is not None and n <= self._switch_failed_nneg:
             return False
-        info = self.switch_branch(res.lam, n)
+        info = self.switch_branch(res.lam, n, resume=resume)
         res.switch_info = info
         self.total_its += info["newton_its"]
         if info["switched"]:
@@ -538,6 +552,20 @@ class NewtonSolver:
         v.destroy()
         return mv
 
+    def _keeper(self, lam, nneg):
+        """relax.relax's keep for a relaxation at load lam from a state with nneg negative
+        eigenvalues: hands the state's description to on_relaxation (None without one)."""
+        if self.on_relaxation is None:
+            return None
+
+        def keep(rr, final):
+            self.on_relaxation(lam, {"phase": rr.phase, "c": float(rr.c_last),
+                                     "c_min": float(rr.c_min), "steps": int(rr.steps),
+                                     "fnorm": float(rr.fnorm), "energy": float(rr.energies[-1]),
+                                     "negative_eigenvalues": int(nneg), "final": bool(final),
+                                     "ok": bool(rr.ok)})
+        return keep
+
     def tolerance(self):
         """The |F| every load step is held to: max(atol, rtol x force scale, roundoff floor)."""
         atol, rtol, _, _ = self.snes.getTolerances()
@@ -607,7 +635,8 @@ class NewtonSolver:
                 "newton_its": 0, "message": "", "fnorm": np.nan, "relax_energies": [],
                 "relax_log": [], "energy_monotone": True}
         tol = self.tolerance()
-        rr = relax(self, lam, self._first_stiffness(), tol, max_steps=self.relax_max_it)
+        rr = relax(self, lam, self._first_stiffness(), tol, max_steps=self.relax_max_it,
+                   keep=self._keeper(lam, 0))
         info.update(relax_steps=rr.steps, relax_rejected=rr.rejected, newton_its=rr.newton_its)
         info["relax_energies"].append(rr.energies)
         info["relax_log"].append(rr.log)
@@ -664,7 +693,7 @@ class NewtonSolver:
             res.converged, res.fnorm, res.reason = True, f_relaxed, "relaxed"
         return res
 
-    def switch_branch(self, lam, nneg):
+    def switch_branch(self, lam, nneg, resume=None):
         """Leave the unstable equilibrium at load factor lam (nneg > 0 negative eigenvalues)
         for a stable one: (1) lowest eigenvector v of the energy Hessian
         (stability.lowest_eigenpair); (2) perturb the state by s v, |s v| = -stability_perturbation
@@ -672,7 +701,9 @@ class NewtonSolver:
         implicit gradient flow with the RelaxationTerm, energy decreasing) until the undamped
         residual is at tolerance, then an undamped Newton solve; (4) count the negative
         eigenvalues: 0 ends, else repeat from (1), at most switch_attempts times.  On failure the
-        unstable equilibrium is restored.  Returns an info dict (switched, negative_after,
+        unstable equilibrium is restored.  resume: an unfinished relaxation's record (a restart
+        from DIR/relaxation: phase, c, c_min): the first attempt goes on with it from the
+        current state, without (1)-(2).  Returns an info dict (switched, negative_after,
         energies, eigen and relaxation statistics).  Collective; every branch decision uses
         broadcast or allreduced values."""
         from .relax import lumped_weights, relax
@@ -697,18 +728,28 @@ class NewtonSolver:
         M = lumped_weights(p.mesh, p.layout)
         for attempt in range(1, self.switch_attempts + 1):
             info["attempts"] = attempt
-            ev, v, einfo = lowest_eigenpair(p, nneg)
-            info["eigen_seconds"] += einfo["seconds"]
-            info.update(eigenvalue=ev, eigen_method=einfo["method"], dofs=einfo["n"])
-            if not ev < 0:
-                info["message"] = f"lowest eigenvalue {ev:.3e} is not negative"
-                break
-            mv = self._push_along(v, M)
-            p.set_load(lam)
-            # initial pseudo-time stiffness: H + c M positive along v with margin |ev|
-            # (c M v.v >= 2 |ev|), so the first damped step doubles the departure from the saddle
-            c0 = same(2.0 * abs(ev) / mv)
-            rr = relax(self, lam, c0, tol, max_steps=self.relax_max_it)
+            if attempt == 1 and resume is not None:
+                # an unfinished relaxation goes on where it was kept, with its c and phase
+                info.update(eigenvalue=np.nan, eigen_method="resumed relaxation", dofs=0)
+                rr = relax(self, lam, float(resume["c"]), tol, max_steps=self.relax_max_it,
+                           lm_only=resume.get("phase") == "lm",
+                           c_min=float(resume.get("c_min", 1e-12 * float(resume["c"]))),
+                           keep=self._keeper(lam, nneg))
+            else:
+                ev, v, einfo = lowest_eigenpair(p, nneg)
+                info["eigen_seconds"] += einfo["seconds"]
+                info.update(eigenvalue=ev, eigen_method=einfo["method"], dofs=einfo["n"])
+                if not ev < 0:
+                    info["message"] = f"lowest eigenvalue {ev:.3e} is not negative"
+                    break
+                mv = self._push_along(v, M)
+                p.set_load(lam)
+                # initial pseudo-time stiffness: H + c M positive along v with margin |ev|
+                # (c M v.v >= 2 |ev|), so the first damped step doubles the departure from the
+                # saddle
+                c0 = same(2.0 * abs(ev) / mv)
+                rr = relax(self, lam, c0, tol, max_steps=self.relax_max_it,
+                           keep=self._keeper(lam, nneg))
             info["relax_steps"] += rr.steps
             info["relax_rejected"] += rr.rejected
             info["newton_its"] += rr.newton_its

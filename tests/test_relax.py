@@ -480,6 +480,66 @@ def test_a_restart_from_an_unstable_state_is_relaxed_onto_a_stable_one():
                       **bad, **kw)
 
 
+@pytest.mark.mpi
+def test_an_unfinished_relaxation_is_kept_on_disk_and_goes_on_from_there():
+    """A relaxation keeps its state every 25 kept steps and when it ends unfinished in
+    DIR/relaxation (one step: not an equilibrium, with the phase and c to go on from), while
+    the run's own report stays that of its last equilibrium; a restart
+    from there with -stability_switch_restart goes on with it (no new push along an
+    eigenvector) to the equilibrium the uninterrupted relaxation finds, and is written as the
+    step the switch would have been.  A finished relaxation removes the directory.  Restarting
+    from it without -stability_switch_restart is refused by name.  The twisted ring at 2.5
+    turns left on the circle: 30 kept steps uninterrupted; cut at -stability_relax_max_it 8."""
+    import os
+    from rodsnes.output import read_step
+    from rodsnes.scene import SceneError
+    kw = dict(load_twist_turns=2.5, rod_nelem=12)
+    circle = run_case("michell", **kw)
+    assert circle.ok
+    nsteps = len(circle.history)
+    switch = dict(restart=circle.outdir, stability=True, stability_switch_restart=True, **kw)
+    # uninterrupted, with a spy on the keeper: kept at 25 steps, removed when finished
+    full = build_run("michell", outdir=circle.outdir + "_full", **switch)
+    calls = []
+    keeper = full.solver.on_relaxation
+
+    def spy(lam, info):        # (collective: every rank looks before rank 0 removes it)
+        full.mpi.Barrier()
+        calls.append((info["final"], info["ok"], os.path.isdir(os.path.join(full.outdir, "relaxation"))))
+        keeper(lam, info)
+    full.solver.on_relaxation = spy
+    assert full.execute()
+    assert calls[0][:2] == (False, False) and calls[-1][:2] == (True, True)
+    assert calls[-1][2]            # it was on disk until the relaxation finished
+    assert not os.path.exists(os.path.join(full.outdir, "relaxation"))
+    # cut short: the run fails, its result.h5 unchanged, the relaxed state kept
+    short = run_case("michell", outdir=circle.outdir + "_short", stability_relax_max_it=8, **switch)
+    assert not short.ok
+    kept = os.path.join(short.outdir, "relaxation")
+    assert kept in short.solver.fail_reason
+    # its report stays the restart state's (the keeper does not overwrite it)
+    assert short.last_energy == pytest.approx(circle.last_energy, rel=1e-12)
+    assert short.solver.switches[-1]["energy_after"] == pytest.approx(circle.last_energy, rel=1e-9)
+    last = read_step(kept, -1)
+    a = last["attrs"]
+    assert last["step"] == nsteps + 1 and a["relaxation_unfinished"] and a["branch_switch"]
+    assert a["residual_norm"] > short.solver.tolerance()
+    assert full.last_energy < a["energy"] < circle.last_energy
+    assert a["relaxation_phase"] in ("flow", "lm") and a["relaxation_c"] > 0
+    # gone on with: the uninterrupted run's equilibrium, written as step nsteps + 1
+    resumed = run_case("michell", outdir=circle.outdir + "_resumed",
+                       **dict(switch, restart=kept))
+    assert resumed.ok and len(resumed.history) == 1
+    h = resumed.history[0]
+    assert h["branch_switch"] and h["negative_eigenvalues"] == 0
+    assert h["residual_norm"] <= resumed.solver.tolerance()
+    assert resumed.solver.switches[0]["eigen_method"] == "resumed relaxation"
+    assert abs(resumed.last_energy - full.last_energy) <= 1e-8 * full.last_energy
+    assert read_step(resumed.outdir, -1)["step"] == nsteps + 1
+    with pytest.raises(SceneError, match="-stability_switch_restart"):
+        build_run("michell", outdir=circle.outdir + "_bad", restart=kept, stability=True, **kw)
+
+
 def test_damped_solves_at_a_large_stiffness_meet_the_roundoff_of_the_term(capsys):
     """The pseudo-time term c M (x - a) carries a roundoff error eps |x| c M per row; a damped
     solve is converged once its residual is at that floor (RelaxationTerm.roundoff), else every
