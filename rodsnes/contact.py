@@ -782,7 +782,9 @@ class ContactKernel:
         boundary), or jumps to another strand.  The kinds are compared between nqz + 2 points
         of each zone; between two points of different kinds a and b, bisection finds both the
         first point that is not a and the last one that is not b, so that a node the closest
-        point sticks to over a short stretch gives its two cuts.  Every cut is a continuous
+        point sticks to over a short stretch gives its two cuts; where the kinds just inside
+        those two cuts differ again, the stretch between them is bracketed the same way (three
+        or more changes between two samples), until they agree.  Every cut is a continuous
         function of the configuration (to 1e-13 in xi), and so is the zone quadrature.
 
         Returns the split zones (own index, xi start, xi end) and the cuts as (own index, xi
@@ -797,21 +799,45 @@ class ContactKernel:
         ki, kj = np.nonzero(kind[:, :-1] != kind[:, 1:])
         if ki.size == 0:
             return oz, za, zb, (oz[:0], za[:0], za[:0], None, None)
+        # brackets (zone, a, b, kind at a, kind at b) to resolve; the stretch between the two
+        # cuts of a bracket may hold further changes (node 43 -> inside element 42 -> element
+        # 55 of the plectoneme at 9.415 turns, all within one sample spacing: the middle cut was
+        # missed, a Gauss point's closest point jumped by 0.22 in xi as the nodes moved by 1e-7,
+        # and the residual had steps of 0.05 that no Newton step could settle): bracketed again
+        # until the kinds on both inner sides agree
+        bz, ba, bb = ki, Xs[ki, kj], Xs[ki, kj + 1]
         ka, kb = kind[ki, kj], kind[ki, kj + 1]
-        one = np.ones(len(ki))
-        cut, left, right = self._solve1d(ctx, np.concatenate([oz[ki], oz[ki]]),
-                                         np.tile(Xs[ki, kj], 2), np.tile(Xs[ki, kj + 1], 2),
-                                         np.tile(one, 2), -np.tile(one, 2), 3, iters=60,
-                                         target=np.concatenate([ka, kb]),
-                                         negate=np.repeat([False, True], len(ki)), bracket=True)
-        nk = len(ki)
-        distinct = np.r_[np.ones(nk, dtype=bool), np.abs(cut[nk:] - cut[:nk]) > 1e-12]
-        oc, left, right = np.tile(oz[ki], 2)[distinct], left[distinct], right[distinct]
+        zs, cs, ls, rs = [], [], [], []
+        for _ in range(8):
+            nk = len(bz)
+            one = np.ones(nk)
+            cut, left, right = self._solve1d(ctx, np.concatenate([oz[bz], oz[bz]]),
+                                             np.tile(ba, 2), np.tile(bb, 2),
+                                             np.tile(one, 2), -np.tile(one, 2), 3, iters=60,
+                                             target=np.concatenate([ka, kb]),
+                                             negate=np.repeat([False, True], nk), bracket=True)
+            two = np.abs(cut[nk:] - cut[:nk]) > 1e-12
+            distinct = np.r_[np.ones(nk, dtype=bool), two]
+            zs.append(np.tile(bz, 2)[distinct])
+            cs.append(cut[distinct])
+            ls.append(left[distinct])
+            rs.append(right[distinct])
+            if not np.any(two):
+                break
+            # the inner sides: the first point past a's cut, the last point before b's
+            inner_a, inner_b = right[:nk][two], left[nk:][two]
+            oi = oz[bz[two]]
+            k1 = self._kind(ctx, self._closest(ctx, oi, inner_a))
+            k2 = self._kind(ctx, self._closest(ctx, oi, inner_b))
+            more = k1 != k2
+            if not np.any(more):
+                break
+            bz, ba, bb, ka, kb = bz[two][more], inner_a[more], inner_b[more], k1[more], k2[more]
+        cz, cut = np.concatenate(zs), np.concatenate(cs)
+        oc, left, right = oz[cz], np.concatenate(ls), np.concatenate(rs)
         cuts = (oc, left, right, self._closest(ctx, oc, left), self._closest(ctx, oc, right))
-        level = np.zeros(2 * nk, dtype=np.int64)
-        level[distinct] = self._cut_levels(ctx, *cuts)
-        level[~distinct] = level[:nk][~distinct[nk:]]
-        zid = np.concatenate([np.arange(len(za)), np.arange(len(za)), ki, ki])
+        level = self._cut_levels(ctx, *cuts)
+        zid = np.concatenate([np.arange(len(za)), np.arange(len(za)), cz])
         pts = np.concatenate([za, zb, cut])
         lev = np.r_[np.zeros(2 * len(za), dtype=np.int64), level]
         srt = np.lexsort((pts, zid))

@@ -376,8 +376,9 @@ class NewtonSolver:
         it lands near 0.8 p*; a crossing, d ~ mu^(-2/3), may need a second raise) and solve the
         same load again from that state (at most ``max_raises`` times).  mu never falls, so a
         load path sees a non-decreasing penalty; each step records the mu it was solved with
-        (result.h5 ``contact_penalty``).  A re-solve that fails puts back the state and mu and
-        is reported (the step stays, with its penetration).  Updates res (its, seconds, fnorm,
+        (result.h5 ``contact_penalty``).  A Newton re-solve that fails is done again by
+        Levenberg-Marquardt with -load_damped_its N (solve_damped); one that fails still puts
+        back the state and mu and is reported (the step stays, with its penetration).  Updates res (its, seconds, fnorm,
         negative eigenvalues) in place."""
         p = self.problem
         ct = p.contact
@@ -395,6 +396,14 @@ class NewtonSolver:
             r = self.solve_guarded(res.lam)
             res.its += r.its
             res.seconds += r.seconds
+            if not r.converged and self.damped_its > 0 and not self.switch_refused:
+                # as a failed load step (-load_damped_its): Levenberg-Marquardt from the state
+                # the raise started at (the plectoneme's switch at 9.415 turns: 2.2 % at the start
+                # clamp's mount, the Newton re-solve at 2.8 x mu failed at its iteration limit)
+                p.state.restore(snap)
+                r = self.solve_damped(res.lam)
+                res.its += r.its
+                res.seconds += r.seconds
             if not r.converged:
                 p.state.restore(snap)
                 ct.set_penalty(mu0)
@@ -477,9 +486,11 @@ class NewtonSolver:
             res.fnorm = info["fnorm"]
             res.seconds += info["seconds"]
             self._switch_failed_nneg = None
+            how = (info["eigen_method"] if resume is not None else
+                   f"lowest {info['eigenvalue']:+.3e}, {info['eigen_method']} {info['dofs']} dofs "
+                   f"{info['eigen_seconds']:.2f} s")
             self._say(f"  branch switch at load {res.lam:.6f}: {n} -> {info['negative_after']} negative "
-                      f"eigenvalues (lowest {info['eigenvalue']:+.3e}, {info['eigen_method']} "
-                      f"{info['dofs']} dofs {info['eigen_seconds']:.2f} s); relaxation "
+                      f"eigenvalues ({how}); relaxation "
                       f"{info['relax_steps']} steps ({info['relax_rejected']} rejected, "
                       f"{info['newton_its']} Newton its); E {info['energy_before']:+.6e} -> "
                       f"{info['energy_after']:+.6e}; {info['seconds']:.2f} s")
@@ -731,7 +742,10 @@ class NewtonSolver:
             if attempt == 1 and resume is not None:
                 # an unfinished relaxation goes on where it was kept, with its c and phase
                 info.update(eigenvalue=np.nan, eigen_method="resumed relaxation", dofs=0)
-                rr = relax(self, lam, float(resume["c"]), tol, max_steps=self.relax_max_it,
+                # its c, unless above that of a first damped step from here (a relaxation kept
+                # as it stalled has grown c to where no step moves: 1.5e25 on the plectoneme)
+                c_go = min(float(resume["c"]), self._first_stiffness())
+                rr = relax(self, lam, c_go, tol, max_steps=self.relax_max_it,
                            lm_only=resume.get("phase") == "lm",
                            c_min=float(resume.get("c_min", 1e-12 * float(resume["c"]))),
                            keep=self._keeper(lam, nneg))

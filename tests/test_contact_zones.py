@@ -373,3 +373,56 @@ def test_the_plectoneme_end_loop_tangent():
     k = rod.k
     k._cut_levels = lambda ctx, o, *sides: np.full(len(o), k.grade, dtype=np.int64)
     assert error() > 5e-5
+
+
+def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
+    """A slave element where the closest point goes from a master node to the inside of the
+    element before it and then jumps to another strand, all within one sample spacing (the
+    plectoneme relaxing at 9.415 turns, tests/data/plectoneme_9.41_relaxing.h5: slave element
+    0, the start of the rod, against elements 42-43 and 55).  Every change must be cut, so that
+    no Gauss point straddles one: with the middle cut missed, a Gauss point's closest point
+    jumped by 0.22 in xi as a node moved by 1e-7 and the residual had steps of 0.05 (8 x its
+    smooth change per 1e-7) that kept Levenberg-Marquardt 7.6e-2 short of the equilibrium.
+    Checks: the kind of closest point is the same at all Gauss points of every piece, and the
+    contact residual at the node that moves is smooth along 21 moves of 1e-7."""
+    import os
+    from rodsnes.partition import NDOF
+    from conftest import build_run
+    data = os.path.join(os.path.dirname(__file__), "data", "plectoneme_9.41_relaxing.h5")
+    import shutil
+    import tempfile
+    src = tempfile.mkdtemp(prefix="rodsnes_relaxing_")
+    shutil.copy(data, os.path.join(src, "result.h5"))
+    run = build_run("plectoneme", restart=src, stability=True, stability_switch_restart=True)
+    c = run.problem.contact
+    K = c.kernel
+    seen = {}
+    zones = K._zones
+
+    def spy(ctx, gap):
+        out = zones(ctx, gap)
+        seen["ctx"], seen["zones"] = ctx, out
+        return out
+    K._zones = spy
+    r, _ = run.problem.state.local_config()
+    r = np.array(r)
+    c.evaluate(r, tangent=False)
+    ctx, (o_q, xi_q, _, _, _) = seen["ctx"], seen["zones"]
+    cl = K._closest(ctx, o_q, xi_q)
+    kind = K._kind(ctx, cl).reshape(-1, K.nqz)
+    assert len(kind) > 1000
+    # arclength of the closest points: within a piece it may change kind only where it moves
+    # on continuously (a node crossed, within the cut's 1e-13 bisection tolerance), not jump
+    sbar = ((ctx["pool_ids"][cl["m"]] + 0.5 * (cl["xi_m"] + 1.0)) * K.h).reshape(-1, K.nqz)
+    jump = np.abs(np.diff(sbar, axis=1)).max(axis=1)
+    mixed = np.flatnonzero(np.any(kind != kind[:, :1], axis=1) & (jump > 1e-6))
+    assert mixed.size == 0, f"{mixed.size} pieces straddle a jump of the closest point"
+    force = []
+    for t in np.arange(21) * 1e-7:
+        rp = r.copy()
+        rp[128, 0] += t
+        F = np.zeros((len(r), NDOF))
+        c.add_residual(rp, F)
+        force.append(F[128, 0])
+    step = np.diff(force)
+    assert np.all(np.abs(np.diff(step)) < 0.05 * np.abs(step).max()), step
