@@ -538,6 +538,19 @@ def test_an_unfinished_relaxation_is_kept_on_disk_and_goes_on_from_there():
     assert read_step(resumed.outdir, -1)["step"] == nsteps + 1
     with pytest.raises(SceneError, match="-stability_switch_restart"):
         build_run("michell", outdir=circle.outdir + "_bad", restart=kept, stability=True, **kw)
+    # kept as it stalled, with a c grown to where no step moves (the plectoneme: 1.5e25): it
+    # goes on from at most the c of a first damped step, to the same equilibrium
+    if resumed.rank == 0:
+        import shutil
+        import h5py
+        shutil.copytree(kept, kept + "_stalled")
+        with h5py.File(os.path.join(kept + "_stalled", "result.h5"), "a") as f:
+            f["steps"][sorted(f["steps"])[-1]].attrs["relaxation_c"] = 1e25
+    resumed.mpi.Barrier()
+    stalled = run_case("michell", outdir=circle.outdir + "_resumed_stalled",
+                       **dict(switch, restart=kept + "_stalled"))
+    assert stalled.ok and stalled.history[0]["negative_eigenvalues"] == 0
+    assert abs(stalled.last_energy - full.last_energy) <= 1e-8 * full.last_energy
 
 
 def test_damped_solves_at_a_large_stiffness_meet_the_roundoff_of_the_term(capsys):
