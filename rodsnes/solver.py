@@ -29,6 +29,9 @@ from petsc4py import PETSc
 from .loads import nonconservative as _nonconservative
 from .partition import NDOF
 
+# the smallest penalty raise keep_penetration cuts a failed one back to (x mu)
+RAISE_MIN = 1.1
+
 
 def _default(opts, name, value):
     if not opts.hasName(name):
@@ -368,7 +371,7 @@ class NewtonSolver:
         nneg = getattr(self.results[-1], "negative_eigenvalues", 0) if self.results else 0
         return ok, before, self.problem.lam, nneg or 0
 
-    def keep_penetration(self, res, max_raises=4):
+    def keep_penetration(self, res, max_raises=8):
         """-contact_penalty_adapt: keep the penalty's promise at every converged load step.
 
         While the deepest penetration max <d> / (2 eps) of the converged state exceeds
@@ -377,8 +380,10 @@ class NewtonSolver:
         same load again from that state (at most ``max_raises`` times).  mu never falls, so a
         load path sees a non-decreasing penalty; each step records the mu it was solved with
         (result.h5 ``contact_penalty``).  A Newton re-solve that fails is done again by
-        Levenberg-Marquardt with -load_damped_its N (solve_damped); one that fails still puts
-        back the state and mu and is reported (the step stays, with its penetration).  Updates res (its, seconds, fnorm,
+        Levenberg-Marquardt with -load_damped_its N (solve_damped); one that still fails is
+        tried again with a smaller raise (the geometric mean of the two mu, down to
+        RAISE_MIN x mu); below that the state and mu are put back and it is reported (the step
+        stays, with its penetration).  Updates res (its, seconds, fnorm,
         negative eigenvalues) in place."""
         p = self.problem
         ct = p.contact
@@ -392,22 +397,32 @@ class NewtonSolver:
                 break
             mu0, snap = ct.mu, p.state.snapshot()
             mu1 = 1.25 * mu0 * pen / ct.penetration
-            ct.set_penalty(mu1)
-            r = self.solve_guarded(res.lam)
-            res.its += r.its
-            res.seconds += r.seconds
-            if not r.converged and self.damped_its > 0 and not self.switch_refused:
-                # as a failed load step (-load_damped_its): Levenberg-Marquardt from the state
-                # the raise started at (the plectoneme's switch at 9.415 turns: 2.2 % at the start
-                # clamp's mount, the Newton re-solve at 2.8 x mu failed at its iteration limit)
-                p.state.restore(snap)
-                r = self.solve_damped(res.lam)
+            while True:
+                ct.set_penalty(mu1)
+                r = self.solve_guarded(res.lam)
                 res.its += r.its
                 res.seconds += r.seconds
-            if not r.converged:
+                if not r.converged and self.damped_its > 0 and not self.switch_refused:
+                    # as a failed load step (-load_damped_its): Levenberg-Marquardt from the
+                    # state the raise started at (the plectoneme's switch at 9.415 turns: 2.2 %
+                    # at the start clamp's mount, the Newton re-solve at 2.8 x mu failed)
+                    p.state.restore(snap)
+                    r = self.solve_damped(res.lam)
+                    res.its += r.its
+                    res.seconds += r.seconds
+                if r.converged:
+                    break
                 p.state.restore(snap)
                 ct.set_penalty(mu0)
                 p.set_load(res.lam)
+                if mu1 <= RAISE_MIN * mu0 * (1 + 1e-12):
+                    break
+                # a smaller raise: the penalty continued in steps Newton can follow (there, x 2.8
+                # failed in 20 its; x 1.25 converged in 22)
+                self._say(f"  load {res.lam:.6f}: the re-solve with mu = {mu1:.4g} failed (reason "
+                          f"{r.reason}): a smaller raise")
+                mu1 = max(np.sqrt(mu0 * mu1), RAISE_MIN * mu0)
+            if not r.converged:
                 ct.penalty_failures += 1
                 self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter exceeds "
                           f"-contact_penetration {ct.penetration:g}; the re-solve with mu = "
