@@ -464,20 +464,21 @@ def relax_phase(solver, lam, c0, tol, max_steps=200, c_min=None, grow=4.0, newto
                     idle = 0
                     out.idle_raises += 1
             E, f = E_new, f_new
-            if out.steps % progress_every == 0 and hasattr(solver, "_say"):
+            if out.steps % progress_every == 0:
                 # a long relaxation (hundreds of steps, minutes each on a plectoneme) shows
-                # that it is on its way: rank 0 prints, unless -quiet
-                solver._say(f"  relaxation ({'Levenberg-Marquardt' if single_step else 'flow'})"
-                            f": {out.steps} steps ({out.rejected} rejected), E {E:.9g}, "
-                            f"undamped |F| {f:.3e}, c {c:.3e}; rejected: "
-                            + ", ".join(f"{k} {v}" for k, v in out.causes.items() if v))
-            if keep is not None and out.steps % progress_every == 0:
-                out.c_last, out.fnorm = c, f
-                p.extra_terms = [t for t in p.extra_terms if t is not term]
-                try:
-                    keep(out, final=False)
-                finally:
-                    p.extra_terms.append(term)
+                # that it is on its way: rank 0 prints, unless -quiet; and keeps its state
+                if hasattr(solver, "_say"):
+                    solver._say(f"  relaxation ({'Levenberg-Marquardt' if single_step else 'flow'})"
+                                f": {out.steps} steps ({out.rejected} rejected), E {E:.9g}, "
+                                f"undamped |F| {f:.3e}, c {c:.3e}; rejected: "
+                                + ", ".join(f"{k} {v}" for k, v in out.causes.items() if v))
+                if keep is not None:
+                    out.c_last, out.fnorm = c, f
+                    p.extra_terms = [t for t in p.extra_terms if t is not term]
+                    try:
+                        keep(out, final=False)
+                    finally:
+                        p.extra_terms.append(term)
             if not single_step and out.steps % PINNED_WINDOW == 0:
                 # the flow pinned: its damped solves fail below some c, the floor keeps c above
                 # it, and the kept steps no longer move (the plectoneme at 9.415 turns: c 1e11 -

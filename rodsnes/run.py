@@ -144,24 +144,13 @@ class Run:
             self.mpi.Barrier()
             self.solver.relaxation_kept = None
             return
-        saved = {k: getattr(self, k) for k in ("last_fields", "last_energy", "last_contact",
-                                               "last_topology") if hasattr(self, k)}
-        try:
-            fields, energy, cattrs, qp, topo = self._observe()
-        finally:
-            for k, v in saved.items():
-                setattr(self, k, v)
-        attrs = {"load": lam, "energy": energy, "newton_iterations": 0,
-                 "residual_norm": info["fnorm"], "branch_switch": 1, "relaxation_unfinished": 1,
+        extra = {"load": lam, "residual_norm": info["fnorm"], "branch_switch": 1,
+                 "relaxation_unfinished": 1,
                  "relaxation_phase": info["phase"], "relaxation_c": info["c"],
                  "relaxation_c_min": info["c_min"], "relaxation_steps": info["steps"],
                  "negative_eigenvalues": info["negative_eigenvalues"]}
-        attrs.update(cattrs)
-        if topo is not None:
-            attrs.update(topo)
         with output.ResultWriter(rdir, self.mpi, self.mesh.n_nodes, self.meta, xdmf=False) as w:
-            w.write_step(self.step + 1, attrs, self.layout.owned_nodes, fields,
-                         qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
+            energy = self._write_state(w, self.step + 1, extra, report=False)
         self.solver.relaxation_kept = rdir
         if info["final"]:
             self.solver._say(f"  the unfinished relaxation's state (E {energy:.9g}, undamped |F| "
@@ -192,43 +181,49 @@ class Run:
             rec["jump"] = bool(getattr(res, "jump", False))
         return rec
 
-    def _observe(self):
-        """The current state's fields, energy, contact report and topology (collective); sets
-        the last_* attributes that summary.json is made from.  Returns (fields, energy,
-        contact attrs, quadrature-point fields, topology)."""
+    def _observe(self, report=True):
+        """The current state's fields, energy, contact report and topology (collective); with
+        report, sets the last_* attributes that summary.json is made from.  Returns (fields,
+        energy, contact attrs, quadrature-point fields, topology)."""
         p = self.problem
         fields = p.owned_fields()
         energy = p.energy()
-        cattrs, qp = {}, {}
+        cattrs, qp, contact = {}, {}, None
         if self.contact is not None:
             r_loc, _ = p.state.local_config()
             self.contact.evaluate(r_loc, tangent=False)
-            self.last_contact = self.contact.summary()
+            contact = self.contact.summary()
             kappa = p.max_curvature()
             if kappa is not None:
-                self.last_contact["max_curvature"] = kappa
-            cattrs = {"contact_" + k: v for k, v in self.last_contact.items()}
+                contact["max_curvature"] = kappa
+            cattrs = {"contact_" + k: v for k, v in contact.items()}
             qp = self.contact.qp_fields()
         topo = p.topology()
-        if topo is not None:
-            self.last_topology = topo
-        self.last_fields = fields
-        self.last_energy = energy
+        if report:
+            if contact is not None:
+                self.last_contact = contact
+            if topo is not None:
+                self.last_topology = topo
+            self.last_fields = fields
+            self.last_energy = energy
         return fields, energy, cattrs, qp, topo
 
-    def _write(self, res):
-        p = self.problem
-        fields, energy, cattrs, qp, topo = self._observe()
-        attrs = {"load": p.lam, "energy": energy, "newton_iterations": 0, "residual_norm": 0.0}
-        if res is not None:       # HDF5 attributes: the switch flags as 0/1
-            attrs.update({k: int(v) if isinstance(v, bool) else v
-                          for k, v in self._step_record(res).items()})
-        attrs.update(cattrs)
-        if topo is not None:
-            attrs.update(topo)
-        self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
-                               qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
+    def _write_state(self, writer, step, extra, report=True):
+        """Write the current state as ``step`` of ``writer``: load, energy, ``extra`` attributes,
+        the contact KKT picture and the topology (``_observe(report)``).  Returns the energy."""
+        fields, energy, cattrs, qp, topo = self._observe(report)
+        attrs = {"load": self.problem.lam, "energy": energy, "newton_iterations": 0,
+                 "residual_norm": 0.0, **extra, **cattrs, **(topo or {})}
+        writer.write_step(step, attrs, self.layout.owned_nodes, fields,
+                          qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
         return energy
+
+    def _write(self, res):
+        extra = {}
+        if res is not None:       # HDF5 attributes: the switch flags as 0/1
+            extra = {k: int(v) if isinstance(v, bool) else v
+                     for k, v in self._step_record(res).items()}
+        return self._write_state(self.writer, self.step, extra)
 
     def summary(self, converged, failed_reason=None):
         s = {"case": self.scene.output.case_name, "converged": bool(converged),
