@@ -124,7 +124,10 @@ class Run:
         if arc is not None and self.solver.arclength:
             self.arc0 = float(arc)      # dlam0 is then the continuation's next increment
         if self.step >= 1 and not last["attrs"].get("branch_switch", 0):
-            before = output.read_step(rdir, self.step - 1)
+            try:
+                before = output.read_step(rdir, self.step - 1)
+            except KeyError:    # a checkpoint of one step: no secant, the last state predicts
+                return
             self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
                           float(before["attrs"]["load"]))
 

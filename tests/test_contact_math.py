@@ -451,7 +451,7 @@ def test_tangent_formula_of_the_docstring_and_slide_sign():
     t, r2 = np.einsum("na,nad->nd", dNm, xm), np.einsum("na,nad->nd", d2Nm, xm)
     Nt = np.concatenate([k.Nq[out["qp"]], -Nm], axis=1)
     nu = out["normal"]
-    dd = out["gap"][out["active"][:, 0], out["qp"]]
+    dd = out["d_active"]         # d of each active point (gap holds the deepest strand's)
     g = 2 * eps - dd
     D = g[:, None] * nu
     wJmu = k.wq[out["qp"]] * k.h / 2 * mu

@@ -260,13 +260,15 @@ def tight_arc(p, nelem=10, length=0.5, k0=5.0, a=0.5):
 
 
 def record_cuts(k):
-    """Wrap k._split_zones to record the cuts (own element id, xi) of the last evaluation."""
-    rec = {}
+    """Wrap k._split_zones to record the cuts (own element id, xi) of the evaluations since
+    (one per strand, ``ContactKernel.evaluate``)."""
+    rec = {"cuts": (np.zeros(0, dtype=np.int64), np.zeros(0))}
     orig = k._split_zones
 
     def split(ctx, oz, za, zb):
         r = orig(ctx, oz, za, zb)
-        rec["cuts"] = (ctx["own_ids"][r[3][0]], r[3][1])
+        e, xc = rec["cuts"]
+        rec["cuts"] = (np.r_[e, ctx["own_ids"][r[3][0]]], np.r_[xc, r[3][1]])
         return r
     k._split_zones = split
     return rec
@@ -304,13 +306,22 @@ def two_passes(p, g0=0.176, w=0.21, gapc=0.078125):
     x1, x2 = gapc - w / 2, gapc + w / 2
     W = [(-1, 0, 0), (1, 0, 0), (1, -1.4, 0), (x1, -1.4, g0), (x1, 1.1, g0), (x2, 1.1, g0),
          (x2, -1.15, g0)]
+    rod, X, _ = waypoint_rod(W, p)
+    return rod, X
+
+
+def waypoint_rod(W, p, h=0.25):
+    """A rod along the straight pieces between waypoints W, elements of about h (a whole number
+    per piece), a zone-integrating kernel with mu = 1 whose arclength is parametric (h per
+    element: exact on the pieces that are whole multiples of h).  Returns (rod, X, elements per
+    piece)."""
     seg = np.linalg.norm(np.diff(np.array(W, dtype=float), axis=0), axis=1)
-    nel = [max(1, int(round(s / 0.25))) for s in seg]
+    nel = [max(1, int(round(s / h))) for s in seg]
     X = polyline(W, nel, p)
-    L = sum(nel) * 0.25
+    L = sum(nel) * h
     rod = Rod(X, p, False, L, reach=0.3)
     rod.k = type(rod.k)(p, p + 1, EPS, 1.0, rod.delta, L, sum(nel), False, segments=True)
-    return rod, X
+    return rod, X, nel
 
 
 @pytest.mark.parametrize("p", [2, 3, 4])
@@ -396,27 +407,33 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
     run = build_run("plectoneme", restart=src, stability=True, stability_switch_restart=True)
     c = run.problem.contact
     K = c.kernel
-    seen = {}
+    # the slides' single closest point over all strands (evaluate_strand on every candidate),
+    # not the per-strand sum: the three changes lie on two strands, and only the single
+    # minimum over both has to cut all three
+    K.evaluate = K.evaluate_strand
+    seen = []
     zones = K._zones
 
     def spy(ctx, gap):
         out = zones(ctx, gap)
-        seen["ctx"], seen["zones"] = ctx, out
+        seen.append((ctx, out))
         return out
     K._zones = spy
     r, _ = run.problem.state.local_config()
     r = np.array(r)
     c.evaluate(r, tangent=False)
-    ctx, (o_q, xi_q, _, _, _) = seen["ctx"], seen["zones"]
-    cl = K._closest(ctx, o_q, xi_q)
-    kind = K._kind(ctx, cl).reshape(-1, K.nqz)
-    assert len(kind) > 1000
-    # arclength of the closest points: within a piece it may change kind only where it moves
-    # on continuously (a node crossed, within the cut's 1e-13 bisection tolerance), not jump
-    sbar = ((ctx["pool_ids"][cl["m"]] + 0.5 * (cl["xi_m"] + 1.0)) * K.h).reshape(-1, K.nqz)
-    jump = np.abs(np.diff(sbar, axis=1)).max(axis=1)
-    mixed = np.flatnonzero(np.any(kind != kind[:, :1], axis=1) & (jump > 1e-6))
-    assert mixed.size == 0, f"{mixed.size} pieces straddle a jump of the closest point"
+    pieces = 0
+    for ctx, (o_q, xi_q, _, _, _) in seen:
+        cl = K._closest(ctx, o_q, xi_q)
+        kind = K._kind(ctx, cl).reshape(-1, K.nqz)
+        pieces += len(kind)
+        # arclength of the closest points: within a piece it may change kind only where it
+        # moves on continuously (a node crossed, within the cuts' 1e-13), not jump
+        sbar = ((ctx["pool_ids"][cl["m"]] + 0.5 * (cl["xi_m"] + 1.0)) * K.h).reshape(-1, K.nqz)
+        jump = np.abs(np.diff(sbar, axis=1)).max(axis=1)
+        mixed = np.flatnonzero(np.any(kind != kind[:, :1], axis=1) & (jump > 1e-6))
+        assert mixed.size == 0, f"{mixed.size} pieces straddle a jump of the closest point"
+    assert pieces > 1000
     force = []
     for t in np.arange(21) * 1e-7:
         rp = r.copy()

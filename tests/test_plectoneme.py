@@ -42,9 +42,10 @@ def test_twisted_rod_snaps_into_a_loop_in_self_contact():
 
 CHECKPOINTS = os.path.join(ROOT, "cases", "checkpoints")
 # checkpoints that break the penetration promise (README, Plectoneme: the stable branch at
-# 9.415 turns presses the rod 2.2 % into the start clamp's mount, and raising mu failed):
-# kept to go on from, with their measured penetration held here
-OVER_PROMISE = {"plectoneme_9.415_switched": 0.0223}
+# 9.415 turns presses the rod 2.3 % into the start clamp's mount at the penalty of the switch;
+# the first load step from it raises the penalty): kept to go on from, with their measured
+# penetration held here
+OVER_PROMISE = {"plectoneme_9.415_switched": 0.0227}
 
 
 def _checkpoints():
