@@ -131,3 +131,21 @@ def test_a_checkpoint_of_the_last_steps_resumes_like_the_whole_file(tmp_path):
     assert [h["load"] for h in resumed.history] == [1.0]
     assert output.read_steps(str(tmp_path / "new"))[-1] == 4
     assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
+
+
+def test_a_checkpoint_of_one_step_resumes_without_a_secant(tmp_path):
+    """A checkpoint of the last step only (``--steps 1``, or a state written alone: the
+    plectoneme's re-solved switch) has no step before it for the secant predictor: the restart
+    predicts from the state itself and ends where the whole run ends (before: KeyError)."""
+    import sys
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tools"))
+    from checkpoint import checkpoint
+    full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
+    staged = str(tmp_path / "staged")
+    assert run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.75).ok
+    assert checkpoint(staged, str(tmp_path / "ckpt"), nsteps=1) == [3]
+    resumed = run_case("mattiasson", outdir=str(tmp_path / "new"), load_steps=4,
+                       restart=str(tmp_path / "ckpt"))
+    assert resumed.ok and resumed.prev0 is None
+    assert [h["load"] for h in resumed.history] == [1.0]
+    assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
