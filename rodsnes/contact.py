@@ -723,10 +723,14 @@ class ContactKernel:
                 "A_pool": np.einsum("ka,ead->ekd", self.C, pool_x), "cen": cen, "rad": rad,
                 "m_sorted": mi[order], "start": np.cumsum(count) - count, "count": count}
 
-    def _closest(self, ctx, o, xi):
+    def _closest(self, ctx, o, xi, rival=False):
         """Closest admissible point of the slave points (own index o, slave xi) (M,) among the
         candidate elements of their element: d = 2 eps - g (-inf without candidate), m (pool
-        index, -1 without), xi_m, interior, D = r(s) - r(sbar), g, and N, dN at xi."""
+        index, -1 without), xi_m, interior, D = r(s) - r(sbar), g, and N, dN at xi.
+
+        With ``rival``: also the runner-up, the nearest of the per-element minima whose kind
+        (``_kind``) is not the closest point's (no pruning then): rival_g (inf without one),
+        rival_D, rival_kind, and kind (of the closest point)."""
         p, h = self.p, self.h
         M = len(o)
         Ns, dNs, _ = (mm @ self.C for mm in _monomials(p, xi))
@@ -760,6 +764,8 @@ class ContactKernel:
         best_ub = np.full(M, np.inf)
         np.minimum.at(best_ub, pr_pt, ub)
         keep = lb <= best_ub[pr_pt] * (1.0 + 1e-9) + 1e-300
+        if rival:
+            keep[:] = True
         pr_pt, pr_m, pr_lo, pr_hi, Pp = (a[keep] for a in (pr_pt, pr_m, pr_lo, pr_hi, Pp))
         xm, f = self.project(Pp, A[pr_m], pr_lo, pr_hi)
         # global minimum per slave point (ties, e.g. a shared node: the first one only)
@@ -777,7 +783,39 @@ class ContactKernel:
         res["D"][b] = Dv
         res["g"][b] = g
         res["d"][b] = 2.0 * self.eps - g
+        if rival:
+            self._rival(ctx, res, P, pr_pt, pr_m, pr_lo, pr_hi, xm, f, b, best)
         return res
+
+    def _rival(self, ctx, res, P, pr_pt, pr_m, pr_lo, pr_hi, xm, f, b, best):
+        """The runner-up of ``_closest`` (rival=True): among the per-element minima (pr_*, xm,
+        f) of each slave point, the nearest one of another kind than the closest point's."""
+        M = len(res["d"])
+        e = ctx["pool_ids"][pr_m]
+        node = np.where(xm <= -1.0, e, e + 1)
+        if self.closed:
+            node = np.mod(node, self.nelem)
+        inner = (xm > pr_lo) & (xm < pr_hi)
+        kind = np.where(inner, 2 * e + 1, np.where(np.abs(xm) >= 1.0, 2 * node, -2 - e))
+        best_kind = np.full(M, -1, dtype=np.int64)
+        best_kind[b] = kind[best]
+        other = np.flatnonzero(kind != best_kind[pr_pt])
+        res["kind"] = best_kind
+        res["rival_g"] = np.full(M, np.inf)
+        res["rival_D"] = np.zeros((M, 3))
+        res["rival_kind"] = np.full(M, -1, dtype=np.int64)
+        if other.size == 0:
+            return
+        order = other[np.lexsort((f[other], pr_pt[other]))]
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = pr_pt[order][1:] != pr_pt[order][:-1]
+        rv = order[first]
+        q = pr_pt[rv]
+        Nm = _monomials(self.p, xm[rv])[0] @ self.C
+        Dv = P[q] - np.einsum("na,nad->nd", Nm, ctx["pool_x"][pr_m[rv]])
+        res["rival_D"][q] = Dv
+        res["rival_g"][q] = np.linalg.norm(Dv, axis=1)
+        res["rival_kind"][q] = kind[rv]
 
     def _ddxi(self, ctx, o, cl):
         """d'(xi) of the slave points: -nu . dr/dxi where the closest point is stationary
@@ -873,11 +911,9 @@ class ContactKernel:
         n = self.nqz + 2
         t = np.linspace(0.0, 1.0, n)
         Xs = za[:, None] + (zb - za)[:, None] * t[None, :]
-        cl = self._closest(ctx, np.repeat(oz, n), Xs.ravel())
-        kind = self._kind(ctx, cl).reshape(-1, n)
+        cl = self._closest(ctx, np.repeat(oz, n), Xs.ravel(), rival=True)
+        kind = cl["kind"].reshape(-1, n)
         ki, kj = np.nonzero(kind[:, :-1] != kind[:, 1:])
-        if ki.size == 0:
-            return oz, za, zb, (oz[:0], za[:0], za[:0], None, None)
         # brackets (zone, a, b, kind at a, kind at b) to resolve; the stretch between the two
         # cuts of a bracket may hold further changes (node 43 -> inside element 42 -> element
         # 55 of the plectoneme at 9.415 turns, all within one sample spacing: the middle cut was
@@ -886,6 +922,12 @@ class ContactKernel:
         # until the kinds on both inner sides agree
         bz, ba, bb = ki, Xs[ki, kj], Xs[ki, kj + 1]
         ka, kb = kind[ki, kj], kind[ki, kj + 1]
+        rz, ra, rb, rka, rkb = self._rival_brackets(ctx, oz, Xs, cl, kind)
+        if rz.size:
+            bz, ba, bb = np.r_[bz, rz], np.r_[ba, ra], np.r_[bb, rb]
+            ka, kb = np.r_[ka, rka], np.r_[kb, rkb]
+        if bz.size == 0:
+            return oz, za, zb, (oz[:0], za[:0], za[:0], None, None)
         zs, cs, ls, rs = [], [], [], []
         for _ in range(8):
             nk = len(bz)
@@ -928,6 +970,78 @@ class ContactKernel:
         a, b, z, la, lb = a[keep], b[keep], z[keep], la[keep], lb[keep]
         a, b, z = self._grade(a, b, z, la, lb)
         return oz[z], a, b, cuts
+
+    def _margin(self, ctx, o, cl):
+        """Margin of the runner-up, m = g_rival - g >= 0, and dm/dxi along the slave (each
+        distance's derivative D . r'(xi) / g: its closest point is stationary or fixed)."""
+        t = np.einsum("na,nad->nd", cl["dN"], ctx["x_own"][o])
+        ok = np.isfinite(cl["rival_g"]) & (cl["g"] > 0) & np.isfinite(cl["g"])
+        g = np.where(ok, cl["g"], 1.0)
+        gr = np.where(ok, cl["rival_g"], 1.0)
+        dm = np.einsum("nd,nd->n", cl["rival_D"], t) / gr - np.einsum("nd,nd->n", cl["D"], t) / g
+        return np.where(ok, gr - g, np.inf), np.where(ok, dm, 0.0)
+
+    def _rival_brackets(self, ctx, oz, Xs, cl, kind, iters=60):
+        """Stretches between two samples of the same kind where the runner-up takes over
+        (``_closest`` rival): brackets (zone, a, b, kind at a, kind at b) of the changes there.
+        Two nearly parallel strands in line contact have a nearly flat distance along the
+        master; a C0 kink of the centreline then holds a minimum of its own next to the one
+        inside the element, and the two trade places over stretches narrower than the sample
+        spacing (the plectoneme at 9.72 turns: 0.002 in xi, samples 0.2 apart), so no sample
+        sees the change and a Gauss point's closest point jumps from four nodes to one as the
+        stretch's end crosses it (a residual step of 5.5 of 46 as a node moved by 7e-8).
+        Between two samples where the margin m = g_rival - g falls and then rises (dm/dxi < 0
+        at a, > 0 at b) its minimum is found (Illinois on dm/dxi); where the runner-up is the
+        nearer there (the kind changes on the way, or m < 0), the stretch is bracketed on both
+        sides.  A stretch is then cut from the moment it is born (m_min = 0, zero width), and
+        the zone quadrature stays continuous."""
+        n = Xs.shape[1]
+        o = np.repeat(oz, n)
+        m, dm = self._margin(ctx, o, cl)
+        m, dm = m.reshape(-1, n), dm.reshape(-1, n)
+        rk = cl["rival_kind"].reshape(-1, n)
+        zi, j = np.nonzero((kind[:, :-1] == kind[:, 1:]) & (rk[:, :-1] == rk[:, 1:])
+                           & np.isfinite(m[:, :-1]) & np.isfinite(m[:, 1:])
+                           & (dm[:, :-1] < 0.0) & (dm[:, 1:] > 0.0))
+        e = np.zeros(0, dtype=np.int64)
+        if zi.size == 0:
+            return e, np.zeros(0), np.zeros(0), e, e
+        iz, xa0, xb0 = zi, Xs[zi, j], Xs[zi, j + 1]
+        a, b, fa, fb = xa0.copy(), xb0.copy(), dm[zi, j].copy(), dm[zi, j + 1].copy()
+        k0, r0 = kind[zi, j], rk[zi, j]
+        found = np.full(len(iz), np.nan)
+        found_kind = np.full(len(iz), -1, dtype=np.int64)
+        side = np.zeros(len(iz), dtype=int)
+        act = np.arange(len(iz))
+        for _ in range(iters):
+            if act.size == 0:
+                break
+            A_, B_, FA, FB = a[act], b[act], fa[act], fb[act]
+            c = (A_ * FB - B_ * FA) / (FB - FA)
+            c = np.clip(c, np.minimum(A_, B_), np.maximum(A_, B_))
+            cs = self._closest(ctx, oz[iz[act]], c, rival=True)
+            mc, fc = self._margin(ctx, oz[iz[act]], cs)
+            other = (cs["kind"] != k0[act])
+            found[act[other]] = c[other]
+            found_kind[act[other]] = cs["kind"][other]
+            lost = ~other & ((cs["rival_kind"] != r0[act]) | ~np.isfinite(mc))
+            left = np.sign(fc) == np.sign(FA)
+            a[act] = np.where(left, c, A_)
+            fa[act] = np.where(left, fc, FA)
+            b[act] = np.where(left, B_, c)
+            fb[act] = np.where(left, FB, fc)
+            s_new = np.where(left, 1, -1)
+            stay = side[act] == s_new
+            fb[act] = np.where(stay & left, 0.5 * fb[act], fb[act])
+            fa[act] = np.where(stay & ~left, 0.5 * fa[act], fa[act])
+            side[act] = s_new
+            done = other | lost | (np.abs(b[act] - a[act]) <= 1e-13) | (fc == 0.0)
+            act = act[~done]
+        hit = np.flatnonzero(np.isfinite(found) & (found > xa0) & (found < xb0))
+        if hit.size == 0:
+            return e, np.zeros(0), np.zeros(0), e, e
+        iz, xa0, xb0, k0, xs, ks = iz[hit], xa0[hit], xb0[hit], k0[hit], found[hit], found_kind[hit]
+        return (np.r_[iz, iz], np.r_[xa0, xs], np.r_[xs, xb0], np.r_[k0, ks], np.r_[ks, k0])
 
     def _cut_levels(self, ctx, o, left, right, cla, clb):
         """Levels of geometric grading toward every cut (``_grade``): ``grade`` + 2 log2 of the

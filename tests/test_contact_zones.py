@@ -443,3 +443,49 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
         force.append(F[128, 0])
     step = np.diff(force)
     assert np.all(np.abs(np.diff(step)) < 0.05 * np.abs(step).max()), step
+
+
+def test_a_kink_minimum_that_takes_over_between_two_samples_is_cut():
+    """The plectoneme at 9.72 turns, inside a Newton solve (node positions stored): strands in
+    line contact, nearly parallel.  For slave element 26 the distance along master element 17
+    has its minimum inside (xi = -0.15) and a second one at node 51 (the C0 kink between
+    elements 16 and 17); the node's takes over on slave xi in [0.8260, 0.8290], between two
+    samples of the zone's kinds (0.2 apart), and no sample saw it: as node 79 moved by 7.15e-8
+    that stretch's end crossed a Gauss point, whose force moved from four nodes to one, and the
+    contact force at node 51 stepped by 5.5 of 46 (load steps stalled at 9.7188 turns).  The
+    runner-up's margin is minimised between samples (``ContactKernel._rival_brackets``): the
+    stretch gets its two cuts, and the largest step of that force over moves of node 79 in
+    [0, 2e-7] (bisected to 2e-16) is 5e-9 (measured; 5.5 without)."""
+    import os
+    X0 = np.load(os.path.join(os.path.dirname(__file__), "data",
+                              "plectoneme_9.72_line_contact.npy"))
+    eps, mu = 0.025, 5.754172062186161e7
+    rod = Rod(X0, 3, False, 1.0, eps=eps, mu=mu, delta=np.pi * eps, nqc=5, reach=0.125)
+    rod.k = type(rod.k)(3, 5, eps, mu, rod.delta, 1.0, rod.nelem, False, segments=True)
+
+    def moved(t):
+        X = X0.copy()
+        X[79, 1] += t
+        return X
+
+    rec = record_cuts(rod.k)
+    X = moved(7.1527e-8)
+    rod.eval(X, rod.pairs(X))
+    e, xc = rec["cuts"]
+    mine = np.sort(xc[e == 26])
+    assert np.any(np.abs(mine - 0.82599) < 1e-4) and np.any(np.abs(mine - 0.82895) < 1e-4), mine
+
+    def force(t):
+        X = moved(t)
+        return rod.residual(X, rod.pairs(X))[51, 2]
+
+    a, b = 0.0, 2e-7
+    fa, fb = force(a), force(b)
+    for _ in range(30):                  # keep the half that changes more: finds a jump
+        m = 0.5 * (a + b)
+        fm = force(m)
+        if abs(fm - fa) > abs(fb - fm):
+            b, fb = m, fm
+        else:
+            a, fa = m, fm
+    assert abs(fb - fa) < 1e-6 * abs(fa), (a, fb - fa)
