@@ -301,6 +301,22 @@ def strand_index(pairs, nelem, closed, near=0):
     return idx[np.asarray(inv).ravel()[:n]]
 
 
+def _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc):
+    """One Illinois (modified regula falsi) update, in place on the entries act of the
+    brackets [a, b] with values fa, fb: the end whose value has the sign of f(c) moves to c;
+    the other end's value is halved when the same end moved the time before (side)."""
+    left = np.sign(fc) == np.sign(FA)
+    a[act] = np.where(left, c, A_)
+    fa[act] = np.where(left, fc, FA)
+    b[act] = np.where(left, B_, c)
+    fb[act] = np.where(left, FB, fc)
+    s_new = np.where(left, 1, -1)
+    stay = side[act] == s_new
+    fb[act] = np.where(stay & left & np.isfinite(fb[act]), 0.5 * fb[act], fb[act])
+    fa[act] = np.where(stay & ~left & np.isfinite(fa[act]), 0.5 * fa[act], fa[act])
+    side[act] = s_new
+
+
 def co_master_pairs(pairs, cen, rad, reach):
     """Pairs (a, b), a < b, of candidate masters of the same slave element whose bounding
     spheres (cen, rad indexed by element id) come within ``reach`` of each other, from
@@ -860,17 +876,7 @@ class ContactKernel:
                 hit = self._kind(ctx, cl) == target[act]
                 fc = np.where(hit != negate[act], 1.0, -1.0)
             x[act] = c
-            left = np.sign(fc) == np.sign(FA)
-            # replace the end with the same sign; halve the other end's value if it stays twice
-            a[act] = np.where(left, c, A_)
-            fa[act] = np.where(left, fc, FA)
-            b[act] = np.where(left, B_, c)
-            fb[act] = np.where(left, FB, fc)
-            s_new = np.where(left, 1, -1)
-            stay = side[act] == s_new
-            fb[act] = np.where(stay & left & np.isfinite(fb[act]), 0.5 * fb[act], fb[act])
-            fa[act] = np.where(stay & ~left & np.isfinite(fa[act]), 0.5 * fa[act], fa[act])
-            side[act] = s_new
+            _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc)
             done = (np.abs(b[act] - a[act]) <= dx_tol) | (fc == 0.0)
             act = act[~done]
         return (x, a, b) if bracket else x
@@ -1025,16 +1031,7 @@ class ContactKernel:
             found[act[other]] = c[other]
             found_kind[act[other]] = cs["kind"][other]
             lost = ~other & ((cs["rival_kind"] != r0[act]) | ~np.isfinite(mc))
-            left = np.sign(fc) == np.sign(FA)
-            a[act] = np.where(left, c, A_)
-            fa[act] = np.where(left, fc, FA)
-            b[act] = np.where(left, B_, c)
-            fb[act] = np.where(left, FB, fc)
-            s_new = np.where(left, 1, -1)
-            stay = side[act] == s_new
-            fb[act] = np.where(stay & left, 0.5 * fb[act], fb[act])
-            fa[act] = np.where(stay & ~left, 0.5 * fa[act], fa[act])
-            side[act] = s_new
+            _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc)
             done = other | lost | (np.abs(b[act] - a[act]) <= 1e-13) | (fc == 0.0)
             act = act[~done]
         hit = np.flatnonzero(np.isfinite(found) & (found > xa0) & (found < xb0))
