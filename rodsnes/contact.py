@@ -301,6 +301,15 @@ def strand_index(pairs, nelem, closed, near=0):
     return idx[np.asarray(inv).ravel()[:n]]
 
 
+def _nearest_per_point(idx, f, pt):
+    """Of the candidates idx (indices into f and pt), the one with the smallest f for each point
+    pt (ties: the first in order); one index per point that has a candidate."""
+    order = idx[np.lexsort((f[idx], pt[idx]))]
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = pt[order][1:] != pt[order][:-1]
+    return order[first]
+
+
 def _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc):
     """One Illinois (modified regula falsi) update, in place on the entries act of the
     brackets [a, b] with values fa, fb: the end whose value has the sign of f(c) moves to c;
@@ -785,16 +794,12 @@ class ContactKernel:
         pr_pt, pr_m, pr_lo, pr_hi, Pp = (a[keep] for a in (pr_pt, pr_m, pr_lo, pr_hi, Pp))
         xm, f = self.project(Pp, A[pr_m], pr_lo, pr_hi)
         # global minimum per slave point (ties, e.g. a shared node: the first one only)
-        order = np.lexsort((f, pr_pt))
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = pr_pt[order][1:] != pr_pt[order][:-1]
-        best = order[first]
+        best = _nearest_per_point(np.arange(len(f)), f, pr_pt)
         b = pr_pt[best]
         res["m"][b] = pr_m[best]
         res["xi_m"][b] = xm[best]
         res["interior"][b] = (xm[best] > pr_lo[best]) & (xm[best] < pr_hi[best])
-        Nm = _monomials(p, xm[best])[0] @ self.C
-        Dv = P[b] - np.einsum("na,nad->nd", Nm, ctx["pool_x"][pr_m[best]])
+        Dv = self._offset(ctx, P[b], pr_m[best], xm[best])
         g = np.linalg.norm(Dv, axis=1)
         res["D"][b] = Dv
         res["g"][b] = g
@@ -807,12 +812,7 @@ class ContactKernel:
         """The runner-up of ``_closest`` (rival=True): among the per-element minima (pr_*, xm,
         f) of each slave point, the nearest one of another kind than the closest point's."""
         M = len(res["d"])
-        e = ctx["pool_ids"][pr_m]
-        node = np.where(xm <= -1.0, e, e + 1)
-        if self.closed:
-            node = np.mod(node, self.nelem)
-        inner = (xm > pr_lo) & (xm < pr_hi)
-        kind = np.where(inner, 2 * e + 1, np.where(np.abs(xm) >= 1.0, 2 * node, -2 - e))
+        kind = self._kind_at(ctx["pool_ids"][pr_m], xm, (xm > pr_lo) & (xm < pr_hi))
         best_kind = np.full(M, -1, dtype=np.int64)
         best_kind[b] = kind[best]
         other = np.flatnonzero(kind != best_kind[pr_pt])
@@ -822,16 +822,17 @@ class ContactKernel:
         res["rival_kind"] = np.full(M, -1, dtype=np.int64)
         if other.size == 0:
             return
-        order = other[np.lexsort((f[other], pr_pt[other]))]
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = pr_pt[order][1:] != pr_pt[order][:-1]
-        rv = order[first]
+        rv = _nearest_per_point(other, f, pr_pt)
         q = pr_pt[rv]
-        Nm = _monomials(self.p, xm[rv])[0] @ self.C
-        Dv = P[q] - np.einsum("na,nad->nd", Nm, ctx["pool_x"][pr_m[rv]])
+        Dv = self._offset(ctx, P[q], pr_m[rv], xm[rv])
         res["rival_D"][q] = Dv
         res["rival_g"][q] = np.linalg.norm(Dv, axis=1)
         res["rival_kind"][q] = kind[rv]
+
+    def _offset(self, ctx, P, m, xm):
+        """D = P - r_m(xm): from points P to the points xm of pool elements m."""
+        Nm = _monomials(self.p, xm)[0] @ self.C
+        return P - np.einsum("na,nad->nd", Nm, ctx["pool_x"][m])
 
     def _ddxi(self, ctx, o, cl):
         """d'(xi) of the slave points: -nu . dr/dxi where the closest point is stationary
@@ -888,14 +889,16 @@ class ContactKernel:
         boundary), -1 without a closest point.  A change of kind along s is a kink of d(s)
         (node, bound) or a jump of the closest point to another strand."""
         m = cl["m"]
-        e = ctx["pool_ids"][np.maximum(m, 0)]
-        xi = cl["xi_m"]
+        kind = self._kind_at(ctx["pool_ids"][np.maximum(m, 0)], cl["xi_m"], cl["interior"])
+        return np.where(m >= 0, kind, -1)
+
+    def _kind_at(self, e, xi, interior):
+        """``_kind`` of points xi of elements e (global ids), interior: strictly inside the
+        slot."""
         node = np.where(xi <= -1.0, e, e + 1)
         if self.closed:
             node = np.mod(node, self.nelem)
-        kind = np.where(cl["interior"], 2 * e + 1,
-                        np.where(np.abs(xi) >= 1.0, 2 * node, -2 - e))
-        return np.where(m >= 0, kind, -1)
+        return np.where(interior, 2 * e + 1, np.where(np.abs(xi) >= 1.0, 2 * node, -2 - e))
 
     def _split_zones(self, ctx, oz, za, zb):
         """Split the zones where the integrand has a kink or a jump, which Gauss points must not

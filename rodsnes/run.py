@@ -123,11 +123,10 @@ class Run:
         arc = last["attrs"].get("arclength_from")
         if arc is not None and self.solver.arclength:
             self.arc0 = float(arc)      # dlam0 is then the continuation's next increment
-        if self.step >= 1 and not last["attrs"].get("branch_switch", 0):
-            try:
-                before = output.read_step(rdir, self.step - 1)
-            except KeyError:    # a checkpoint of one step: no secant, the last state predicts
-                return
+        # (a checkpoint of one step has no step before it: the last state predicts)
+        if (self.step >= 1 and not last["attrs"].get("branch_switch", 0)
+                and self.step - 1 in output.read_steps(rdir)):
+            before = output.read_step(rdir, self.step - 1)
             self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
                           float(before["attrs"]["load"]))
 
