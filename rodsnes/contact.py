@@ -692,45 +692,54 @@ class ContactKernel:
         x_other = np.asarray(x_other, dtype=float).reshape(len(other_ids), n1, 3)
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         no = len(own_ids)
-        gap = np.full((no, nqc), -np.inf)
-        sbar = np.full((no, nqc), np.nan)
-        out = {"energy": 0.0, "total_force": 0.0, "complementarity": 0.0, "zones": 0,
-               "gap": gap, "force": np.zeros((no, nqc)), "sbar": sbar,
-               "active": np.zeros((0, 2), dtype=np.int64), "vec": np.zeros((0, 2 * n1, 3)),
-               "mat": np.zeros((0, 6 * n1, 6 * n1)) if tangent else None,
-               "qp": np.zeros(0, dtype=np.int64), "xi": np.zeros(0), "xi_slave": np.zeros(0),
-               "normal": np.zeros((0, 3)), "interior": np.zeros(0, dtype=bool),
-               "d_active": np.zeros(0), "switch": np.zeros((0, 3), dtype=np.int64),
-               "switch_mat": np.zeros((0, 9 * n1, 9 * n1)) if tangent else None}
+        out = self.empty_output(no, tangent)
         if no == 0 or len(pairs) == 0:
             return out
         ctx = self._context(own_ids, x_own, other_ids, x_other, pairs)
 
         # the Gauss points: reported gap and force, and the quadrature unless segments
-        o_r = np.repeat(np.arange(no), nqc)
-        xi_r = np.tile(self.xq, no)
-        w_r = np.tile(self.wq * (0.5 * h), no)
-        cl = self._closest(ctx, o_r, xi_r)
-        gap[:] = cl["d"].reshape(no, nqc)
-        has = cl["m"] >= 0
-        sb = np.full(len(o_r), np.nan)
-        sb[has] = ctx["pool_ids"][cl["m"][has]] * h + (cl["xi_m"][has] + 1.0) * 0.5 * h
-        sbar[:] = sb.reshape(no, nqc)
-        out["force"] = self.mu * np.maximum(gap, 0.0)
+        cl, out["gap"], out["sbar"] = self.report_points(ctx, no)
+        out["force"] = self.mu * np.maximum(out["gap"], 0.0)
         if self.segments:
-            o_q, xi_q, w_q, nz, cuts = self._zones(ctx, gap)
+            o_q, xi_q, w_q, nz, cuts = self._zones(ctx, out["gap"])
             cl = self._closest(ctx, o_q, xi_q)
             qp = np.full(len(o_q), -1, dtype=np.int64)
             out["zones"] = nz
             self._switch_terms(ctx, *cuts, tangent, out)
         else:
-            o_q, xi_q, w_q = o_r, xi_r, w_r
+            o_q = np.repeat(np.arange(no), nqc)
+            xi_q = np.tile(self.xq, no)
+            w_q = np.tile(self.wq * (0.5 * h), no)
             qp = np.tile(np.arange(nqc), no)
             out["zones"] = int(np.count_nonzero(cl["d"] > 0.0))
         self._terms(ctx, o_q, xi_q, w_q, qp, cl, tangent, out)
         return out
 
     # -- building blocks ----------------------------------------------------------------------
+    def empty_output(self, no, tangent):
+        """The outputs of ``evaluate_strand`` for ``no`` own elements with nothing in contact."""
+        n1, nqc = self.p + 1, self.nqc
+        return {"energy": 0.0, "total_force": 0.0, "complementarity": 0.0, "zones": 0,
+                "gap": np.full((no, nqc), -np.inf), "force": np.zeros((no, nqc)),
+                "sbar": np.full((no, nqc), np.nan),
+                "active": np.zeros((0, 2), dtype=np.int64), "vec": np.zeros((0, 2 * n1, 3)),
+                "mat": np.zeros((0, 6 * n1, 6 * n1)) if tangent else None,
+                "qp": np.zeros(0, dtype=np.int64), "xi": np.zeros(0), "xi_slave": np.zeros(0),
+                "normal": np.zeros((0, 3)), "interior": np.zeros(0, dtype=bool),
+                "d_active": np.zeros(0), "switch": np.zeros((0, 3), dtype=np.int64),
+                "switch_mat": np.zeros((0, 9 * n1, 9 * n1)) if tangent else None}
+
+    def report_points(self, ctx, no):
+        """The closest point of the nqc Gauss points of the ``no`` own elements: the
+        ``_closest`` record, gap d (no, nqc) and sbar (no, nqc), the arclength of the closest
+        point (NaN without one)."""
+        nqc, h = self.nqc, self.h
+        cl = self._closest(ctx, np.repeat(np.arange(no), nqc), np.tile(self.xq, no))
+        has = cl["m"] >= 0
+        sb = np.full(len(has), np.nan)
+        sb[has] = ctx["pool_ids"][cl["m"][has]] * h + (cl["xi_m"][has] + 1.0) * 0.5 * h
+        return cl, cl["d"].reshape(no, nqc), sb.reshape(no, nqc)
+
     def _context(self, own_ids, x_own, other_ids, x_other, pairs):
         """Master pool (other first, then own; first occurrence wins), monomial coefficients,
         bounding spheres, and the candidate masters of every own element (CSR by own index)."""

@@ -28,6 +28,7 @@ from petsc4py import PETSc
 
 from . import contact as ck, so3
 from .partition import add_position_blocks
+from .contact_potential import PotentialKernel
 from .support import SupportTerm
 
 
@@ -46,9 +47,16 @@ class ContactTerm:
         self.penalty_failures = 0       # ... that failed (state and mu put back)
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
-        self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
-                                       mesh.length, mesh.nelem, mesh.closed,
-                                       segments=c.zones)
+        self.model = getattr(c, "model", "projection")
+        if self.model == "potential":
+            self.kernel = PotentialKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
+                                          mesh.length, mesh.nelem, mesh.closed,
+                                          penetration=self.penetration,
+                                          nqp=getattr(c, "potential_points", None))
+        else:
+            self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
+                                           mesh.length, mesh.nelem, mesh.closed,
+                                           segments=c.zones)
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
         self.pattern_reach = 2.0 * self.eps + 4.0 * self.eps + mesh.h   # preallocation margin per step

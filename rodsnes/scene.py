@@ -279,13 +279,21 @@ class O:
     contact_curvature = Opt(BOOL, True, "the contact tube also bounds bending: flexure above "
                             "1/radius is penalised (stiffness EI / -contact_penetration), so the "
                             "exclusion pi*radius hides no penetration", "contact")
+    contact_model = Opt(CHOICE, "projection", "contact law: projection (the gap to the closest "
+                        "point, penalty (mu/2) int <d>^2 ds) or potential (a pair potential "
+                        "(k/2) int int <2 eps - |r(s) - r(sigma)|>^2 between centreline points, "
+                        "smooth where closest points are not unique: tight plies)", "contact",
+                        choices=("projection", "potential"))
     contact_zones = Opt(BOOL, True, "integrate the penalty over the contact zones (d > 0, found by "
-                        "root finding) instead of at fixed Gauss points", "contact")
+                        "root finding) instead of at fixed Gauss points (-contact_model "
+                        "projection)", "contact")
     contact_supports = Opt(BOOL, True, "with -bc_start clamped -bc_end sliding, the clamps' mounts "
                            "are obstacles: the axis behind the start and beyond the end, along "
                            "which the link is counted (a rod going round a clamp would change it)",
                            "contact")
-    contact_quadrature = Opt(INT, None, "points per element for the contact integral", "contact",
+    contact_quadrature = Opt(INT, None, "points per element for the contact integral (with "
+                             "-contact_model potential: of both integrals, automatic = 12 on "
+                             "the stretch a contact touches)", "contact",
                              rng="[1,inf)", shown="order+2",
                              note="quadrature points per element")
     # --- output -----------------------------------------------------------------
@@ -440,6 +448,8 @@ class Contact:
     adapt: bool = True              # raise mu after a step that breaks the promise
     curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
     supports: bool = True           # the clamps' mounts as obstacles (support.py)
+    model: str = "projection"       # contact law: projection (contact.py), potential (contact_potential.py)
+    potential_points: Optional[int] = None   # -contact_quadrature with the potential (nqp)
 
 
 @dataclass
@@ -951,13 +961,34 @@ def _contact(c, rod, bc):
                "sliding at its end (-bc_start clamped -bc_end sliding, here %s, %s); drop the "
                "option or change the supports" % (c.show(O.contact_supports), bc.start, bc.end),
                O.contact_supports, O.bc_start, O.bc_end)
+    if enabled and c[O.contact_model] == "potential" and c.given(O.contact_zones):
+        c.fail("%s: contact zones belong to the closest-point law; -contact_model potential "
+               "integrates at fixed points (-contact_quadrature); drop the option"
+               % c.show(O.contact_zones), O.contact_zones, O.contact_model)
+    if enabled and c[O.contact_model] == "potential" and q is None:
+        from .contact_potential import points_per_element, support_length
+        pen = float(c[O.contact_penetration])
+        h = rod["length"] / rod["nelem"]
+        need = points_per_element(h, rcontact, pen)
+        if need > 48:
+            c.fail("%s: the pair potential resolves a contact by 12 quadrature points on the "
+                   "stretch 2 t0 = %.4g a point touches at the promised penetration, which "
+                   "takes %d points per element of length %.4g (more than 48); refine the mesh "
+                   "(-rod_nelem %d or more), set the points per element with "
+                   "-contact_quadrature, or use -contact_model projection"
+                   % (c.show(O.contact_model), support_length(rcontact, pen), need, h,
+                      int(np.ceil(rod["nelem"] * need / 48.0))),
+                   O.contact_model, O.rod_nelem, O.contact_quadrature)
     penalty = _f(c[O.contact_penalty])
     # a penalty the user chose is kept as given unless adaptation is asked for explicitly
     adapt = bool(c[O.contact_penalty_adapt]) if c.given(O.contact_penalty_adapt) else penalty is None
     return Contact(enabled=enabled, penalty=penalty, radius=rc,
                    exclusion=_f(c[O.contact_exclusion]),
-                   quadrature=int(q) if q is not None else rod["order"] + 2,
-                   zones=bool(c[O.contact_zones]),
+                   quadrature=int(q) if q is not None and c[O.contact_model] != "potential"
+                   else rod["order"] + 2,
+                   potential_points=int(q) if q is not None and c[O.contact_model] == "potential"
+                   else None,
+                   zones=bool(c[O.contact_zones]), model=str(c[O.contact_model]),
                    penetration=float(c[O.contact_penetration]), adapt=adapt,
                    curvature=bool(c[O.contact_curvature]),
                    supports=bool(c[O.contact_supports]))

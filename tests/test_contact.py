@@ -12,10 +12,10 @@ from rodsnes.partition import NDOF
 SETUP = dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0")
 
 
-def coiled(comm=None, outdir=None):
+def coiled(comm=None, outdir=None, **extra):
     """The rollup_contact rod with no load, then put on a circle of 1.05 turns whose free end
-    overlaps the clamped start by a fraction of the contact diameter."""
-    run = run_case("rollup_contact", comm=comm, outdir=outdir, **SETUP)
+    overlaps the clamped start by a fraction of the contact diameter (``extra``: more options)."""
+    run = run_case("rollup_contact", comm=comm, outdir=outdir, **{**SETUP, **extra})
     m = run.mesh
     R = m.length / (2 * np.pi * 1.05)
     ph = m.s_nodes / R

@@ -13,7 +13,7 @@ from conftest import build_run, natural_residuals, place, tangent_against_finite
 from rodsnes import support
 from rodsnes.scene import SceneError
 
-SETUP = dict(rod_nelem=16, load_steps=1, rod_imperfection=0)
+SETUP = dict(rod_nelem=16, load_steps=1, rod_imperfection=0, contact_model="projection")
 
 # waypoints of a centreline that leaves the start clamp along +x, passes behind it across the
 # start's mount (x < 0 near the axis), then beyond the sliding end across its mount (x > x_N),

@@ -1,0 +1,283 @@
+"""Self-contact as a penalty pair potential between centreline points (pure numpy; no MPI, no
+PETSc): the -contact_model potential alternative to the closest-point model of contact.py.
+
+    E_c = (k/2) int_0^L ds int_{I(s)} <2 eps - |r(s) - r(sigma)|>^2 dsigma               (1)
+
+I(s) is the exclusion set of contact.py (|s - sigma| >= delta, periodic on a ring).  Every
+couple of centreline points closer than 2 eps repels; there is no closest point.  Why: the
+closest-point gap d(s) = 2 eps - min_sigma |r(s) - r(sigma)| is smooth only while the minimum is
+unique and non-degenerate.  Its second derivative along the master is |r'|^2 - D . r'' =
+1 - rho, rho = g nu . kappa (g the distance, nu the normal, kappa the master's curvature
+vector): where the slave point sits at a centre of curvature of the master (rho -> 1) the
+distance along the master is flat, the closest point races, and a C0 kink of the Lagrange
+centreline, however small, makes a second minimum; ties between the two move the force from
+one set of nodes to another.  A tight two-ply (the plectoneme) is exactly there: its strands
+wind round each other at a pitch angle near 45 degrees, where rho = 2 sin^2(alpha) -> 1
+(measured rho = 0.94 - 0.96 along the ply from 9.1 to 9.7 turns, up to 1.9 where the ply meets
+its end loop).  (1) has no minimum to pick: it is C^1 in the nodes (C^2 except where a point
+couple enters or leaves the 2 eps ball), whatever the geometry.
+
+Penalty law.  For two straight parallel strands at distance g = 2 eps - d (d > 0 penetration),
+the inner integral of (1) is Phi(d) = (k/2) int <2 eps - sqrt(g^2 + t^2)>^2 dt ~ (k/2) (32/15)
+sqrt(eps) d^(5/2), so a slave point carries the line force
+
+    f(d) = Phi'(d) = k int_{|t| < t0} (2 eps - r) g / r dt,   r = sqrt(g^2 + t^2),
+    t0 = sqrt(4 eps^2 - g^2)                                                          (2)
+
+(~ (8/3) k sqrt(eps) d^(3/2)).  k is set from the closest-point penalty mu (-contact_penalty,
+or its default) so that both models give the same force at the promised penetration
+d* = -contact_penetration x 2 eps: k = mu d* / f_1(d*) (``pair_stiffness``, f_1: (2) with
+k = 1).  Below d* the potential is softer than mu d, above it stiffer (f ~ d^1.5); the
+-contact_penalty_adapt raises of mu act on k in proportion.
+
+End caps.  A slave point beside an open rod's end sees only the half line of material that
+is there, so (1) gives it half the force a point beside a strand's middle gets (the closest-point
+law, whose closest point sits on the end, gives the full mu d: the end is a ball).  Each open
+end therefore carries a point couple of length weight c = mu / (2 k): beside the end at d* the
+half line gives mu d* / 2 and the cap k c d* = mu d* / 2, together the middle's mu d*.  On the
+plectoneme the tail presses on the clamped start: without the caps, switching to this law at
+9.72 turns pushed it 2.5 % in and -contact_penalty_adapt raised mu 8.5x.
+
+Discretisation.  Gauss-Legendre points (nqp per element, both integrals) on every candidate
+element pair (e, m) of ``contact.candidate_pairs``:
+
+    E_c = sum_(e,m) sum_(q,j) W_qj (k/2) a_qj^2,   W_qj = w_q w_j J^2, J = h/2,
+    (plus, at an open rod's end, the end point as a master point of weight w_q J c)
+    a_qj = <2 eps - |D_qj|>,   D_qj = r_e(xi_q) - r_m(xi_j),   0 where dist(s_q, sigma_j) < delta.
+
+The exclusion is a mask on fixed arclength points, so it never moves.  With nu = D/|D| and
+Ntil = [N(xi_q), -N(xi_j)] over the 2(p+1) nodes of [e, m]:
+
+    dE/dx_A   = - sum W k a Ntil_A nu
+    d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (1 + a/|D|) nu nu^T - (a/|D|) I ]     (a > 0)
+
+nqp resolves the contact support: one slave point at d* touches a master stretch of length
+2 t0(d*) (0.014 for the plectoneme, 0.85 of an element), and nqp puts 12 points on it
+(``points_per_element``; -contact_quadrature sets nqp instead; a mesh that would need more than
+48 points per element is refused, scene.py: a contact zone smaller than the quadrature's
+spacing is seen by a few couples that enter and leave one at a time, and Newton cycles).  The quadrature error then
+ripples the energy as strands slide along each other (tests/test_contact_potential.py measures
+it); it falls with nqp and h.
+
+Reported (same keys as ContactKernel.evaluate): the gap d = 2 eps - min |D| at the nqc Gauss
+points of the slave elements, by the closest-point projection of contact.py (a diagnostic here:
+the penetration the penalty promises, the KKT picture); the force is the line force density
+|f(s)|, f(s) = -d/dr(s) of the inner integral, at the same points; total_force = int |f| ds by
+the nqp rule; complementarity = int <d> |f| ds by the nqc rule; active rows are the element
+pairs (e, m) with a point couple in contact (one tangent block each).
+"""
+import numpy as np
+
+from . import fe
+from .contact import ContactKernel, _lookup
+
+__all__ = ["pair_stiffness", "support_length", "points_per_element", "PotentialKernel"]
+
+
+def line_force_per_stiffness(eps, d, n=96):
+    """f_1(d): the line force (2) on a point at distance 2 eps - d from a straight line, k = 1."""
+    g = 2.0 * eps - d
+    if d <= 0.0:
+        return 0.0
+    t0 = np.sqrt(4.0 * eps ** 2 - g ** 2)
+    th, w = fe.gauss_legendre(n)
+    # t = t0 sin(pi th / 2): the integrand's kink at the support ends becomes smooth
+    t = t0 * np.sin(0.5 * np.pi * th)
+    dt = t0 * 0.5 * np.pi * np.cos(0.5 * np.pi * th)
+    r = np.hypot(g, t)
+    return float(np.sum(w * dt * np.maximum(2.0 * eps - r, 0.0) * g / r))
+
+
+def pair_stiffness(mu, eps, penetration):
+    """k of (1) with the force mu d* of the closest-point model at d* = penetration x 2 eps."""
+    d = float(penetration) * 2.0 * float(eps)
+    return float(mu) * d / line_force_per_stiffness(float(eps), d)
+
+
+def support_length(eps, penetration):
+    """2 t0(d*): the master stretch a slave point at the promised penetration touches."""
+    d = float(penetration) * 2.0 * float(eps)
+    return 2.0 * np.sqrt(4.0 * eps ** 2 - (2.0 * eps - d) ** 2)
+
+
+def points_per_element(h, eps, penetration, density=12):
+    """Gauss points per element that put ``density`` points on the support length."""
+    return int(np.ceil(density * float(h) / support_length(eps, penetration)))
+
+
+class PotentialKernel:
+    """The pair potential (1) over a set of own (slave) elements; the interface of
+    contact.ContactKernel (evaluate, slave_arclength, mu, eps, delta, h, nqc, wq, Nq)."""
+
+    DENSITY = 12        # default quadrature points per support length 2 t0(d*)
+
+    def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None):
+        self.gauge = ContactKernel(order, nqc, eps, mu, delta, L, nelem, closed, segments=False)
+        g = self.gauge
+        self.p, self.nqc, self.eps, self.delta = g.p, g.nqc, g.eps, g.delta
+        self.L, self.nelem, self.closed, self.h = g.L, g.nelem, g.closed, g.h
+        self.xq, self.wq, self.Nq = g.xq, g.wq, g.Nq
+        self.segments = False
+        self.penetration = float(penetration)
+        self.k_per_mu = pair_stiffness(1.0, self.eps, self.penetration)
+        self._mu = float(mu)
+        if nqp is None:
+            nqp = max(self.nqc, points_per_element(self.h, self.eps, self.penetration,
+                                                   self.DENSITY))
+        self.nqp = int(nqp)
+        self.xp, self.wp = fe.gauss_legendre(self.nqp)
+        self.Np = fe.lagrange(self.p, self.xp)[0]
+        # master points: the Gauss points and the two element ends (the rod's end caps)
+        self.xm = np.concatenate([self.xp, [-1.0, 1.0]])
+        self.Nm = fe.lagrange(self.p, self.xm)[0]
+        self.cap = 0.5 / self.k_per_mu
+
+    @property
+    def mu(self):
+        return self._mu
+
+    @mu.setter
+    def mu(self, value):
+        self._mu = float(value)
+        self.gauge.mu = self._mu
+
+    @property
+    def k(self):
+        """Pair stiffness of (1)."""
+        return self._mu * self.k_per_mu
+
+    @property
+    def nonconvex(self):
+        return self.gauge.nonconvex
+
+    def slave_arclength(self, own_ids):
+        return self.gauge.slave_arclength(own_ids)
+
+    def master_weights(self, m):
+        """(len(m), nqp + 2) arclength weights of the master points of elements m: w_j h/2 at
+        the Gauss points; at an open rod's end the end point gets the cap length mu / (2 k)
+        (End caps), the other element ends 0."""
+        m = np.asarray(m, dtype=np.int64)
+        w = np.zeros((len(m), self.nqp + 2))
+        w[:, :self.nqp] = self.wp * (0.5 * self.h)
+        if not self.closed:
+            w[:, self.nqp] = np.where(m == 0, self.cap, 0.0)
+            w[:, self.nqp + 1] = np.where(m == self.nelem - 1, self.cap, 0.0)
+        return w
+
+    def _admissible(self, e, m, xa, xb):
+        """(npair, na, nb) True where dist(s, sigma) >= delta, s in e at xa, sigma in m at xb
+        (xi of the slave and master points)."""
+        h = self.h
+        s = e[:, None] * h + (xa[None, :] + 1.0) * 0.5 * h
+        sig = m[:, None] * h + (xb[None, :] + 1.0) * 0.5 * h
+        dist = np.abs(s[:, :, None] - sig[:, None, :])
+        if self.closed:
+            dist = np.minimum(dist, self.L - dist)
+        return dist >= self.delta
+
+    def _couples(self, xs, xm, adm):
+        """a = <2 eps - |D|> (masked), |D| and nu for D = xs_q - xm_j, (npair, na, nb)."""
+        D = xs[:, :, None, :] - xm[:, None, :, :]
+        r = np.sqrt(np.einsum("pqjd,pqjd->pqj", D, D))
+        a = np.where(adm, np.maximum(2.0 * self.eps - r, 0.0), 0.0)
+        nu = D / np.where(r > 0.0, r, 1.0)[..., None]
+        return a, r, nu
+
+    def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True):
+        """Energy, residual and tangent of (1) over the own elements, with the outputs of
+        contact.ContactKernel.evaluate_strand (active = element pairs, no switch points)."""
+        p, nqc, h = self.p, self.nqc, self.h
+        n1 = p + 1
+        J = 0.5 * h
+        own_ids = np.asarray(own_ids, dtype=np.int64).ravel()
+        x_own = np.asarray(x_own, dtype=float).reshape(len(own_ids), n1, 3)
+        other_ids = np.asarray(other_ids, dtype=np.int64).ravel()
+        x_other = np.asarray(x_other, dtype=float).reshape(len(other_ids), n1, 3)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        no = len(own_ids)
+        g = self.gauge
+        out = g.empty_output(no, tangent)
+        if no == 0 or len(pairs) == 0:
+            return out
+        # the diagnostic gap (closest point) at the nqc Gauss points
+        ctx = g._context(own_ids, x_own, other_ids, x_other, pairs)
+        _, gap, out["sbar"] = g.report_points(ctx, no)
+        out["gap"] = gap
+        out["d_active"] = gap[gap > 0.0]
+        out["zones"] = int(np.count_nonzero(gap > 0.0))
+
+        pool_ids, pool_x = ctx["pool_ids"], ctx["pool_x"]
+        oi = _lookup(own_ids, pairs[:, 0], "own")
+        mi = _lookup(pool_ids, pairs[:, 1], "other")
+        Nm = self.Nm
+        xm = np.einsum("ja,pad->pjd", Nm, pool_x[mi])                 # (npair, nqp + 2, 3)
+        wm = self.master_weights(pairs[:, 1])                          # (npair, nqp + 2)
+        k = self.k
+
+        # line force density at the reporting Gauss points: f(s) = k sum_j w_j a nu
+        xs_r = np.einsum("qa,pad->pqd", self.Nq, x_own[oi])
+        a, r, nu = self._couples(xs_r, xm, self._admissible(pairs[:, 0], pairs[:, 1], self.xq, self.xm))
+        f = np.zeros((no, nqc, 3))
+        np.add.at(f, oi, k * np.einsum("pj,pqj,pqjd->pqd", wm, a, nu))
+        out["force"] = np.linalg.norm(f, axis=2)
+        out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
+
+        # the potential's own quadrature
+        ws = self.wp * J
+        xs = np.einsum("qa,pad->pqd", self.Np, x_own[oi])
+        a, r, nu = self._couples(xs, xm, self._admissible(pairs[:, 0], pairs[:, 1], self.xp, self.xm))
+        W = ws[None, :, None] * wm[:, None, :]                           # (npair, nqp, nqp + 2)
+        out["energy"] = 0.5 * k * float(np.sum(W * a * a))
+        fp = np.zeros((no, self.nqp, 3))
+        np.add.at(fp, oi, k * np.einsum("pj,pqj,pqjd->pqd", wm, a, nu))
+        out["total_force"] = float(np.sum(ws * np.linalg.norm(fp, axis=2)))
+        act = np.flatnonzero((W * a > 0.0).any(axis=(1, 2)))
+        if not len(act):
+            return out
+        a, r, nu, W = a[act], r[act], nu[act], W[act]
+        out["active"] = pairs[act]
+        G = -k * (W * a)[..., None] * nu                                 # dE/dD
+        vec = np.empty((len(act), 2 * n1, 3))
+        vec[:, :n1] = np.einsum("qa,pqjd->pad", self.Np, G)
+        vec[:, n1:] = -np.einsum("ja,pqjd->pad", Nm, G)
+        out["vec"] = vec
+        if tangent:
+            c = np.where(a > 0.0, a / np.where(r > 0.0, r, 1.0), 0.0)
+            on = (a > 0.0) * k * W
+            H = (on * (1.0 + c))[..., None, None] * np.einsum("pqji,pqjk->pqjik", nu, nu) \
+                - (on * c)[..., None, None] * np.eye(3)
+            N = self.Np
+            ss = np.einsum("qa,qb,pqik->paibk", N, N, H.sum(axis=2))
+            mm = np.einsum("ja,jb,pjik->paibk", Nm, Nm, H.sum(axis=1))
+            sm = -np.einsum("jb,pajik->paibk", Nm, np.einsum("qa,pqjik->pajik", N, H))
+            m6 = np.empty((len(act), 2 * n1, 3, 2 * n1, 3))
+            m6[:, :n1, :, :n1] = ss
+            m6[:, n1:, :, n1:] = mm
+            m6[:, :n1, :, n1:] = sm
+            m6[:, n1:, :, :n1] = np.swapaxes(np.swapaxes(sm, 1, 3), 2, 4)
+            out["mat"] = m6.reshape(len(act), 6 * n1, 6 * n1)
+        return out
+        a, r, nu = a[act], r[act], nu[act]
+        out["active"] = pairs[act]
+        G = -k * (W[None] * a)[..., None] * nu                            # dE/dD
+        vec = np.empty((len(act), 2 * n1, 3))
+        vec[:, :n1] = np.einsum("qa,pqjd->pad", self.Np, G)
+        vec[:, n1:] = -np.einsum("ja,pqjd->pad", self.Np, G)
+        out["vec"] = vec
+        if tangent:
+            c = np.where(a > 0.0, a / np.where(r > 0.0, r, 1.0), 0.0)
+            on = (a > 0.0) * k * W[None]
+            H = (on * (1.0 + c))[..., None, None] * np.einsum("pqji,pqjk->pqjik", nu, nu) \
+                - (on * c)[..., None, None] * np.eye(3)
+            N = self.Np
+            ss = np.einsum("qa,qb,pqik->paibk", N, N, H.sum(axis=2))
+            mm = np.einsum("ja,jb,pjik->paibk", N, N, H.sum(axis=1))
+            sm = -np.einsum("jb,pajik->paibk", N, np.einsum("qa,pqjik->pajik", N, H))
+            m6 = np.empty((len(act), 2 * n1, 3, 2 * n1, 3))
+            m6[:, :n1, :, :n1] = ss
+            m6[:, n1:, :, n1:] = mm
+            m6[:, :n1, :, n1:] = sm
+            m6[:, n1:, :, :n1] = np.swapaxes(np.swapaxes(sm, 1, 3), 2, 4)
+            out["mat"] = m6.reshape(len(act), 6 * n1, 6 * n1)
+        return out

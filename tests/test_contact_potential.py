@@ -1,0 +1,244 @@
+"""The pair-potential contact law (-contact_model potential, rodsnes.contact_potential): its
+calibration against the closest-point law, gradient and tangent against finite differences,
+smoothness where closest points race, the quadrature's ripple, the option, and the assembled
+problem (tangent, two ranks against one, a Newton solve)."""
+import os
+
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from conftest import natural_residuals, run_case, tangent_against_finite_differences
+from rodsnes.contact_potential import PotentialKernel, line_force_per_stiffness, pair_stiffness
+from test_contact_math import Rod, check_gradient, check_tangent, hairpin, polyline
+from test_contact_zones import largest_step
+
+DATA = os.path.join(os.path.dirname(__file__), "data")
+
+
+def potential_rod(X, p, closed, L, eps, mu, nqc=5, reach=None, **kw):
+    rod = Rod(X, p, closed, L, eps=eps, mu=mu, delta=np.pi * eps, nqc=nqc, reach=reach)
+    rod.k = PotentialKernel(p, nqc, eps, mu, rod.delta, L, rod.nelem, closed, **kw)
+    return rod
+
+
+def test_line_force_law_of_two_straight_strands():
+    """f_1(d) (module docstring, (2)) against its small-penetration form (8/3) sqrt(eps) d^1.5,
+    and k makes the force mu d* at the promised penetration d*."""
+    eps = 0.025
+    for d in (1e-6, 1e-5):
+        assert line_force_per_stiffness(eps, d) == pytest.approx(8 / 3 * np.sqrt(eps) * d ** 1.5,
+                                                                 rel=20 * d / eps)
+    d = 0.01 * 2 * eps
+    k = pair_stiffness(3.0, eps, 0.01)
+    assert k * line_force_per_stiffness(eps, d) == pytest.approx(3.0 * d, rel=1e-12)
+    assert line_force_per_stiffness(eps, 0.0) == 0.0
+
+
+@pytest.mark.parametrize("p", [2, 3])
+def test_parallel_strands_carry_the_closest_point_force_at_the_promised_penetration(p):
+    """Two straight legs of a hairpin at distance 2 eps - d*: away from the bend and the free
+    ends every slave point carries mu d* (the closest-point law's force there), to the
+    accuracy of the inner quadrature, whose integrand has kinks where the couples leave the
+    2 eps ball (measured: 3.3e-3 (p = 2) and 4.2e-3 (p = 3) at the default nqp; the error falls
+    like nqp^-2)."""
+    eps, mu, pen = 0.1, 1e4, 0.01
+    d = pen * 2 * eps
+    X, L = hairpin(p, 40, leg=2.0, rho=eps - d / 2)
+    rod = potential_rod(X, p, False, L, eps, mu, nqc=p + 2)
+    out = rod.eval(X, rod.pairs(X))
+    s = rod.k.slave_arclength(rod.ids)
+    middle = (np.abs(s - 1.0) < 0.5)                 # the first leg, away from its ends
+    f = out["force"][middle]
+    assert np.all(np.abs(f / (mu * d) - 1) < 6e-3), np.abs(f / (mu * d) - 1).max()
+    assert np.allclose(out["gap"][middle], d, rtol=1e-9)
+
+
+def crossing(x_cross, eps, d, h=0.05):
+    """One open rod: a straight master piece along x from the rod's start (0, 0, 0) to
+    (1, 0, 0), connectors that stay away, and a straight slave piece along y at height
+    2 eps - d crossing over x = x_cross, its middle element centred on the crossing.  The two
+    straight pieces have elements of length h; the connectors touch nothing."""
+    z = 2 * eps - d
+    W = [[0, 0, 0], [1, 0, 0], [1, 0, 1], [x_cross, -0.525, 1], [x_cross, -0.525, z],
+         [x_cross, 0.525, z]]
+    nel = [20, 20, 20, 20, 21]
+    return polyline(W, nel, 3), sum(nel) * h
+
+
+def test_a_point_over_a_rod_end_gets_the_force_of_a_point_over_its_middle():
+    """End caps (module docstring): a straight strand crossing over a straight one at right
+    angles, at depth d*, over the middle and over the rod's end point: the line force at the
+    crossing is mu d* in both (over the end: the half line plus the cap), to the quadrature's
+    accuracy (measured: 1.0071 and 1.0039 mu d*); without the cap, over the end, 0.504."""
+    eps, mu, pen = 0.1, 1e4, 0.01
+    d = pen * 2 * eps
+    f = {}
+    for where, x in (("middle", 0.5), ("end", 0.0)):
+        X, L = crossing(x, eps, d)
+        rod = potential_rod(X, 3, False, L, eps, mu)
+        cap = rod.k.cap
+        for with_cap in (True, False):
+            rod.k.cap = cap if with_cap else 0.0
+            out = rod.eval(X, rod.pairs(X))
+            f[where, with_cap] = out["force"][90, 2] / (mu * d)        # the crossing point
+            assert out["gap"][90, 2] == pytest.approx(d, rel=1e-9)
+    assert f["middle", True] == f["middle", False] == pytest.approx(1.0, abs=1e-2)
+    assert f["end", True] == pytest.approx(1.0, abs=1e-2)
+    assert f["end", False] == pytest.approx(0.5, abs=1e-2)
+
+
+def test_energy_ripple_as_strands_slide():
+    """Fixed quadrature points on both strands: the energy of two parallel straight strands at
+    fixed distance varies as one slides along the other by a fraction of an element (the
+    frictionless law should not see it).  Measured: peak-to-peak / mean = 1.1e-3 at the default
+    nqp (15 for the plectoneme's h / eps), 1.8e-4 at 20, 4.9e-5 at 30."""
+    eps, mu, pen = 0.025, 5e7, 0.01
+    d = pen * 2 * eps
+    h = 1 / 60
+    nel = 20
+
+    def energy(shift, nqp):
+        a = polyline([[0, 0, 0], [nel * h, 0, 0]], [nel], 3)
+        b = polyline([[nel * h + shift, 2 * eps - d, 0], [shift, 2 * eps - d, 0]], [nel], 3)
+        X = np.concatenate([a, b[1:]])                  # one rod: a, a jump, b backwards
+        X[3 * nel + 1:] = b[1:]
+        rod = potential_rod(X, 3, False, 2 * nel * h, eps, mu, nqp=nqp)
+        # keep the interaction of the strands' middles: no end effects
+        pairs = rod.pairs(X)
+        keep = (pairs[:, 0] >= 5) & (pairs[:, 0] < nel - 5) & (pairs[:, 1] >= nel)
+        return rod.eval(X, pairs[keep])["energy"]
+
+    shifts = np.linspace(0, h, 9)
+    ripple = {}
+    for nqp in (None, 30):
+        E = np.array([energy(t, nqp) for t in shifts])
+        ripple[nqp] = np.ptp(E) / E.mean()
+    assert ripple[None] < 2e-3 and ripple[30] < 0.1 * ripple[None], ripple
+
+
+def test_gradient_and_tangent_on_the_plectoneme_end_loop():
+    """The end loop of the plectoneme at 8.57 turns (test_contact_zones: closest points on
+    exclusion bounds, racing at two jumps): residual and tangent against differences."""
+    X = np.load(os.path.join(DATA, "plectoneme_end_loop.npy"))
+    rod = potential_rod(X, 3, False, 1.0, 0.025, 1.5239568869908707e7, reach=0.125)
+    pairs = rod.pairs(X)
+    assert check_gradient(rod, X, pairs, 1e-7, tol=1e-6) < 1e-6
+    K, out = check_tangent(rod, X, pairs, 1e-8, tol=1e-5, maxcols=90)
+    assert len(out["active"]) > 50 and len(out["switch"]) == 0
+    assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_gradient_and_tangent_at_the_edge_of_contact(closed):
+    """A hairpin (open) or a stadium (closed) whose legs touch at barely 2 eps: point couples
+    enter and leave the contact ball; and p = 2."""
+    eps, p = 0.1, 2
+    if closed:
+        R = eps * (1 - 1e-3)
+        n1 = 12
+        top = polyline([[0, 0, 0], [2, 0, 0]], [n1], p)
+        arc1 = [np.array([2 + R * np.sin(t), R - R * np.cos(t), 0]) for t in np.linspace(0, np.pi, 3 * p + 1)[1:]]
+        bot = polyline([[2, 2 * R, 0], [0, 2 * R, 0]], [n1], p)[1:]
+        arc2 = [np.array([-R * np.sin(t), R + R * np.cos(t), 0]) for t in np.linspace(0, np.pi, 3 * p + 1)[1:-1]]
+        X = np.concatenate([top, np.array(arc1), bot, np.array(arc2)])
+        seg = np.linalg.norm(np.diff(np.concatenate([X, X[:1]]), axis=0), axis=1)
+        L = seg.sum()
+    else:
+        X, L = hairpin(p, 30, leg=1.0, rho=eps * (1 - 1e-3))
+    X = X + 1e-4 * np.random.default_rng(1).standard_normal(X.shape)
+    rod = potential_rod(X, p, closed, L, eps, 1e3)
+    pairs = rod.pairs(X)
+    check_gradient(rod, X, pairs, 1e-7, tol=1e-6)
+    check_tangent(rod, X, pairs, 1e-8, tol=1e-5, maxcols=80)
+
+
+def test_residual_is_smooth_where_the_closest_point_races():
+    """The plectoneme at 9.72 turns, strands in line contact (test_contact_zones: a C0-kink
+    minimum takes over from the minimum inside an element between two samples; the
+    closest-point residual stepped by 5.5 there before the rival cut).  With the pair potential
+    the residual at node 51 is linear in a move of node 79 to the roundoff of its differences:
+    bisecting [0, 2e-7] for the largest change finds none beyond the tangent's prediction."""
+    X0 = np.load(os.path.join(DATA, "plectoneme_9.72_line_contact.npy"))
+    rod = potential_rod(X0, 3, False, 1.0, 0.025, 5.754172062186161e7, reach=0.125)
+    pairs = rod.pairs(X0)
+    K, _ = rod.tangent(X0, pairs)
+    slope = K[3 * 51 + 2, 3 * 79 + 1]
+
+    def force(t):
+        X = X0.copy()
+        X[79, 1] += t
+        return rod.residual(X, pairs)[51, 2]
+
+    assert abs((force(2e-7) - force(0.0)) / 2e-7 - slope) < 1e-6 * abs(slope) + 1e-3
+    a, b, fa, fb = largest_step(force, 0.0, 2e-7)
+    assert abs(fb - fa) < abs(slope) * (b - a) + 1e-9 * abs(fa), (a, fb - fa)
+
+
+def test_zones_with_the_potential_and_an_unresolved_mesh_are_refused():
+    from conftest import build_run
+    from rodsnes.scene import SceneError
+    with pytest.raises(SceneError, match="contact_zones"):
+        build_run("rollup_contact", contact_model="potential", contact_zones="true",
+                  rod_nelem=64)
+    # L = 10, eps = 0.1: a contact at 1 % touches 0.056 of the master; 12 points on it need
+    # 67 per element of 32
+    with pytest.raises(SceneError, match=r"-rod_nelem 45 or more.*-contact_quadrature"):
+        build_run("rollup_contact", contact_model="potential")
+    run = build_run("rollup_contact", contact_model="potential", contact_quadrature=20)
+    assert run.contact.kernel.nqp == 20 and run.contact.nqc == 5
+    assert build_run("rollup_contact", contact_model="potential", rod_nelem=45).contact.kernel.nqp == 48
+
+
+POTENTIAL = dict(contact_model="potential", contact_quadrature=24)
+
+
+def coiled(comm=None, outdir=None):
+    """test_contact.coiled with the pair potential: the free end overlaps the clamped start."""
+    from test_contact import coiled as closest_point_coiled
+    return closest_point_coiled(comm, outdir, **POTENTIAL)
+
+
+@pytest.mark.mpi
+def test_assembled_tangent_and_two_ranks_with_the_potential():
+    par = coiled()
+    p = par.problem
+    F = p.state.X.duplicate()
+    p.residual(None, p.state.X, F)
+    assert par.contact.summary()["active_points"] > 0
+    J = p.layout.create_matrix(p.contact.extra_pattern(p.state.local_config()[0]))
+    p.jacobian(None, p.state.X, J, J)
+    fd, Jv, _ = tangent_against_finite_differences(p, J, seed=3)
+    assert (fd - Jv).norm() / Jv.norm() < 1e-6
+    ser = coiled(comm=PETSc.COMM_SELF, outdir=par.outdir + f"_s{PETSc.COMM_WORLD.getRank()}")
+    nat1, nat2 = natural_residuals(par, ser)
+    assert np.abs(nat1 - nat2).max() < 1e-9 * np.abs(nat2).max()
+    c1, c2 = par.contact.summary(), ser.contact.summary()
+    assert c1["total_force"] == pytest.approx(c2["total_force"], rel=1e-12)
+
+
+def test_rollup_contact_solves_and_newton_converges_fast():
+    """The rolled-up rod whose free end lands on its clamped part (cases/rollup_contact.opts,
+    48 elements so that 12 points resolve a contact) with the pair potential: every load step
+    converges, the penetration keeps the promise, and the tip lands within 1 % of the rod's
+    length of the closest-point solution.  Newton from the equilibrium disturbed by 1e-5
+    (random, every free dof) converges quadratically, |F_2| <= 100 |F_1|^2, to the roundoff
+    floor (1.2e-8) in 3 iterations (measured 127 -> 3.8e-5 -> 2.0e-8 -> 1.2e-9), like the
+    closest-point law's (127 -> 3.9e-5 -> 2.5e-8 -> 1.2e-9)."""
+    kw = dict(rod_nelem=48)
+    pot = run_case("rollup_contact", contact_model="potential", **kw)
+    ref = run_case("rollup_contact", **kw)
+    assert pot.ok and ref.ok
+    sp, sr = pot.summary(converged=True), ref.summary(converged=True)
+    assert sp["contact"]["max_penetration"] <= 0.0101
+    assert sp["contact"]["total_force"] > 3.0
+    assert np.linalg.norm(np.subtract(sp["tip_position"], sr["tip_position"])) < 0.01 * 10
+    p, s = pot.problem, pot.solver
+    with p.state.X as a:
+        d = 1e-5 * np.random.default_rng(0).standard_normal(a.shape)
+        d[p.constraints.rows_local] = 0.0
+        a[:] += d
+    res = s.solve_at(p.lam)
+    h = res.history
+    assert res.converged and h[0] > 1e2
+    assert h[1] < 1e-6 * h[0] and h[2] <= 100 * h[1] ** 2 and h[3] <= s.floor, h
