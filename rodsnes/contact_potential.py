@@ -34,7 +34,9 @@ End caps.  A slave point beside an open rod's end sees only the half line of mat
 is there, so (1) gives it half the force a point beside a strand's middle gets (the closest-point
 law, whose closest point sits on the end, gives the full mu d: the end is a ball).  Each open
 end therefore carries a point couple of length weight c = mu / (2 k): beside the end at d* the
-half line gives mu d* / 2 and the cap k c d* = mu d* / 2, together the middle's mu d*.  On the
+half line gives mu d* / 2 and the cap k c d* = mu d* / 2, together the middle's mu d* (the
+force on the slave point; the end itself, as slave, sees a whole strand, as with the
+closest-point law, so the total over the two strands is in the same proportion as there).  On the
 plectoneme the tail presses on the clamped start: without the caps, switching to this law at
 9.72 turns pushed it 2.5 % in and -contact_penalty_adapt raised mu 8.5x.
 
@@ -61,8 +63,11 @@ it); it falls with nqp and h.
 
 Reported (same keys as ContactKernel.evaluate): the gap d = 2 eps - min |D| at the nqc Gauss
 points of the slave elements, by the closest-point projection of contact.py (a diagnostic here:
-the penetration the penalty promises, the KKT picture); the force is the line force density
-|f(s)|, f(s) = -d/dr(s) of the inner integral, at the same points; total_force = int |f| ds by
+the penetration the penalty promises, the KKT picture; d_active also holds the depth
+2 eps - min_j |D_qj| at the nqp points, so that the deepest point of a crossing between two
+reporting points is seen); the force is the line force density |f(s)|, f(s) = -d/dr(s) of the inner integral over all masters, at the same points (a point
+squeezed between two strands reports the net force, where the closest-point law's per-strand
+sum reports the sum of the magnitudes); total_force = int |f| ds by
 the nqp rule; complementarity = int <d> |f| ds by the nqc rule; active rows are the element
 pairs (e, m) with a point couple in contact (one tangent block each).
 """
@@ -232,11 +237,19 @@ class PotentialKernel:
         fp = np.zeros((no, self.nqp, 3))
         np.add.at(fp, oi, k * np.einsum("pj,pqj,pqjd->pqd", wm, a, nu))
         out["total_force"] = float(np.sum(ws * np.linalg.norm(fp, axis=2)))
+        # the depth at the nqp slave points against the master points (a lower bound of d
+        # there): the deepest point of a crossing may lie between the nqc reporting points
+        deep = a.max(axis=2)
+        out["d_active"] = np.concatenate([out["d_active"], deep[deep > 0.0]])
         act = np.flatnonzero((W * a > 0.0).any(axis=(1, 2)))
         if not len(act):
             return out
         a, r, nu, W = a[act], r[act], nu[act], W[act]
         out["active"] = pairs[act]
+        nact = len(act)                  # one row per element pair: no single point, no normal
+        out.update(qp=np.full(nact, -1, dtype=np.int64), xi=np.full(nact, np.nan),
+                   xi_slave=np.full(nact, np.nan), normal=np.full((nact, 3), np.nan),
+                   interior=np.zeros(nact, dtype=bool))
         G = -k * (W * a)[..., None] * nu                                 # dE/dD
         vec = np.empty((len(act), 2 * n1, 3))
         vec[:, :n1] = np.einsum("qa,pqjd->pad", self.Np, G)
@@ -251,29 +264,6 @@ class PotentialKernel:
             ss = np.einsum("qa,qb,pqik->paibk", N, N, H.sum(axis=2))
             mm = np.einsum("ja,jb,pjik->paibk", Nm, Nm, H.sum(axis=1))
             sm = -np.einsum("jb,pajik->paibk", Nm, np.einsum("qa,pqjik->pajik", N, H))
-            m6 = np.empty((len(act), 2 * n1, 3, 2 * n1, 3))
-            m6[:, :n1, :, :n1] = ss
-            m6[:, n1:, :, n1:] = mm
-            m6[:, :n1, :, n1:] = sm
-            m6[:, n1:, :, :n1] = np.swapaxes(np.swapaxes(sm, 1, 3), 2, 4)
-            out["mat"] = m6.reshape(len(act), 6 * n1, 6 * n1)
-        return out
-        a, r, nu = a[act], r[act], nu[act]
-        out["active"] = pairs[act]
-        G = -k * (W[None] * a)[..., None] * nu                            # dE/dD
-        vec = np.empty((len(act), 2 * n1, 3))
-        vec[:, :n1] = np.einsum("qa,pqjd->pad", self.Np, G)
-        vec[:, n1:] = -np.einsum("ja,pqjd->pad", self.Np, G)
-        out["vec"] = vec
-        if tangent:
-            c = np.where(a > 0.0, a / np.where(r > 0.0, r, 1.0), 0.0)
-            on = (a > 0.0) * k * W[None]
-            H = (on * (1.0 + c))[..., None, None] * np.einsum("pqji,pqjk->pqjik", nu, nu) \
-                - (on * c)[..., None, None] * np.eye(3)
-            N = self.Np
-            ss = np.einsum("qa,qb,pqik->paibk", N, N, H.sum(axis=2))
-            mm = np.einsum("ja,jb,pjik->paibk", N, N, H.sum(axis=1))
-            sm = -np.einsum("jb,pajik->paibk", N, np.einsum("qa,pqjik->pajik", N, H))
             m6 = np.empty((len(act), 2 * n1, 3, 2 * n1, 3))
             m6[:, :n1, :, :n1] = ss
             m6[:, n1:, :, n1:] = mm

@@ -220,8 +220,9 @@ class ContactTerm:
         # apart than 4 eps never share a switch point.  The margin is the evaluation's own
         # (reach - 2 eps), not the wider preallocation margin: these pairs would fill most
         # of the matrix of a compact plectoneme, and ensure_pattern adds any that appear
-        pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, cen, rad,
-                                                          self.reach + 2.0 * self.eps)])
+        if self.model != "potential":           # the pair potential has no switch points
+            pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, cen, rad,
+                                                              self.reach + 2.0 * self.eps)])
         pairs = np.concatenate(self.comm.allgather(pairs))
         if self.supports is not None:
             pairs = np.concatenate([pairs.reshape(-1, 2), self.supports.pattern_pairs()])

@@ -56,9 +56,11 @@ def test_parallel_strands_carry_the_closest_point_force_at_the_promised_penetrat
 
 def crossing(x_cross, eps, d, h=0.05):
     """One open rod: a straight master piece along x from the rod's start (0, 0, 0) to
-    (1, 0, 0), connectors that stay away, and a straight slave piece along y at height
-    2 eps - d crossing over x = x_cross, its middle element centred on the crossing.  The two
-    straight pieces have elements of length h; the connectors touch nothing."""
+    (1, 0, 0), connectors, and a straight slave piece along y at height 2 eps - d crossing over
+    x = x_cross, its middle element centred on the crossing.  The two straight pieces have
+    elements of length h; the connectors do not (their arclength is nominal), and where the
+    last one comes down to the slave piece it touches itself: only the crossing point is
+    meant to be read (not totals)."""
     z = 2 * eps - d
     W = [[0, 0, 0], [1, 0, 0], [1, 0, 1], [x_cross, -0.525, 1], [x_cross, -0.525, z],
          [x_cross, 0.525, z]]
@@ -86,6 +88,29 @@ def test_a_point_over_a_rod_end_gets_the_force_of_a_point_over_its_middle():
     assert f["middle", True] == f["middle", False] == pytest.approx(1.0, abs=1e-2)
     assert f["end", True] == pytest.approx(1.0, abs=1e-2)
     assert f["end", False] == pytest.approx(0.5, abs=1e-2)
+
+
+@pytest.mark.parametrize("nel, p", [(1, 3), (2, 3), (1, 2)])
+def test_gradient_and_tangent_on_one_or_two_elements_folded_onto_themselves(nel, p):
+    """A rod of one or two elements folded back onto itself: couples within one element
+    (e == m), both end caps in one element, caps acting (the energy changes with them)."""
+    if nel == 1:
+        X = np.array([[0, 0, 0], [1, 0, 0], [1, 0.12, 0], [0, 0.12, 0.0]]) if p == 3 else \
+            np.array([[0, 0, 0], [1, 0.06, 0], [0, 0.12, 0.0]])
+    else:
+        X = np.array([[0, 0, 0], [0.5, 0, 0], [1, 0, 0], [1.05, 0.06, 0], [1, 0.12, 0],
+                      [0.5, 0.12, 0], [0, 0.12, 0.0]])
+    X = X + 1e-3 * np.random.default_rng(0).standard_normal(X.shape)
+    rod = potential_rod(X, p, False, 2.2, 0.1, 1e4, nqp=16)
+    pairs = rod.pairs(X)
+    assert np.any(pairs[:, 0] == pairs[:, 1])
+    E = rod.energy(X, pairs)
+    cap, rod.k.cap = rod.k.cap, 0.0
+    assert rod.energy(X, pairs) < E
+    rod.k.cap = cap
+    check_gradient(rod, X, pairs, 1e-7, tol=1e-6)
+    K, _ = check_tangent(rod, X, pairs, 1e-7, tol=1e-5)
+    assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
 
 
 def test_energy_ripple_as_strands_slide():
