@@ -684,13 +684,9 @@ class ContactKernel:
                   a cut where the closest point jumps from A to B)
           switch_mat  (nsw, 9(p+1), 9(p+1))  its tangent term over the nodes [own, A, B]
         """
-        p, nqc, h = self.p, self.nqc, self.h
-        n1 = p + 1
-        own_ids = np.asarray(own_ids, dtype=np.int64).ravel()
-        x_own = np.asarray(x_own, dtype=float).reshape(len(own_ids), n1, 3)
-        other_ids = np.asarray(other_ids, dtype=np.int64).ravel()
-        x_other = np.asarray(x_other, dtype=float).reshape(len(other_ids), n1, 3)
-        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        nqc, h = self.nqc, self.h
+        own_ids, x_own, other_ids, x_other, pairs = self.as_inputs(own_ids, x_own, other_ids,
+                                                                    x_other, pairs)
         no = len(own_ids)
         out = self.empty_output(no, tangent)
         if no == 0 or len(pairs) == 0:
@@ -716,6 +712,16 @@ class ContactKernel:
         return out
 
     # -- building blocks ----------------------------------------------------------------------
+    def as_inputs(self, own_ids, x_own, other_ids, x_other, pairs):
+        """The arguments of ``evaluate_strand`` as arrays: ids (int64), nodal positions
+        (n, p+1, 3), pairs (npair, 2)."""
+        n1 = self.p + 1
+        own_ids = np.asarray(own_ids, dtype=np.int64).ravel()
+        other_ids = np.asarray(other_ids, dtype=np.int64).ravel()
+        return (own_ids, np.asarray(x_own, dtype=float).reshape(len(own_ids), n1, 3),
+                other_ids, np.asarray(x_other, dtype=float).reshape(len(other_ids), n1, 3),
+                np.asarray(pairs, dtype=np.int64).reshape(-1, 2))
+
     def empty_output(self, no, tangent):
         """The outputs of ``evaluate_strand`` for ``no`` own elements with nothing in contact."""
         n1, nqc = self.p + 1, self.nqc

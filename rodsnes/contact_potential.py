@@ -76,7 +76,8 @@ import numpy as np
 from . import fe
 from .contact import ContactKernel, _lookup
 
-__all__ = ["pair_stiffness", "support_length", "points_per_element", "PotentialKernel"]
+__all__ = ["DENSITY", "MAX_POINTS", "pair_stiffness", "support_length", "points_per_element",
+           "PotentialKernel"]
 
 
 def line_force_per_stiffness(eps, d, n=96):
@@ -105,7 +106,11 @@ def support_length(eps, penetration):
     return 2.0 * np.sqrt(4.0 * eps ** 2 - (2.0 * eps - d) ** 2)
 
 
-def points_per_element(h, eps, penetration, density=12):
+DENSITY = 12            # default quadrature points on the support length 2 t0(d*)
+MAX_POINTS = 48         # most automatic points per element (scene.py refuses a coarser mesh)
+
+
+def points_per_element(h, eps, penetration, density=DENSITY):
     """Gauss points per element that put ``density`` points on the support length."""
     return int(np.ceil(density * float(h) / support_length(eps, penetration)))
 
@@ -114,21 +119,17 @@ class PotentialKernel:
     """The pair potential (1) over a set of own (slave) elements; the interface of
     contact.ContactKernel (evaluate, slave_arclength, mu, eps, delta, h, nqc, wq, Nq)."""
 
-    DENSITY = 12        # default quadrature points per support length 2 t0(d*)
-
     def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None):
         self.gauge = ContactKernel(order, nqc, eps, mu, delta, L, nelem, closed, segments=False)
         g = self.gauge
         self.p, self.nqc, self.eps, self.delta = g.p, g.nqc, g.eps, g.delta
         self.L, self.nelem, self.closed, self.h = g.L, g.nelem, g.closed, g.h
         self.xq, self.wq, self.Nq = g.xq, g.wq, g.Nq
-        self.segments = False
         self.penetration = float(penetration)
         self.k_per_mu = pair_stiffness(1.0, self.eps, self.penetration)
         self._mu = float(mu)
         if nqp is None:
-            nqp = max(self.nqc, points_per_element(self.h, self.eps, self.penetration,
-                                                   self.DENSITY))
+            nqp = max(self.nqc, points_per_element(self.h, self.eps, self.penetration))
         self.nqp = int(nqp)
         self.xp, self.wp = fe.gauss_legendre(self.nqp)
         self.Np = fe.lagrange(self.p, self.xp)[0]
@@ -150,10 +151,6 @@ class PotentialKernel:
     def k(self):
         """Pair stiffness of (1)."""
         return self._mu * self.k_per_mu
-
-    @property
-    def nonconvex(self):
-        return self.gauge.nonconvex
 
     def slave_arclength(self, own_ids):
         return self.gauge.slave_arclength(own_ids)
@@ -192,16 +189,13 @@ class PotentialKernel:
     def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True):
         """Energy, residual and tangent of (1) over the own elements, with the outputs of
         contact.ContactKernel.evaluate_strand (active = element pairs, no switch points)."""
-        p, nqc, h = self.p, self.nqc, self.h
-        n1 = p + 1
+        nqc, h = self.nqc, self.h
+        n1 = self.p + 1
         J = 0.5 * h
-        own_ids = np.asarray(own_ids, dtype=np.int64).ravel()
-        x_own = np.asarray(x_own, dtype=float).reshape(len(own_ids), n1, 3)
-        other_ids = np.asarray(other_ids, dtype=np.int64).ravel()
-        x_other = np.asarray(x_other, dtype=float).reshape(len(other_ids), n1, 3)
-        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-        no = len(own_ids)
         g = self.gauge
+        own_ids, x_own, other_ids, x_other, pairs = g.as_inputs(own_ids, x_own, other_ids,
+                                                                 x_other, pairs)
+        no = len(own_ids)
         out = g.empty_output(no, tangent)
         if no == 0 or len(pairs) == 0:
             return out

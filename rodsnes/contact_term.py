@@ -47,12 +47,12 @@ class ContactTerm:
         self.penalty_failures = 0       # ... that failed (state and mu put back)
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
-        self.model = getattr(c, "model", "projection")
+        self.model = c.model
         if self.model == "potential":
             self.kernel = PotentialKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                           mesh.length, mesh.nelem, mesh.closed,
                                           penetration=self.penetration,
-                                          nqp=getattr(c, "potential_points", None))
+                                          nqp=c.potential_points)
         else:
             self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                            mesh.length, mesh.nelem, mesh.closed,

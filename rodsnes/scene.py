@@ -966,18 +966,18 @@ def _contact(c, rod, bc):
                "integrates at fixed points (-contact_quadrature); drop the option"
                % c.show(O.contact_zones), O.contact_zones, O.contact_model)
     if enabled and c[O.contact_model] == "potential" and q is None:
-        from .contact_potential import points_per_element, support_length
+        from .contact_potential import DENSITY, MAX_POINTS, points_per_element, support_length
         pen = float(c[O.contact_penetration])
         h = rod["length"] / rod["nelem"]
         need = points_per_element(h, rcontact, pen)
-        if need > 48:
-            c.fail("%s: the pair potential resolves a contact by 12 quadrature points on the "
+        if need > MAX_POINTS:
+            c.fail("%s: the pair potential resolves a contact by %d quadrature points on the "
                    "stretch 2 t0 = %.4g a point touches at the promised penetration, which "
-                   "takes %d points per element of length %.4g (more than 48); refine the mesh "
+                   "takes %d points per element of length %.4g (more than %d); refine the mesh "
                    "(-rod_nelem %d or more), set the points per element with "
                    "-contact_quadrature, or use -contact_model projection"
-                   % (c.show(O.contact_model), support_length(rcontact, pen), need, h,
-                      int(np.ceil(rod["nelem"] * need / 48.0))),
+                   % (c.show(O.contact_model), DENSITY, support_length(rcontact, pen), need, h,
+                      MAX_POINTS, int(np.ceil(rod["nelem"] * need / MAX_POINTS))),
                    O.contact_model, O.rod_nelem, O.contact_quadrature)
     penalty = _f(c[O.contact_penalty])
     # a penalty the user chose is kept as given unless adaptation is asked for explicitly
