@@ -64,21 +64,21 @@ _A, _T = _coefficient_tensors()
 
 
 def strain_measures(p, dp, dr, derivatives=0):
-    """e = (v, u) at points with interpolated p (...,4), p' (...,4), r' (...,3).
+    """Reference (einsum) form: e = (v, u) at points with interpolated p (...,4), p' (...,4), r' (...,3).
 
     derivatives=0: e (...,6); 1: (e, De (...,6,11)); 2: (e, De, D2e (...,6,11,11)).
     """
     n2 = np.einsum("...i,...i->...", p, p)
-    g = np.einsum("kijl,...i,...j,...l->...k", _T, p, p, dr)
-    w = np.einsum("kij,...i,...j->...k", _A, p, dp)
+    g = np.einsum("kijl,...i,...j,...l->...k", _T, p, p, dr, optimize=True)
+    w = np.einsum("kij,...i,...j->...k", _A, p, dp, optimize=True)
     Nz = np.concatenate([g, 2.0 * w], axis=-1)
     e = Nz / n2[..., None]
     if derivatives == 0:
         return e
     shp = p.shape[:-1]
     DN = np.zeros(shp + (6, 11))
-    DN[..., :3, 0:4] = 2.0 * np.einsum("kijl,...j,...l->...ki", _T, p, dr)
-    DN[..., :3, 8:11] = np.einsum("kijl,...i,...j->...kl", _T, p, p)
+    DN[..., :3, 0:4] = 2.0 * np.einsum("kijl,...j,...l->...ki", _T, p, dr, optimize=True)
+    DN[..., :3, 8:11] = np.einsum("kijl,...i,...j->...kl", _T, p, p, optimize=True)
     DN[..., 3:, 0:4] = 2.0 * np.einsum("kij,...j->...ki", _A, dp)
     DN[..., 3:, 4:8] = 2.0 * np.einsum("kij,...i->...kj", _A, p)
     Dn2 = np.zeros(shp + (11,))
@@ -103,6 +103,15 @@ def strain_measures(p, dp, dr, derivatives=0):
            + 2.0 * Nz[..., :, None, None] * (Dn2[..., None, :, None] * Dn2[..., None, None, :])
            * (inv**3)[..., None, None, None])
     return e, De, D2e
+
+
+def compiled_available():
+    """The fused C kernel (rodsnes/_elastic_kernel.c) is built and loads."""
+    try:
+        from . import elastic_compiled
+    except ImportError:
+        return False
+    return elastic_compiled.available()
 
 
 def align_signs(qe):
@@ -131,11 +140,21 @@ class ElasticRod:
 
     stiffness: (GA1, GA2, EA, EI1, EI2, GJ); order p; nq Gauss points; element length h.
     e0: (ne, nq, 6) stress-free strains (set with set_reference).
+
+    Three implementations of ``element_terms`` give the same numbers (to 1e-12, tests/
+    test_elastic.py and tests/test_elastic_compiled.py):
+      compiled   a fused C kernel (rodsnes/_elastic_kernel.c, built by ``pip install -e .``),
+                 one pass per element; the default when it is built;
+      numpy      batched matrix products over (element x point) (``element_terms_numpy``);
+      reference  the einsum transcription of the formulas (``element_terms_reference``).
+    ``kernel`` chooses: "auto" (compiled if built, else numpy), "compiled", "numpy" or
+    "reference" (-rod_kernel).
     """
 
-    def __init__(self, order, nq, h, stiffness):
+    def __init__(self, order, nq, h, stiffness, kernel="auto"):
         self.p = order
         self.h = h
+        self.nq = nq
         xi, w = fe.gauss_legendre(nq)
         N, dN, _ = fe.lagrange(order, xi)
         self.N = N
@@ -153,19 +172,76 @@ class ElasticRod:
             G[:, 4:8, a, 0:4] = self.dN[:, a, None, None] * np.eye(4)
             G[:, 8:11, a, 4:7] = self.dN[:, a, None, None] * np.eye(3)
         self.G = G.reshape(nq, 11, nn * 7)
+        self._batched_constants()
+        self.kernel = self._choose_kernel(kernel)
+
+    # -- set-up ---------------------------------------------------------------------
+    def _batched_constants(self):
+        """Constant matrices of the batched kernel.  The raw gradient is
+        graw = sum_q wJ_q G_q^T W_z (Gw); the raw Hessian  sum_q wJ_q G_q^T W_zz G_q  splits by
+        the Kronecker structure of G into shape-function products: (p, p') x (p, p') blocks with
+        M[(q, s, t), (a, b)] = wJ_q Phi_s,a Phi_t,b (Phi = (N, N')), (p, p') x r' with Mqx, and
+        r' x r' with Mxx."""
+        nq, nn = self.N.shape
+        Phi = np.stack([self.N, self.dN], axis=1)                        # (q, s, a)
+        wJ = self.wJ
+        self._Gw = np.ascontiguousarray((wJ[:, None, None] * self.G).reshape(nq * 11, nn * 7))
+        self._Mqq = (wJ[:, None, None, None, None] * Phi[:, :, None, :, None]
+                     * Phi[:, None, :, None, :]).reshape(nq * 4, nn * nn)
+        self._Mqx = (wJ[:, None, None, None] * Phi[:, :, :, None]
+                     * self.dN[:, None, None, :]).reshape(nq * 2, nn * nn)
+        self._Mxx = (wJ[:, None, None] * self.dN[:, :, None] * self.dN[:, None, :]).reshape(nq, nn * nn)
+        # coefficient tensors of the strain numerators, reshaped for matrix products
+        self._Tj = np.ascontiguousarray(_T.transpose(2, 0, 1, 3).reshape(4, 36))   # p_j -> (k,i,l)
+        self._Tl = np.ascontiguousarray(_T.transpose(0, 3, 1, 2).reshape(9, 16))   # (k,l) -> (i,j)
+        self._Aj = np.ascontiguousarray(_A.transpose(2, 0, 1).reshape(4, 12))      # p'_j -> (k,i)
+        self._Ai = np.ascontiguousarray(_A.transpose(1, 0, 2).reshape(4, 12))      # p_i -> (k,j)
+        self._A2 = np.ascontiguousarray(2.0 * _A.reshape(3, 16))                   # m_k -> (i,j)
+
+    def _choose_kernel(self, kernel):
+        if kernel not in ("auto", "compiled", "numpy", "reference"):
+            raise ValueError(f"unknown elastic kernel {kernel!r}: use auto, compiled, numpy or reference")
+        if kernel in ("auto", "compiled"):
+            if compiled_available():
+                return "compiled"
+            if kernel == "compiled":
+                raise RuntimeError("the compiled elastic kernel is not built: run `make install` "
+                                   "(pip install -e .) or use -rod_kernel numpy")
+            return "numpy"
+        return kernel
 
     def interpolate(self, qe, xe):
         """(p, p', r') at the quadrature points of elements with nodal qe (ne,p+1,4), xe."""
         qe = align_signs(qe)
-        p = np.einsum("qa,eai->eqi", self.N, qe)
-        dp = np.einsum("qa,eai->eqi", self.dN, qe)
-        dr = np.einsum("qa,eai->eqi", self.dN, xe)
-        return qe, p, dp, dr
+        return qe, self.N @ qe, self.dN @ qe, self.dN @ xe
+
+    def _strain_parts(self, p, dp, dr):
+        """At n points (flattened): |p|^2, the strain numerators Nz (n,6) and their derivative
+        DN = dNz/dz (n,6,11), and Tp = T_kijl p_j (n,3,4,3) (module docstring: e = Nz / |p|^2)."""
+        n = p.shape[0]
+        n2 = np.einsum("ni,ni->n", p, p)
+        Tp = (p @ self._Tj).reshape(n, 3, 4, 3)                         # (k, i, l)
+        DN = np.zeros((n, 6, 11))
+        DN[:, :3, 0:4] = 2.0 * (Tp @ dr[:, None, :, None])[..., 0]       # 2 T_kijl p_j r'_l
+        DN[:, :3, 8:11] = (p[:, None, None, :] @ Tp)[:, :, 0, :]         # T_kijl p_i p_j
+        DN[:, 3:, 0:4] = 2.0 * (dp @ self._Aj).reshape(n, 3, 4)
+        DN[:, 3:, 4:8] = 2.0 * (p @ self._Ai).reshape(n, 3, 4)
+        Nz = np.empty((n, 6))
+        Nz[:, :3] = (DN[:, :3, 8:11] @ dr[:, :, None])[..., 0]
+        Nz[:, 3:] = (DN[:, 3:, 4:8] @ dp[:, :, None])[..., 0]             # 2 w
+        return n2, Nz, DN, Tp
 
     def strains(self, qe, xe):
         """Material strains e = (v, u) (ne, nq, 6) at the quadrature points."""
         _, p, dp, dr = self.interpolate(qe, xe)
-        return strain_measures(p, dp, dr)
+        shp = p.shape[:-1]
+        p, dp, dr = p.reshape(-1, 4), dp.reshape(-1, 4), dr.reshape(-1, 3)
+        n2 = np.einsum("ni,ni->n", p, p)
+        Tpp = ((p @ self._Tj).reshape(-1, 3, 4, 3) * p[:, None, :, None]).sum(axis=2)   # (k, l)
+        e = np.empty((len(p), 6))
+        e[:, :3] = (Tpp @ dr[:, :, None])[..., 0]
+        e[:, 3:] = 2.0 * ((p @ self._Ai).reshape(-1, 3, 4) @ dp[:, :, None])[..., 0]
+        return (e / n2[:, None]).reshape(shp + (6,))
 
     def set_reference(self, e0):
         self.e0 = np.asarray(e0, dtype=float)
@@ -210,7 +286,7 @@ class ElasticRod:
         """E = sum_e sum_q wJ W(e, e0)."""
         e0 = self.e0 if e0 is None else e0
         W, _, _ = self.law(self.strains(qe, xe), e0)
-        return np.einsum("q,eq->", self.wJ, W)
+        return float(np.sum(W @ self.wJ))
 
     def stress(self, qe, xe, e0=None):
         """Material stress resultants S = dW/de = (R^T n, R^T m) at quadrature points."""
@@ -225,9 +301,110 @@ class ElasticRod:
         F(theta) = J_l(theta)^{-T} grad f(theta) (f = E o exp chart), so its exact derivative
         at theta = 0 is  H - 1/2 g_theta^x  on each node's theta-theta block (symmetric=False,
         the default: the consistent Newton tangent).  symmetric=True returns the Hessian H of
-        the energy in the exponential chart (for inertia / stability: equal at equilibrium)."""
+        the energy in the exponential chart (for inertia / stability: equal at equilibrium).
+        Computed by the kernel chosen at construction (class docstring)."""
+        if self.kernel == "compiled":
+            from . import elastic_compiled
+            return elastic_compiled.element_terms(self, qe, xe, self.e0 if e0 is None else e0,
+                                                  tangent, symmetric)
+        if self.kernel == "reference":
+            return self.element_terms_reference(qe, xe, e0, tangent, symmetric)
+        return self.element_terms_numpy(qe, xe, e0, tangent, symmetric)
+
+    def element_terms_numpy(self, qe, xe, e0=None, tangent=True, symmetric=False):
+        """element_terms as batched matrix products over (element x point): the first and
+        second derivatives of e = Nz(z) / |p|^2 in closed form (no (6, 11, 11) array),
+
+            W_z  = De^T S,
+            W_zz = De^T C De + [S.D2N] / |p|^2 - (v Dn2^T + Dn2 v^T) / |p|^4
+                   - (S.Nz) D2n2 / |p|^4 + 2 (S.Nz) Dn2 Dn2^T / |p|^6,
+
+        v = DN^T S, Dn2 = (2p, 0, 0), D2n2 = 2 I on the p block; then the shape-function
+        contractions with the constant matrices of _batched_constants."""
         e0 = self.e0 if e0 is None else e0
-        qa, p, dp, dr = self.interpolate(qe, xe)
+        ne, nn, nq = qe.shape[0], self.p + 1, self.nq
+        n = ne * nq
+        qa = align_signs(qe)
+        p = (self.N @ qa).reshape(n, 4)
+        dp = (self.dN @ qa).reshape(n, 4)
+        dr = (self.dN @ xe).reshape(n, 3)
+        n2, Nz, DN, Tp = self._strain_parts(p, dp, dr)
+        inv = 1.0 / n2
+        inv2 = inv * inv
+        e = Nz * inv[:, None]
+        De = DN * inv[:, None, None]
+        De[:, :, 0:4] -= (2.0 * inv2)[:, None, None] * (Nz[:, :, None] * p[:, None, :])
+        W, S, Cb = self.law(e.reshape(ne, nq, 6), e0, tangent=tangent)
+        energy = W @ self.wJ
+        S = S.reshape(n, 6)
+        Wz = (S[:, None, :] @ De)[:, 0, :]                                # (n, 11)
+        graw = (Wz.reshape(ne, nq * 11) @ self._Gw).reshape(ne, nn, 7)
+        B = B_matrix(qa)                                                  # (ne, nn, 4, 3)
+        vec = np.empty((ne, nn, 6))
+        vec[:, :, 0:3] = graw[:, :, 4:7]
+        vec[:, :, 3:6] = (graw[:, :, None, 0:4] @ B)[:, :, 0, :]
+        if not tangent:
+            return energy, vec, None
+        Wzz = np.swapaxes(De * self.C[:, None], -1, -2) @ De              # (n, 11, 11)
+        if Cb is not None:
+            D = De.reshape(ne, nq, 6, 11)[..., 3:5, :]
+            Wzz += (np.swapaxes(D, -1, -2) @ (Cb @ D)).reshape(n, 11, 11)
+        v = (S[:, None, :] @ DN)[:, 0, :]
+        sN = np.einsum("nk,nk->n", S, Nz)
+        Sd = S[:, :3]
+        Wzz[:, 0:4, 0:4] += (2.0 * inv)[:, None, None] * (
+            (Sd[:, :, None] * dr[:, None, :]).reshape(n, 9) @ self._Tl).reshape(n, 4, 4)
+        X = (2.0 * inv)[:, None, None] * (Sd[:, None, :] @ Tp.reshape(n, 3, 12))[:, 0, :].reshape(n, 4, 3)
+        Wzz[:, 0:4, 8:11] += X
+        Wzz[:, 8:11, 0:4] += np.swapaxes(X, -1, -2)
+        Y = inv[:, None, None] * (S[:, 3:] @ self._A2).reshape(n, 4, 4)
+        Wzz[:, 0:4, 4:8] += Y
+        Wzz[:, 4:8, 0:4] += np.swapaxes(Y, -1, -2)
+        twop = 2.0 * p
+        a = inv2[:, None, None]
+        Wzz[:, :, 0:4] -= a * (v[:, :, None] * twop[:, None, :])
+        Wzz[:, 0:4, :] -= a * (twop[:, :, None] * v[:, None, :])
+        Wzz[:, 0:4, 0:4] += ((8.0 * sN * inv2 * inv)[:, None, None] * (p[:, :, None] * p[:, None, :])
+                             - (2.0 * sN * inv2)[:, None, None] * np.eye(4))
+        Wzz = Wzz.reshape(ne, nq, 11, 11)
+        Wqq = Wzz[:, :, 0:8, 0:8].reshape(ne, nq, 2, 4, 2, 4).transpose(0, 3, 5, 1, 2, 4).reshape(ne * 16, nq * 4)
+        Wqx = Wzz[:, :, 0:8, 8:11].reshape(ne, nq, 2, 4, 3).transpose(0, 3, 4, 1, 2).reshape(ne * 12, nq * 2)
+        Wxx = Wzz[:, :, 8:11, 8:11].transpose(0, 2, 3, 1).reshape(ne * 9, nq)
+        Hqq = (Wqq @ self._Mqq).reshape(ne, 4, 4, nn, nn).transpose(0, 3, 4, 1, 2)    # (e,a,b,i,j)
+        Hqx = (Wqx @ self._Mqx).reshape(ne, 4, 3, nn, nn).transpose(0, 3, 4, 1, 2)
+        Hxx = (Wxx @ self._Mxx).reshape(ne, 3, 3, nn, nn).transpose(0, 3, 4, 1, 2)
+        # T_a: (r, theta) -> (q, x):  q block = B theta, x block = r
+        H = np.empty((ne, nn, 6, nn, 6))
+        Ht = H.transpose(0, 1, 3, 2, 4)                                    # view (e, a, b, 6, 6)
+        BaT = np.swapaxes(B, -1, -2)[:, :, None]
+        Ht[..., 0:3, 0:3] = Hxx
+        Ht[..., 3:6, 0:3] = BaT @ Hqx
+        Ht[..., 0:3, 3:6] = np.swapaxes(Ht[..., 3:6, 0:3], -1, -2).swapaxes(1, 2)
+        Ht[..., 3:6, 3:6] = BaT @ (Hqq @ B[:, None, :])
+        self._add_chart(Ht, qa, graw, vec, symmetric)
+        return energy, vec, H.reshape(ne, nn * 6, nn * 6)
+
+    def _add_chart(self, Ht, qa, graw, vec, symmetric):
+        """On each node's theta-theta block (Ht viewed as (e, a, b, 6, 6)): the exponential
+        chart's second-order term -1/4 (q_a . dE/dq_a) I, and unless symmetric the spatial
+        residual's -1/2 g_theta^x."""
+        nn = self.p + 1
+        ar = np.arange(nn)
+        chart = -0.25 * np.einsum("eai,eai->ea", qa, graw[:, :, 0:4])
+        D = Ht[:, ar, ar, 3:6, 3:6] + chart[..., None, None] * np.eye(3)
+        if not symmetric:
+            D -= 0.5 * so3.hat(vec[:, :, 3:6])
+        Ht[:, ar, ar, 3:6, 3:6] = D
+
+    def element_terms_reference(self, qe, xe, e0=None, tangent=True, symmetric=False):
+        """element_terms by a direct einsum transcription of the formulas (module docstring),
+        with the (6, 11, 11) second derivatives of the strains: the reference the fast kernels
+        are tested against."""
+        e0 = self.e0 if e0 is None else e0
+        qa = align_signs(qe)
+        p = np.einsum("qa,eai->eqi", self.N, qa)
+        dp = np.einsum("qa,eai->eqi", self.dN, qa)
+        dr = np.einsum("qa,eai->eqi", self.dN, xe)
         ne, nn = qe.shape[0], self.p + 1
         if tangent:
             e, De, D2e = strain_measures(p, dp, dr, derivatives=2)
@@ -236,29 +413,24 @@ class ElasticRod:
         W, S, Cb = self.law(e, e0, tangent=tangent)
         energy = np.einsum("q,eq->e", self.wJ, W)
         Wz = np.einsum("eqkz,eqk->eqz", De, S)
-        graw = np.einsum("q,qzy,eqz->ey", self.wJ, self.G, Wz).reshape(ne, nn, 7)
-        B = B_matrix(qa)                                   # (ne, nn, 4, 3)
+        graw = np.einsum("q,qzy,eqz->ey", self.wJ, self.G, Wz, optimize=True).reshape(ne, nn, 7)
+        B = B_matrix(qa)
         vec = np.empty((ne, nn, 6))
         vec[:, :, 0:3] = graw[:, :, 4:7]
         vec[:, :, 3:6] = np.einsum("eaij,eai->eaj", B, graw[:, :, 0:4])
         if not tangent:
             return energy, vec, None
-        Wzz = np.einsum("eqkz,k,eqky->eqzy", De, self.C, De) + np.einsum("eqk,eqkzy->eqzy", S, D2e)
+        Wzz = (np.einsum("eqkz,k,eqky->eqzy", De, self.C, De, optimize=True)
+               + np.einsum("eqk,eqkzy->eqzy", S, D2e))
         if Cb is not None:
-            Wzz += np.einsum("eqkz,eqkl,eqly->eqzy", De[..., 3:5, :], Cb, De[..., 3:5, :])
-        Hraw = np.einsum("q,qzi,eqzy,qyj->eij", self.wJ, self.G, Wzz, self.G)
+            Wzz += np.einsum("eqkz,eqkl,eqly->eqzy", De[..., 3:5, :], Cb, De[..., 3:5, :], optimize=True)
+        Hraw = np.einsum("q,qzi,eqzy,qyj->eij", self.wJ, self.G, Wzz, self.G, optimize=True)
         Hraw = Hraw.reshape(ne, nn, 7, nn, 7)
-        # T_a: (r, theta) -> (q, x):  q block = B theta, x block = r
         T = np.zeros((ne, nn, 7, 6))
         T[:, :, 4:7, 0:3] = np.eye(3)
         T[:, :, 0:4, 3:6] = B
-        H = np.einsum("eaim,eaibj,ebjn->eambn", T, Hraw, T)
-        chart = -0.25 * np.einsum("eai,eai->ea", qa, graw[:, :, 0:4])
-        idx = np.arange(3, 6)
-        for a in range(nn):
-            H[:, a, idx, a, idx] += chart[:, a, None]
-            if not symmetric:
-                H[:, a, 3:6, a, 3:6] -= 0.5 * so3.hat(vec[:, a, 3:6])
+        H = np.einsum("eaim,eaibj,ebjn->eambn", T, Hraw, T, optimize=True)
+        self._add_chart(H.transpose(0, 1, 3, 2, 4), qa, graw, vec, symmetric)
         return energy, vec, H.reshape(ne, nn * 6, nn * 6)
 
 

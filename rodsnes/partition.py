@@ -114,9 +114,12 @@ class Layout:
         ai = np.concatenate([[0], np.cumsum(np.bincount(r - lo, minlength=hi - lo))])
         return ai.astype(PETSc.IntType), c.astype(PETSc.IntType)
 
-    def create_matrix(self, extra_pairs=None):
+    def create_matrix(self, extra_pairs=None, symmetric=False):
         """MPIBAIJ (block size 6; -mat_type overrides) with the exact block structure of the
         element coupling and the extra node groups, every entry present (explicit zeros).
+        symmetric=True: MPISBAIJ, the upper block triangle only (values set below the
+        diagonal are ignored), for a symmetric matrix factored by LDL^T (MUMPS Cholesky
+        cannot take BAIJ).
 
         Present, not merely preallocated: the first assembly squeezes out preallocated slots
         that hold no value, so contact blocks that are zero at that moment would need mallocs
@@ -125,15 +128,22 @@ class Layout:
         (RodProblem._new_matrix), never an in-place re-preallocation."""
         J = PETSc.Mat().create(comm=self.comm)
         J.setSizes(((NDOF * self.n_owned, NDOF * self.n_global),) * 2, bsize=NDOF)
-        J.setType(PETSc.Mat.Type.BAIJ)
+        J.setType(PETSc.Mat.Type.SBAIJ if symmetric else PETSc.Mat.Type.BAIJ)
         J.setBlockSize(NDOF)
         J.setFromOptions()
         ai, aj = self.block_pattern(extra_pairs)
-        if J.getType() in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
+        kind = J.getType()
+        if kind in (PETSc.Mat.Type.SEQSBAIJ, PETSc.Mat.Type.MPISBAIJ):
+            ai, aj = _upper_blocks(ai, aj, self.starts[self.comm.getRank()])
+            J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
+            J.setPreallocationCSR((ai, aj))
+        elif kind in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
             J.setPreallocationCSR((ai, aj))
         else:                     # -mat_type aij etc.: expand the block structure to scalars
             J.setPreallocationCSR(_scalar_csr(ai, aj, NDOF))
         J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+        if symmetric:
+            J.setOption(PETSc.Mat.Option.SYMMETRIC, True)
         self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(len(aj))))
         return J
 
@@ -158,6 +168,16 @@ class Layout:
         for i, v in zip(ids, vals):
             out[i] = v
         return out
+
+
+def _upper_blocks(ai, aj, row0):
+    """The block CSR (ai, aj) of owned block rows row0, row0 + 1, ... restricted to its upper
+    triangle (column >= row)."""
+    counts = np.diff(ai)
+    rows = row0 + np.repeat(np.arange(len(counts)), counts)
+    keep = aj >= rows
+    ai = np.concatenate([[0], np.cumsum(np.bincount(rows[keep] - row0, minlength=len(counts)))])
+    return ai.astype(PETSc.IntType), aj[keep]
 
 
 def _scalar_csr(ai, aj, bs):

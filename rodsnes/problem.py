@@ -168,7 +168,7 @@ class RodProblem:
         nq = fe.quadrature_points(rod.quadrature, rod.order)
         self.nq = nq
         stiff = (rod.GA1, rod.GA2, rod.EA, rod.EI1, rod.EI2, rod.GJ)
-        self.elastic = elastic.ElasticRod(rod.order, nq, mesh.h, stiff)
+        self.elastic = elastic.ElasticRod(rod.order, nq, mesh.h, stiff, kernel=rod.kernel)
         lconn = layout.lconn
         own = layout.owned_elems
         e0 = reference_strains(rod, mesh, mesh.conn[own], self.elastic.strains)
@@ -199,7 +199,14 @@ class RodProblem:
         self.J = layout.create_matrix(contact.node_groups(self._pattern_pairs)
                                       if contact is not None else None)
         self.F = layout.create_vec()
+        self.symmetric = False              # set_symmetric: J is the chart Hessian, in SBAIJ
+        self.jacobians = 0                  # Jacobians assembled (the solver's inertia check)
+        self.last_jacobian_plain = False    # ... the last one the energy Hessian alone
         self.lconn = lconn
+        # element node rows -> local nodes: F_loc = S vec (the assembly sum as one sparse product)
+        import scipy.sparse as sp
+        self._scatter = sp.csr_matrix((np.ones(lconn.size), (lconn.ravel(), np.arange(lconn.size))),
+                                      shape=(len(layout.local_nodes), lconn.size))
         self.stats = {}
         self._e0_nodes = None
         # further terms with add_residual(r, q, Floc), add_jacobian(r, q, P), energy(r, q) on
@@ -304,12 +311,31 @@ class RodProblem:
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
 
+    def set_symmetric(self, on=True):
+        """Newton's matrix becomes the symmetric Hessian of the energy in the exponential chart
+        (symmetric=True of element_terms: the consistent tangent without its -1/2 g_theta^x
+        term, which vanishes at equilibrium, so Newton stays quadratic), stored as SBAIJ and
+        factored by LDL^T, whose negative pivots are the Hessian's negative eigenvalues
+        (Sylvester): the stability check reads them from Newton's own factorisation
+        (stability.newton_inertia).  Conservative loads only (a follower load's tangent is not
+        symmetric)."""
+        on = bool(on)
+        if on == self.symmetric:
+            return
+        self.symmetric = on
+        groups = self.contact.node_groups(self._pattern_pairs) if self.contact is not None else None
+        old = self.J
+        self.J = self.layout.create_matrix(groups, symmetric=on)
+        if self.on_pattern_change is not None:
+            self.on_pattern_change(self.J)
+        old.destroy()
+
     def _new_matrix(self, pairs):
         """A fresh matrix preallocated for the elements + the contact pairs.  Not an in-place
         re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
         (on_pattern_change) takes the new matrix and drops its factorisation."""
         old = self.J
-        self.J = self.layout.create_matrix(self.contact.node_groups(pairs))
+        self.J = self.layout.create_matrix(self.contact.node_groups(pairs), symmetric=self.symmetric)
         self._pattern_pairs = pairs
         if self.on_pattern_change is not None:
             self.on_pattern_change(self.J)
@@ -328,8 +354,7 @@ class RodProblem:
     def residual(self, snes, X, F):
         r, q = self.state.local_config(X)
         energy, vec, _ = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=False)
-        Floc = np.zeros((len(r), NDOF))
-        np.add.at(Floc, self.lconn, vec)
+        Floc = self._scatter @ vec.reshape(-1, NDOF)        # sum of element rows per local node
         self.loads.add_residual(self.lam, r, q, Floc)
         if self.contact is not None:
             self.contact.add_residual(r, Floc)
@@ -346,7 +371,11 @@ class RodProblem:
             c = self.constraints
             fa[c.rows_local] = xa[c.rows_local] - np.where(c.rows_local % NDOF < 3, c.target_own, 0.0)
 
-    def jacobian(self, snes, X, J, P, symmetric=False):
+    def jacobian(self, snes, X, J, P, symmetric=None):
+        """The tangent at X into P: the consistent Newton tangent, or with symmetric (default:
+        set_symmetric's choice) the chart Hessian of the energy."""
+        if symmetric is None:
+            symmetric = self.symmetric
         r, q = self.state.local_config(X)
         _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True,
                                              symmetric=symmetric)
@@ -363,8 +392,12 @@ class RodProblem:
         P.assemble()
         self._check_no_mallocs(P)
         P.zeroRowsColumns(self.constraints.is_rows, 1.0)
+        own = P.handle == self.J.handle     # SNES hands a new wrapper of the same Mat
         if J != P:
             J.assemble()
+        if own:
+            self.jacobians += 1
+            self.last_jacobian_plain = bool(symmetric) and not self.extra_terms
 
     def _check_no_mallocs(self, P):
         """Safety net for ensure_pattern: an entry beyond the preallocation would be wrong in

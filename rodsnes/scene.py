@@ -212,6 +212,10 @@ class O:
                     rng="[1,4]", note="element polynomial degree")
     rod_quadrature = Opt(CHOICE, "reduced", "Gauss rule: full (p+1 points) or reduced (p points)",
                          "disc", choices=("full", "reduced"))
+    rod_kernel = Opt(CHOICE, "auto", "elastic element kernel: compiled (fused C, built by the "
+                     "install), numpy (batched arrays), reference (einsum transcription, slow), "
+                     "auto (compiled if built, else numpy); all agree to 1e-12", "disc",
+                     choices=("auto", "compiled", "numpy", "reference"))
     # --- boundary conditions ----------------------------------------------------
     bc_start = Opt(CHOICE, "clamped", "support of the end s = 0", "bc",
                    choices=("clamped", "pinned", "free"), shown="clamped (free on a closed rod)")
@@ -384,6 +388,7 @@ class Rod:
     poisson: Optional[float]
     shear_coefficient: Optional[float]
     closed_gauge: bool = True
+    kernel: str = "auto"
 
     @property
     def area(self):
@@ -857,6 +862,12 @@ def _rod(c):
                "gentler curvature or a thinner rod"
                % (c.show(O.rod_kappa0), c.show(O.rod_radius), math.hypot(kappa0[0], kappa0[1]),
                   1.0 / r), O.rod_kappa0, O.rod_radius)
+    if c[O.rod_kernel] == "compiled":
+        from .elastic import compiled_available
+        if not compiled_available():
+            c.fail("%s: the compiled elastic kernel is not built on this machine; run `make "
+                   "install` (it compiles rodsnes/_elastic_kernel.c) or use -rod_kernel auto"
+                   % c.show(O.rod_kernel), O.rod_kernel)
     rod = dict(length=float(L), radius=float(r), EA=float(EA), GA1=float(GA), GA2=float(GA),
                EI1=float(EI1), EI2=float(EI2), GJ=float(GJ),
                kappa0=None if kappa0 is None else np.array(kappa0, dtype=float),
@@ -864,7 +875,8 @@ def _rod(c):
                helix_radius=_f(hel_R), helix_pitch=_f(hel_p), closed=closed,
                twist_turns=float(twist), imperfection=float(c[O.rod_imperfection]),
                nelem=int(c[O.rod_nelem]), order=int(c[O.rod_order]),
-               quadrature=c[O.rod_quadrature], closed_gauge=bool(c[O.rod_closed_gauge]))
+               quadrature=c[O.rod_quadrature], closed_gauge=bool(c[O.rod_closed_gauge]),
+               kernel=c[O.rod_kernel])
     return rod, material
 
 

@@ -33,9 +33,15 @@ from .partition import NDOF
 RAISE_MIN = 1.1
 
 
+_DEFAULTED = set()     # options this module set itself (not the user's): a later solver may change them
+
+
 def _default(opts, name, value):
-    if not opts.hasName(name):
+    """Set an option unless the user gave it (the options database outlives one solver: a
+    default set for an earlier solver in the same process is not the user's)."""
+    if not opts.hasName(name) or name in _DEFAULTED:
         opts.setValue(name, value)
+        _DEFAULTED.add(name)
 
 
 class StepResult:
@@ -55,8 +61,15 @@ class NewtonSolver:
         _default(opts, "snes_stol", "1e-16")
         _default(opts, "snes_max_it", "40")
         _default(opts, "ksp_type", "preonly")
-        _default(opts, "pc_type", "lu")
+        # -stability with conservative loads: Newton factors the symmetric energy Hessian by
+        # MUMPS LDL^T, whose negative pivots are the stability count (stability.newton_inertia:
+        # no second factorisation); otherwise the consistent tangent by LU
+        symmetric = bool(check_stability) and _nonconservative(problem.scene.loads) is None
+        problem.set_symmetric(symmetric)
+        _default(opts, "pc_type", "cholesky" if symmetric else "lu")
         _default(opts, "pc_factor_mat_solver_type", "mumps")
+        if symmetric:
+            _default(opts, "mat_mumps_icntl_13", "1")   # the inertia right on any number of ranks
         if problem.contact is not None:
             # contact pairs add fill the analysis did not see: room for it (else INFOG(1) = -9)
             _default(opts, "mat_mumps_icntl_14", "100")
@@ -91,6 +104,8 @@ class NewtonSolver:
         self.damped_its = PETSc.Options().getInt("load_damped_its", 0)
         self.damped_solves = 0
         self.check_stability = check_stability
+        self._jac_before = None             # problem.jacobians when the last solve_at began
+        self.inertia_counts = {"newton": 0, "separate": 0}   # where the stability counts came from
         self.f0 = None
         self.total_its = 0
         # branch switching (-stability_switch, on by default with -stability): relax an unstable
@@ -166,6 +181,7 @@ class NewtonSolver:
         t0 = time.perf_counter()
         p.set_load(lam)
         self.snes.setConvergenceHistory(length=1000, reset=True)
+        self._jac_before = p.jacobians
         try:
             self.snes.solve(None, p.state.X)
             reason = self.snes.getConvergedReason()
@@ -471,9 +487,25 @@ class NewtonSolver:
 
     # -- branch switching -------------------------------------------------------------
     def _count_negative(self, counter):
-        """counter(problem), the same on every rank (max over ranks)."""
+        """The negative eigenvalues of the energy Hessian at the current state, the same on
+        every rank: 0 when the LDL^T factorisation of the last solve_at, of this state's Newton
+        iterates, has no negative pivot (stability.newton_inertia), else counter(problem) (a
+        factorisation of its own).  Call it right after the solve it belongs to."""
         from mpi4py import MPI
-        return int(self.problem.layout.comm.tompi4py().allreduce(int(counter(self.problem)), op=MPI.MAX))
+        from .stability import newton_inertia
+        n = None
+        if self._jac_before is not None:
+            n = newton_inertia(self.snes, self.problem, self._jac_before)
+            self._jac_before = None          # one count per solve
+        if n == 0:
+            self.inertia_counts["newton"] += 1
+        else:
+            # no Newton factorisation of this state, or it has negative pivots: an exact zero
+            # mode (a symmetry) can pivot at roundoff of either sign, so an instability is
+            # confirmed by the shifted, scaled factorisation of its own (rare: unstable states)
+            n = counter(self.problem)
+            self.inertia_counts["separate"] += 1
+        return int(self.problem.layout.comm.tompi4py().allreduce(int(n), op=MPI.MAX))
 
     def _say(self, text):
         if not self.quiet and self.problem.layout.comm.getRank() == 0:

@@ -15,16 +15,49 @@ import numpy as np
 from petsc4py import PETSc
 
 
+def zero_shift(A):
+    """tau = 1000 eps max|diag(A)|, the diagonal shift under which the inertia is counted:
+    above the roundoff of an exact zero eigenvalue, so that exact zero modes (symmetries of
+    isotropic rods, e.g. turning a buckled isotropic column about its load axis) do not count
+    as negative.  Collective."""
+    return 1e3 * np.finfo(float).eps * A.getDiagonal().norm(PETSc.NormType.INFINITY)
+
+
+def newton_inertia(snes, problem, jacobians_before):
+    """The number of negative eigenvalues of the energy Hessian from the LDL^T factorisation
+    that Newton's last step made (MUMPS INFOG(12), the negative pivots; with
+    -mat_mumps_icntl_13 1 the count is right on any number of ranks), or None when that
+    factorisation is not of the plain energy Hessian at this solve's iterates: Newton ran
+    with the consistent (LU) tangent, no Jacobian was assembled since ``jacobians_before``
+    (a solve converged at its first residual), extra terms (a relaxation's c M) were in it,
+    or the factorisation was dropped since (a new contact pattern).
+
+    The factorisation is of the last iterate but one; the converged state differs from it by
+    one Newton step (|dx| ~ |F| / stiffness), which moves an eigenvalue by O(|dx|): the count
+    can differ only for an eigenvalue within that distance of zero, i.e. exactly at a
+    bifurcation.  Collective."""
+    if not (problem.symmetric and problem.last_jacobian_plain and problem.jacobians > jacobians_before):
+        return None
+    pc = snes.getKSP().getPC()
+    try:
+        if pc.getType() != PETSc.PC.Type.CHOLESKY or pc.getFactorSolverType() != "mumps":
+            return None
+        F = pc.getFactorMatrix()
+        if F.getMumpsInfog(1) < 0:
+            return None
+        return int(F.getMumpsInfog(12))
+    except PETSc.Error:
+        return None
+
+
 def negative_eigenvalues(problem):
-    """Number of negative eigenvalues of the symmetric tangent at the current state."""
+    """Number of negative eigenvalues of the symmetric tangent at the current state, from a
+    factorisation of its own (for states Newton's LDL^T did not just factor:
+    ``newton_inertia``)."""
     H = hessian(problem)
     A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-    # a shift tau = 1000 eps max|diag(A)| (above the roundoff of an exact zero eigenvalue)
-    # keeps exact zero modes (symmetries of isotropic rods, e.g. turning a buckled isotropic
-    # column about its load axis) from counting as negative
-    tau = 1e3 * np.finfo(float).eps * A.getDiagonal().norm(PETSc.NormType.INFINITY)
-    A.shift(tau)
+    A.shift(zero_shift(A))
     # symmetric Jacobi scaling D^-1/2 A D^-1/2 is a congruence, so it keeps the inertia
     # (Sylvester) while bringing axial (EA/h) and bending (EI/h) pivots to one scale, so that
     # MUMPS's null-pivot test does not swallow soft negative directions
