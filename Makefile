@@ -16,7 +16,7 @@ export OMP_NUM_THREADS := 1
 
 install: $(VENV)/.installed
 
-$(VENV)/.installed: setup.py tools/install_system.sh
+$(VENV)/.installed: setup.py tools/install_system.sh rodsnes/_elastic_kernel.c
 	tools/install_system.sh
 	test -x $(PY) || $(SYS_PYTHON) -m venv --system-site-packages $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e .

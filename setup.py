@@ -1,4 +1,13 @@
-from setuptools import setup, find_packages
+from setuptools import Extension, setup, find_packages
+
+# The fused elastic element kernel: plain C, no Python API, loaded with ctypes
+# (rodsnes/elastic_compiled.py); pip install -e . builds it in place next to the package.
+elastic_kernel = Extension(
+    "rodsnes._elastic_kernel",
+    sources=["rodsnes/_elastic_kernel.c"],
+    extra_compile_args=["-O3", "-std=c99"],
+    libraries=["m"],
+)
 
 setup(
     name="rodsnes",
@@ -10,4 +19,5 @@ setup(
     # (see tools/install_system.sh); only what Debian lacks is pulled from PyPI.
     install_requires=["numpy", "pymetis", "typing_extensions"],
     entry_points={"console_scripts": ["rodsnes = rodsnes.cli:main"]},
+    ext_modules=[elastic_kernel],
 )

@@ -1,0 +1,448 @@
+/* Fused elastic element kernel of rodsnes (C99, no Python API; loaded with ctypes by
+ * rodsnes/elastic_compiled.py).  Computes exactly what ElasticRod.element_terms (elastic.py)
+ * computes, element by element and quadrature point by quadrature point, without any
+ * intermediate arrays beyond the element's own accumulators.
+ *
+ * Per element (nodal quaternions q_a aligned so that q_a . q_0 >= 0, positions x_a) and per
+ * Gauss point, with z = (p, p', r') in R^11:
+ *   p = sum_a N_a q_a,  p' = sum_a N'_a q_a,  r' = sum_a N'_a x_a,  n2 = |p|^2
+ *   Nz = (g, 2w):  g = Rq(p)^T r' = [s I + 2 pv pv^T - 2 p0 pv^x] r',  s = p0^2 - |pv|^2
+ *                  w = p0 pv' - p0' pv - pv x pv'
+ *   e  = Nz / n2 = (v, u),   De = DN / n2 - 2 Nz p^T / n2^2   (p columns only)
+ *   law: S = C (e - e0),  W = 1/2 (e-e0).C(e-e0), and where kappa = |(u1, u2)| > kappa_max
+ *        W += mu/2 (kappa - kappa_max)^2,  S_u12 += mu (kappa - kappa_max) n,  n = (u1, u2)/kappa,
+ *        Cb = mu [(1 - kappa_max/kappa) I + (kappa_max/kappa) n n^T]  on the (u1, u2) block
+ *   Wz  = De^T S = DN^T S / n2 - 2 (S.Nz) p / n2^2
+ *   Wzz = De^T C De + (Cb on (u1,u2)) + S.D2N / n2 - 2/n2^2 (p v^T + v p^T)
+ *         - 2 (S.Nz)/n2^2 I_pp + 8 (S.Nz)/n2^3 p p^T,   v = DN^T S
+ * with the closed forms of the blocks of S.D2N (a = S_v, b = r', c = S_u):
+ *   pp : 2 [[a.b, (a x b)^T], [a x b, a b^T + b a^T - (a.b) I]]
+ *   pr': X, X[0] = 2 (p0 a + pv x a), X[1+m][l] = 2 (a_m pv_l - pv_m a_l + (pv.a) d_ml + p0 a^x_ml)
+ *   pp': 2 [[0, c^T], [-c, c^x]]
+ * The p'r' block of Wzz vanishes (g does not depend on p', w not on r').
+ * Raw nodal gradient/Hessian in y_a = (q_a, x_a): q dofs see (N_a p, N'_a p'), x dofs N'_a r';
+ * then the chart: g_a = (dE/dx_a, B_a^T dE/dq_a), H_ab = T_a^T Hraw_ab T_b,
+ * H_aa(theta, theta) += -1/4 (q_a . dE/dq_a) I  (and, unless symmetric, -1/2 g_theta^x),
+ * B(q) = 1/2 [-qv^T; q0 I - qv^x].
+ */
+#include <math.h>
+#include <string.h>
+
+#define MAXNN 8     /* nodes per element supported (orders 1..7) */
+
+#if defined(__GNUC__)
+#define ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define ALWAYS_INLINE inline
+#endif
+
+typedef struct {
+    int nq;
+    const double *N, *dN, *wJ, *C;
+    int limit;
+    double kappa_max, mu_kappa;
+} Setup;
+
+/* Quantities at one quadrature point: energy density, dW/dz and the blocks of d2W/dz2. */
+typedef struct {
+    double W;
+    double Wz[11];
+    double Wpp[16], Wpd[16], Wdp[16], Wdd[16];   /* 4x4 row-major: p-p, p-p', p'-p, p'-p' */
+    double Wpr[12];                              /* 4x3: p - r' */
+    double Wrr[9];                               /* 3x3: r' - r' */
+} PointTerms;
+
+/* Strain numerators at a point and their derivatives DN = dNz/dz (e = Nz / n2). */
+typedef struct {
+    double n2, inv, inv2;       /* |p|^2, 1/|p|^2, 1/|p|^4 */
+    double Rt[3][3];            /* Rq(p)^T = dg/dr' */
+    double Nz[6];               /* (g, 2w) */
+    double Gp[12], Up[12], Ud[12];   /* 3x4 row-major: dg/dp, d(2w)/dp, d(2w)/dp' */
+} Strain;
+
+static ALWAYS_INLINE void strain_numerators(const double *p, const double *dp, const double *dr,
+                                     Strain *z)
+{
+    const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
+    const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
+    const double pvpv = pv[0] * pv[0] + pv[1] * pv[1] + pv[2] * pv[2];
+    const double s = p0 * p0 - pvpv;
+    z->n2 = p0 * p0 + pvpv;
+    z->inv = 1.0 / z->n2;
+    z->inv2 = z->inv * z->inv;
+    /* Rt = Rq(p)^T = s I + 2 pv pv^T - 2 p0 pv^x */
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            z->Rt[i][j] = 2.0 * pv[i] * pv[j];
+    for (int i = 0; i < 3; i++) z->Rt[i][i] += s;
+    z->Rt[0][1] += 2.0 * p0 * pv[2];  z->Rt[0][2] -= 2.0 * p0 * pv[1];
+    z->Rt[1][0] -= 2.0 * p0 * pv[2];  z->Rt[1][2] += 2.0 * p0 * pv[0];
+    z->Rt[2][0] += 2.0 * p0 * pv[1];  z->Rt[2][1] -= 2.0 * p0 * pv[0];
+    for (int k = 0; k < 3; k++)
+        z->Nz[k] = z->Rt[k][0] * dr[0] + z->Rt[k][1] * dr[1] + z->Rt[k][2] * dr[2];
+    const double pxdp[3] = {pv[1] * dpv[2] - pv[2] * dpv[1],
+                            pv[2] * dpv[0] - pv[0] * dpv[2],
+                            pv[0] * dpv[1] - pv[1] * dpv[0]};
+    for (int k = 0; k < 3; k++)
+        z->Nz[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]);
+    /* dg/dp = 2 [p0 r' - pv x r',  pv r'^T - r' pv^T + (pv.r') I + p0 r'^x]
+     * d(2w)/dp = 2 [pv', -p0' I + pv'^x],  d(2w)/dp' = 2 [-pv, p0 I - pv^x] */
+    const double pvdr = pv[0] * dr[0] + pv[1] * dr[1] + pv[2] * dr[2];
+    const double pxdr[3] = {pv[1] * dr[2] - pv[2] * dr[1],
+                            pv[2] * dr[0] - pv[0] * dr[2],
+                            pv[0] * dr[1] - pv[1] * dr[0]};
+    const double hr[3][3] = {{0.0, -dr[2], dr[1]}, {dr[2], 0.0, -dr[0]}, {-dr[1], dr[0], 0.0}};
+    const double hd[3][3] = {{0.0, -dpv[2], dpv[1]}, {dpv[2], 0.0, -dpv[0]}, {-dpv[1], dpv[0], 0.0}};
+    const double hp[3][3] = {{0.0, -pv[2], pv[1]}, {pv[2], 0.0, -pv[0]}, {-pv[1], pv[0], 0.0}};
+    for (int k = 0; k < 3; k++) {
+        z->Gp[4 * k] = 2.0 * (p0 * dr[k] - pxdr[k]);
+        z->Up[4 * k] = 2.0 * dpv[k];
+        z->Ud[4 * k] = -2.0 * pv[k];
+        for (int m = 0; m < 3; m++) {
+            const double d = (k == m) ? 1.0 : 0.0;
+            z->Gp[4 * k + 1 + m] = 2.0 * (pv[k] * dr[m] - dr[k] * pv[m] + pvdr * d + p0 * hr[k][m]);
+            z->Up[4 * k + 1 + m] = 2.0 * (hd[k][m] - dp0 * d);
+            z->Ud[4 * k + 1 + m] = 2.0 * (p0 * d - hp[k][m]);
+        }
+    }
+}
+
+/* Constitutive law (ElasticRod.law): S = C (e - e0), W = 1/2 (e - e0).S, plus the curvature
+ * bound mu/2 <kappa - kappa_max>^2 on (u1, u2) with its tangent Cb (2x2).  Returns 1 where
+ * the bound is active (Cb set), else 0. */
+static ALWAYS_INLINE int constitutive_law(const Setup *st, const double *e, const double *e0,
+                                   double *S, double *W, double *Cb)
+{
+    double w = 0.0;
+    for (int k = 0; k < 6; k++) {
+        const double de = e[k] - e0[k];
+        S[k] = st->C[k] * de;
+        w += de * S[k];
+    }
+    *W = 0.5 * w;
+    if (!st->limit) return 0;
+    const double kappa = sqrt(e[3] * e[3] + e[4] * e[4]);
+    const double over = kappa - st->kappa_max;
+    if (!(over > 0.0)) return 0;
+    const double n[2] = {e[3] / kappa, e[4] / kappa};
+    const double mu = st->mu_kappa, ratio = st->kappa_max / kappa;
+    *W += 0.5 * mu * over * over;
+    S[3] += mu * over * n[0];
+    S[4] += mu * over * n[1];
+    for (int i = 0; i < 2; i++)
+        for (int j = 0; j < 2; j++)
+            Cb[2 * i + j] = mu * (((i == j) ? 1.0 - ratio : 0.0) + ratio * n[i] * n[j]);
+    return 1;
+}
+
+/* Material part of Wzz: De^T C De (+ the bound's Cb on the u1, u2 rows); sets the blocks. */
+static ALWAYS_INLINE void material_tangent(const Setup *st, const Strain *z, const double *p,
+                                    int bound, const double *Cb, PointTerms *t)
+{
+    const double inv = z->inv;
+    /* De: Dgp = Gp/n2 - 2 g p^T/n2^2, Dup = Up/n2 - 2 (2w) p^T/n2^2, Dud = Ud/n2, Dgr = Rt/n2 */
+    double Dgp[12], Dup[12], Dud[12], Dgr[9];
+    for (int k = 0; k < 3; k++) {
+        const double cg = 2.0 * z->inv2 * z->Nz[k], cu = 2.0 * z->inv2 * z->Nz[3 + k];
+        for (int i = 0; i < 4; i++) {
+            Dgp[4 * k + i] = z->Gp[4 * k + i] * inv - cg * p[i];
+            Dup[4 * k + i] = z->Up[4 * k + i] * inv - cu * p[i];
+            Dud[4 * k + i] = z->Ud[4 * k + i] * inv;
+        }
+        for (int l = 0; l < 3; l++) Dgr[3 * k + l] = z->Rt[k][l] * inv;
+    }
+    /* K = C De */
+    double Kgp[12], Kgr[9], Kup[12], Kud[12];
+    for (int k = 0; k < 3; k++) {
+        const double cg = st->C[k], cu = st->C[3 + k];
+        for (int i = 0; i < 4; i++) {
+            Kgp[4 * k + i] = cg * Dgp[4 * k + i];
+            Kup[4 * k + i] = cu * Dup[4 * k + i];
+            Kud[4 * k + i] = cu * Dud[4 * k + i];
+        }
+        for (int l = 0; l < 3; l++) Kgr[3 * k + l] = cg * Dgr[3 * k + l];
+    }
+    if (bound) {
+        for (int i = 0; i < 4; i++) {
+            const double a0 = Dup[i], a1 = Dup[4 + i], b0 = Dud[i], b1 = Dud[4 + i];
+            Kup[i] += Cb[0] * a0 + Cb[1] * a1;
+            Kup[4 + i] += Cb[2] * a0 + Cb[3] * a1;
+            Kud[i] += Cb[0] * b0 + Cb[1] * b1;
+            Kud[4 + i] += Cb[2] * b0 + Cb[3] * b1;
+        }
+    }
+    /* De^T K (g does not depend on p', u not on r') */
+    for (int i = 0; i < 4; i++) {
+        for (int j = 0; j < 4; j++) {
+            double pp = 0.0, pd = 0.0, dd = 0.0;
+            for (int k = 0; k < 3; k++) {
+                pp += Dgp[4 * k + i] * Kgp[4 * k + j] + Dup[4 * k + i] * Kup[4 * k + j];
+                pd += Dup[4 * k + i] * Kud[4 * k + j];
+                dd += Dud[4 * k + i] * Kud[4 * k + j];
+            }
+            t->Wpp[4 * i + j] = pp;
+            t->Wpd[4 * i + j] = pd;
+            t->Wdd[4 * i + j] = dd;
+        }
+        for (int l = 0; l < 3; l++) {
+            double pr = 0.0;
+            for (int k = 0; k < 3; k++) pr += Dgp[4 * k + i] * Kgr[3 * k + l];
+            t->Wpr[3 * i + l] = pr;
+        }
+    }
+    for (int l = 0; l < 3; l++)
+        for (int m = 0; m < 3; m++)
+            t->Wrr[3 * l + m] = Dgr[l] * Kgr[m] + Dgr[3 + l] * Kgr[3 + m] + Dgr[6 + l] * Kgr[6 + m];
+}
+
+/* Geometric part of Wzz, S.D2e in closed form (header; a = S_v, b = r', c = S_u), added to
+ * the blocks; v = DN^T S, sN = S.Nz.  Then Wdp = Wpd^T. */
+static ALWAYS_INLINE void geometric_tangent(const Strain *z, const double *p, const double *dr,
+                                     const double *S, const double *v, double sN,
+                                     PointTerms *t)
+{
+    const double p0 = p[0], *pv = p + 1, *a = S, *c = S + 3;
+    const double ab = a[0] * dr[0] + a[1] * dr[1] + a[2] * dr[2];
+    const double axb[3] = {a[1] * dr[2] - a[2] * dr[1],
+                           a[2] * dr[0] - a[0] * dr[2],
+                           a[0] * dr[1] - a[1] * dr[0]};
+    const double pva = pv[0] * a[0] + pv[1] * a[1] + pv[2] * a[2];
+    const double pxa[3] = {pv[1] * a[2] - pv[2] * a[1],
+                           pv[2] * a[0] - pv[0] * a[2],
+                           pv[0] * a[1] - pv[1] * a[0]};
+    const double ha[3][3] = {{0.0, -a[2], a[1]}, {a[2], 0.0, -a[0]}, {-a[1], a[0], 0.0}};
+    const double hc[3][3] = {{0.0, -c[2], c[1]}, {c[2], 0.0, -c[0]}, {-c[1], c[0], 0.0}};
+    const double i2 = 2.0 * z->inv;
+    /* S.D2N / n2 */
+    t->Wpp[0] += i2 * ab;
+    for (int l = 0; l < 3; l++) {
+        t->Wpp[1 + l] += i2 * axb[l];
+        t->Wpp[4 * (1 + l)] += i2 * axb[l];
+        t->Wpr[l] += i2 * (p0 * a[l] + pxa[l]);
+        t->Wpd[1 + l] += i2 * c[l];
+        t->Wpd[4 * (1 + l)] -= i2 * c[l];
+    }
+    for (int m = 0; m < 3; m++)
+        for (int l = 0; l < 3; l++) {
+            const double d = (m == l) ? 1.0 : 0.0;
+            t->Wpp[4 * (1 + m) + 1 + l] += i2 * (a[m] * dr[l] + dr[m] * a[l] - ab * d);
+            t->Wpr[3 * (1 + m) + l] += i2 * (a[m] * pv[l] - pv[m] * a[l] + pva * d + p0 * ha[m][l]);
+            t->Wpd[4 * (1 + m) + 1 + l] += i2 * hc[m][l];
+        }
+    /* derivatives of 1/n2: -2/n2^2 (p v^T + v p^T) - 2 sN/n2^2 I_pp + 8 sN/n2^3 p p^T */
+    const double c2 = 2.0 * z->inv2, c8 = 8.0 * sN * z->inv2 * z->inv, cI = 2.0 * sN * z->inv2;
+    for (int i = 0; i < 4; i++) {
+        for (int j = 0; j < 4; j++) {
+            t->Wpp[4 * i + j] += c8 * p[i] * p[j] - c2 * (p[i] * v[j] + v[i] * p[j]);
+            t->Wpd[4 * i + j] -= c2 * p[i] * v[4 + j];
+        }
+        t->Wpp[5 * i] -= cI;
+        for (int l = 0; l < 3; l++) t->Wpr[3 * i + l] -= c2 * p[i] * v[8 + l];
+    }
+    for (int i = 0; i < 4; i++)
+        for (int j = 0; j < 4; j++) t->Wdp[4 * j + i] = t->Wpd[4 * i + j];
+}
+
+/* W, Wz = De^T S (and with tangent the blocks of Wzz) at a point with interpolated p, p', r'
+ * and reference strains e0. */
+static inline void point_terms(const Setup *st, const double *p, const double *dp,
+                               const double *dr, const double *e0, int tangent,
+                               PointTerms *t)
+{
+    Strain z;
+    strain_numerators(p, dp, dr, &z);
+    double e[6], S[6], Cb[4];
+    for (int k = 0; k < 6; k++) e[k] = z.Nz[k] * z.inv;
+    const int bound = constitutive_law(st, e, e0, S, &t->W, Cb);
+    /* v = DN^T S, sN = S.Nz;  Wz = v / n2 - 2 sN p / n2^2 on p */
+    double v[11];
+    for (int i = 0; i < 4; i++) {
+        double a = 0.0, b = 0.0;
+        for (int k = 0; k < 3; k++) {
+            a += z.Gp[4 * k + i] * S[k] + z.Up[4 * k + i] * S[3 + k];
+            b += z.Ud[4 * k + i] * S[3 + k];
+        }
+        v[i] = a;
+        v[4 + i] = b;
+    }
+    for (int l = 0; l < 3; l++)
+        v[8 + l] = z.Rt[0][l] * S[0] + z.Rt[1][l] * S[1] + z.Rt[2][l] * S[2];
+    double sN = 0.0;
+    for (int k = 0; k < 6; k++) sN += S[k] * z.Nz[k];
+    for (int i = 0; i < 11; i++) t->Wz[i] = v[i] * z.inv;
+    for (int i = 0; i < 4; i++) t->Wz[i] -= 2.0 * sN * z.inv2 * p[i];
+    if (!tangent) return;
+    material_tangent(st, &z, p, bound, Cb, t);
+    geometric_tangent(&z, p, dr, S, v, sN, t);
+}
+
+/* B(q) = dq/dtheta = 1/2 [-qv^T; q0 I - qv^x]  (4x3 row-major) */
+static inline void b_matrix(const double *q, double *B)
+{
+    const double h = 0.5;
+    B[0] = -h * q[1]; B[1] = -h * q[2]; B[2] = -h * q[3];
+    B[3] = h * q[0];  B[4] = h * q[3];  B[5] = -h * q[2];
+    B[6] = -h * q[3]; B[7] = h * q[0];  B[8] = h * q[1];
+    B[9] = h * q[2];  B[10] = -h * q[1]; B[11] = h * q[0];
+}
+
+/* One element: energy, residual (nn, 6) and, if H != NULL, tangent (6nn x 6nn).
+ * NN is a compile-time constant where this is inlined (see element_terms below). */
+static ALWAYS_INLINE void element(
+    const int NN, const Setup *st, const double *qin, const double *xin, const double *e0,
+    int symmetric, double *energy, double *vec, double *H)
+{
+    const int nq = st->nq, tangent = (H != NULL);
+    double q[MAXNN][4], x[MAXNN][3], graw[MAXNN][7];
+    double Hqq[MAXNN][MAXNN][16], Hqx[MAXNN][MAXNN][12], Hxx[MAXNN][MAXNN][9];
+    /* align signs: q_a . q_0 >= 0 */
+    for (int a = 0; a < NN; a++) {
+        const double *qa = qin + 4 * a;
+        const double dot = qa[0] * qin[0] + qa[1] * qin[1] + qa[2] * qin[2] + qa[3] * qin[3];
+        const double sg = (dot < 0.0) ? -1.0 : 1.0;
+        for (int i = 0; i < 4; i++) q[a][i] = sg * qa[i];
+        for (int i = 0; i < 3; i++) x[a][i] = xin[3 * a + i];
+        for (int i = 0; i < 7; i++) graw[a][i] = 0.0;
+    }
+    if (tangent) {
+        for (int a = 0; a < NN; a++)
+            for (int b = 0; b < NN; b++) {
+                for (int i = 0; i < 16; i++) Hqq[a][b][i] = 0.0;
+                for (int i = 0; i < 12; i++) Hqx[a][b][i] = 0.0;
+                for (int i = 0; i < 9; i++) Hxx[a][b][i] = 0.0;
+            }
+    }
+    double E = 0.0;
+    PointTerms t;
+    for (int g = 0; g < nq; g++) {
+        const double *N = st->N + g * NN, *dN = st->dN + g * NN, w = st->wJ[g];
+        double p[4] = {0, 0, 0, 0}, dp[4] = {0, 0, 0, 0}, dr[3] = {0, 0, 0};
+        for (int a = 0; a < NN; a++) {
+            for (int i = 0; i < 4; i++) {
+                p[i] += N[a] * q[a][i];
+                dp[i] += dN[a] * q[a][i];
+            }
+            for (int i = 0; i < 3; i++) dr[i] += dN[a] * x[a][i];
+        }
+        point_terms(st, p, dp, dr, e0 + 6 * g, tangent, &t);
+        E += w * t.W;
+        for (int a = 0; a < NN; a++) {
+            const double wN = w * N[a], wd = w * dN[a];
+            for (int i = 0; i < 4; i++) graw[a][i] += wN * t.Wz[i] + wd * t.Wz[4 + i];
+            for (int i = 0; i < 3; i++) graw[a][4 + i] += wd * t.Wz[8 + i];
+        }
+        if (!tangent) continue;
+        /* Hraw_ab = w G_a^T Wzz G_b: q-q through Zp_b = N_b Wpp + N'_b Wpd (p rows) and
+         * Zd_b = N_b Wdp + N'_b Wdd (p' rows); q-x = N_a N'_b Wpr; x-x = N'_a N'_b Wrr */
+        for (int b = 0; b < NN; b++) {
+            double Zp[16], Zd[16];
+            for (int i = 0; i < 16; i++) {
+                Zp[i] = N[b] * t.Wpp[i] + dN[b] * t.Wpd[i];
+                Zd[i] = N[b] * t.Wdp[i] + dN[b] * t.Wdd[i];
+            }
+            for (int a = 0; a <= b; a++) {
+                const double wN = w * N[a], wd = w * dN[a], wdd = wd * dN[b];
+                for (int i = 0; i < 16; i++) Hqq[a][b][i] += wN * Zp[i] + wd * Zd[i];
+                for (int i = 0; i < 9; i++) Hxx[a][b][i] += wdd * t.Wrr[i];
+            }
+            const double wdb = w * dN[b];
+            for (int a = 0; a < NN; a++) {
+                const double c = wdb * N[a];
+                for (int i = 0; i < 12; i++) Hqx[a][b][i] += c * t.Wpr[i];
+            }
+        }
+    }
+    *energy = E;
+
+    /* chart: g_a = (dE/dx_a, B_a^T dE/dq_a) */
+    double B[MAXNN][12], chart[MAXNN];
+    for (int a = 0; a < NN; a++) {
+        b_matrix(q[a], B[a]);
+        double *va = vec + 6 * a;
+        for (int i = 0; i < 3; i++) va[i] = graw[a][4 + i];
+        for (int j = 0; j < 3; j++)
+            va[3 + j] = B[a][j] * graw[a][0] + B[a][3 + j] * graw[a][1]
+                      + B[a][6 + j] * graw[a][2] + B[a][9 + j] * graw[a][3];
+        chart[a] = -0.25 * (q[a][0] * graw[a][0] + q[a][1] * graw[a][1]
+                            + q[a][2] * graw[a][2] + q[a][3] * graw[a][3]);
+    }
+    if (!tangent) return;
+
+    /* H_ab = T_a^T Hraw_ab T_b, T_a = [0 B_a; I 0] from (r, theta) to (q, x) */
+    const int ld = 6 * NN;
+    for (int a = 0; a < NN; a++) {
+        for (int b = 0; b < NN; b++) {
+            double *Hab = H + (6 * a) * ld + 6 * b;   /* rows r_a, theta_a; cols r_b, theta_b */
+            double *Hba = H + (6 * b) * ld + 6 * a;
+            /* theta_a - r_b = B_a^T Hqx_ab, and its transpose r_b - theta_a */
+            for (int i = 0; i < 3; i++)
+                for (int l = 0; l < 3; l++) {
+                    const double *X = Hqx[a][b];
+                    const double s = B[a][i] * X[l] + B[a][3 + i] * X[3 + l]
+                                   + B[a][6 + i] * X[6 + l] + B[a][9 + i] * X[9 + l];
+                    Hab[(3 + i) * ld + l] = s;
+                    Hba[l * ld + 3 + i] = s;
+                }
+            if (b < a) continue;
+            /* r_a - r_b and theta_a - theta_b (b >= a), mirrored to (b, a) */
+            const double *Q = Hqq[a][b];
+            double QB[12];
+            for (int i = 0; i < 4; i++)
+                for (int j = 0; j < 3; j++)
+                    QB[3 * i + j] = Q[4 * i] * B[b][j] + Q[4 * i + 1] * B[b][3 + j]
+                                  + Q[4 * i + 2] * B[b][6 + j] + Q[4 * i + 3] * B[b][9 + j];
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++) {
+                    const double xx = Hxx[a][b][3 * i + j];
+                    const double tt = B[a][i] * QB[j] + B[a][3 + i] * QB[3 + j]
+                                    + B[a][6 + i] * QB[6 + j] + B[a][9 + i] * QB[9 + j];
+                    Hab[i * ld + j] = xx;
+                    Hab[(3 + i) * ld + 3 + j] = tt;
+                    if (b != a) {
+                        Hba[j * ld + i] = xx;
+                        Hba[(3 + j) * ld + 3 + i] = tt;
+                    }
+                }
+        }
+        /* chart term on the diagonal theta block: chart_a I (- 1/2 g_theta^x) */
+        double *D = H + (6 * a + 3) * ld + 6 * a + 3;
+        for (int i = 0; i < 3; i++) D[i * ld + i] += chart[a];
+        if (!symmetric) {
+            const double *m = vec + 6 * a + 3;
+            D[1] += 0.5 * m[2];  D[2] -= 0.5 * m[1];
+            D[ld] -= 0.5 * m[2]; D[ld + 2] += 0.5 * m[0];
+            D[2 * ld] += 0.5 * m[1]; D[2 * ld + 1] -= 0.5 * m[0];
+        }
+    }
+}
+
+#define ELEMENT_LOOP(NN)                                                                   \
+    for (int e = 0; e < ne; e++)                                                           \
+        element(NN, &st, qe + (long)e * 4 * (NN), xe + (long)e * 3 * (NN),                \
+                e0 + (long)e * 6 * nq, symmetric, energy + e, vec + (long)e * 6 * (NN),    \
+                tangent ? H + (long)e * 36 * (NN) * (NN) : (double *)0)
+
+/* Public entry point (see rodsnes/elastic_compiled.py).  Arrays are C-contiguous float64:
+ *   N, dN (nq, nn) shape functions and their arclength derivatives at the Gauss points,
+ *   wJ (nq) weights times Jacobian, C (6) stiffness (GA1, GA2, EA, EI1, EI2, GJ),
+ *   limit != 0: curvature bound kappa_max with stiffness mu_kappa,
+ *   qe (ne, nn, 4), xe (ne, nn, 3), e0 (ne, nq, 6),
+ *   outputs energy (ne), vec (ne, nn, 6), H (ne, 6nn, 6nn) (ignored unless tangent != 0).
+ * Returns 0, or -1 if nn is outside 1..MAXNN or nq < 1. */
+int rodsnes_elastic_terms(int ne, int nn, int nq, const double *N, const double *dN,
+                          const double *wJ, const double *C, int limit, double kappa_max,
+                          double mu_kappa, const double *qe, const double *xe,
+                          const double *e0, int tangent, int symmetric, double *energy,
+                          double *vec, double *H)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
+    switch (nn) {   /* constant node counts let the compiler unroll the node loops */
+    case 2: ELEMENT_LOOP(2); break;
+    case 3: ELEMENT_LOOP(3); break;
+    case 4: ELEMENT_LOOP(4); break;
+    case 5: ELEMENT_LOOP(5); break;
+    default: ELEMENT_LOOP(nn); break;
+    }
+    return 0;
+}

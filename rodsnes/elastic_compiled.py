@@ -1,0 +1,112 @@
+"""Compiled elastic element kernel: ElasticRod.element_terms (elastic.py) fused per element in C.
+
+rodsnes/_elastic_kernel.c (plain C99, built by setup.py as the extension rodsnes._elastic_kernel
+and loaded here with ctypes) evaluates, element by element and Gauss point by Gauss point,
+the same quantities as the batched numpy kernel:
+
+    energy_e = sum_q wJ_q W(e_q, e0_q),   g_a = (dE/dr_a, B(q_a)^T dE/dq_a),
+    H_ab = T_a^T Hraw_ab T_b + delta_ab (-1/4 q_a . dE/dq_a I - [not symmetric] 1/2 g_theta^x),
+
+with Wz = De^T S and Wzz = De^T C De + S.D2e in closed form (no D2e array), including the
+curvature bound W_kappa = mu_kappa/2 <kappa - kappa_max>^2.  Equal to the numpy kernel to
+round-off (tests/test_elastic_compiled.py).
+
+C entry point:
+
+    int rodsnes_elastic_terms(int ne, int nn, int nq,
+                              const double *N, const double *dN, const double *wJ,
+                              const double *C, int limit, double kappa_max, double mu_kappa,
+                              const double *qe, const double *xe, const double *e0,
+                              int tangent, int symmetric,
+                              double *energy, double *vec, double *H);
+"""
+import ctypes
+import importlib.util
+import os
+
+import numpy as np
+
+_MAX_NODES = 8          # MAXNN in _elastic_kernel.c
+_LIB = None             # ctypes function, False once loading failed
+
+
+def _optional(ptr):
+    """ndpointer type that also accepts None (passed as NULL)."""
+    class Optional(ptr):
+        @classmethod
+        def from_param(cls, obj):
+            return None if obj is None else ptr.from_param(obj)
+    return Optional
+
+
+def library_path():
+    """Path of the built shared library (the extension module file), or None."""
+    try:
+        spec = importlib.util.find_spec("rodsnes._elastic_kernel")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or not spec.origin or not os.path.isfile(spec.origin):
+        return None
+    return spec.origin
+
+
+def _load():
+    global _LIB
+    if _LIB is None:
+        _LIB = False
+        path = library_path()
+        if path is not None:
+            try:
+                lib = ctypes.CDLL(path)
+            except OSError:
+                return _LIB
+            arr = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
+            fn = lib.rodsnes_elastic_terms
+            c_int, c_dbl = ctypes.c_int, ctypes.c_double
+            fn.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
+                           arr, arr, arr, c_int, c_int, arr, arr, _optional(arr)]
+            fn.restype = c_int
+            _LIB = fn
+    return _LIB
+
+
+def available():
+    """True when the compiled kernel is built and loads."""
+    return bool(_load())
+
+
+def _f64(a, shape, name):
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if a.shape != shape:
+        raise ValueError(f"{name} has shape {a.shape}, expected {shape}")
+    return a
+
+
+def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False):
+    """(energy (ne,), vec (ne, p+1, 6), H (ne, 6(p+1), 6(p+1)) or None) of ElasticRod rod:
+    the same as rod.element_terms(qe, xe, e0, tangent, symmetric), computed in C."""
+    fn = _load()
+    if not fn:
+        raise RuntimeError("the compiled elastic kernel is not built (run pip install -e .)")
+    e0 = rod.e0 if e0 is None else e0
+    if e0 is None:
+        raise ValueError("no reference strains e0 (ElasticRod.set_reference)")
+    nq, nn = rod.N.shape
+    if nn > _MAX_NODES:
+        raise ValueError(f"order {nn - 1} exceeds the compiled kernel's {_MAX_NODES - 1}")
+    qe = np.asarray(qe)
+    ne = qe.shape[0]
+    qe = _f64(qe, (ne, nn, 4), "qe")
+    xe = _f64(xe, (ne, nn, 3), "xe")
+    e0 = np.ascontiguousarray(np.broadcast_to(np.asarray(e0, dtype=np.float64), (ne, nq, 6)))
+    energy = np.empty(ne)
+    vec = np.empty((ne, nn, 6))
+    H = np.empty((ne, 6 * nn, 6 * nn)) if tangent else None
+    limit = rod.kappa_max is not None
+    info = fn(ne, nn, nq, _f64(rod.N, (nq, nn), "N"), _f64(rod.dN, (nq, nn), "dN"),
+              _f64(rod.wJ, (nq,), "wJ"), _f64(rod.C, (6,), "C"), int(limit),
+              float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa),
+              qe, xe, e0, int(bool(tangent)), int(bool(symmetric)), energy, vec, H)
+    if info != 0:
+        raise RuntimeError(f"rodsnes_elastic_terms failed ({info})")
+    return energy, vec, H

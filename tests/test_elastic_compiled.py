@@ -1,0 +1,121 @@
+"""The compiled elastic kernel (rodsnes/_elastic_kernel.c through rodsnes/elastic_compiled.py)
+equals the einsum reference of ElasticRod.element_terms to round-off: energy, residual and both
+tangents, orders 1-4, full and reduced quadrature, with the curvature bound active or not, on
+deformed states whose nodal quaternions come with either sign.
+
+`make install` (pip install -e .) builds the kernel: a missing library is a failure, not a skip."""
+import os
+
+import numpy as np
+import pytest
+
+import rodsnes
+from rodsnes import elastic, elastic_compiled, so3
+
+STIFF = [3.0, 4.0, 50.0, 1.0, 2.0, 1.5]   # GA1, GA2, EA, EI1, EI2, GJ
+TOL = 1e-12
+
+
+def deformed_elements(p, nq, ne, rng, h=0.3):
+    """Consecutive elements of a rod bent and twisted along a smooth rotation field, plus noise;
+    nodal quaternions with random signs (node 0 included), reference strains near a straight
+    rod."""
+    nn = p + 1
+    s = (np.arange(ne)[:, None] * p + np.arange(nn)[None, :]) * (h / p)
+    theta = np.stack([0.7 * s, 1.3 * np.sin(s), 2.1 * s], axis=-1)
+    theta += 0.15 * rng.normal(size=theta.shape)
+    qe = so3.qexp(theta)
+    qe *= np.where(rng.random((ne, nn)) < 0.4, -1.0, 1.0)[..., None]
+    xe = np.stack([s, 0.2 * np.sin(2.0 * s), 0.1 * s**2], axis=-1)
+    xe += 0.02 * rng.normal(size=xe.shape)
+    e0 = rng.normal(size=(ne, nq, 6)) * 0.1 + [0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    return qe, xe, e0
+
+
+def make_rod(p, nq, ne, rng, bound):
+    rod = elastic.ElasticRod(p, nq, 0.3, STIFF)
+    qe, xe, e0 = deformed_elements(p, nq, ne, rng)
+    rod.set_reference(e0)
+    if bound:
+        kappa = np.linalg.norm(rod.strains(qe, xe)[..., 3:5], axis=-1)
+        rod.set_curvature_limit(np.quantile(kappa, 0.4), 30.0)
+        assert 0.4 < np.mean(kappa > rod.kappa_max) < 0.8     # the bound acts at many points
+    return rod, qe, xe
+
+
+def assert_same(got, ref, what):
+    for name, a, b in zip(("energy", "residual", "tangent"), got, ref):
+        if b is None:
+            assert a is None, f"{what}: {name} should be None"
+            continue
+        assert a.dtype == np.float64 and a.shape == b.shape, f"{what}: {name} {a.shape} vs {b.shape}"
+        err = np.abs(a - b).max() / np.abs(b).max()
+        assert err < TOL, f"{what}: {name} relative error {err:.2e}"
+
+
+def test_kernel_is_built_in_the_package():
+    """pip install -e . puts the shared library where the loader finds it."""
+    path = elastic_compiled.library_path()
+    assert path is not None, "rodsnes._elastic_kernel is not built: run `make install`"
+    assert os.path.dirname(path) == os.path.dirname(rodsnes.__file__)
+    assert elastic_compiled.available()
+
+
+@pytest.mark.parametrize("bound", [False, True], ids=["free", "curvature_bound"])
+@pytest.mark.parametrize("p,nq", [(1, 1), (1, 2), (2, 2), (2, 3), (3, 3), (3, 4), (4, 4), (4, 5)])
+def test_compiled_equals_reference(p, nq, bound):
+    rng = np.random.default_rng(100 * p + 10 * nq + bound)
+    rod, qe, xe = make_rod(p, nq, 40, rng, bound)
+    for symmetric in (False, True):
+        ref = rod.element_terms_reference(qe, xe, tangent=True, symmetric=symmetric)
+        got = elastic_compiled.element_terms(rod, qe, xe, None, True, symmetric)
+        assert_same(got, ref, f"p={p} nq={nq} bound={bound} symmetric={symmetric}")
+    ref = rod.element_terms_reference(qe, xe, tangent=False)
+    got = elastic_compiled.element_terms(rod, qe, xe, None, False, False)
+    assert_same(got, ref, f"p={p} nq={nq} bound={bound} residual only")
+    # and the batched numpy kernel, on the consistent tangent
+    assert_same(elastic_compiled.element_terms(rod, qe, xe),
+                rod.element_terms_numpy(qe, xe), f"p={p} nq={nq} bound={bound} vs numpy")
+
+
+def test_sign_of_nodal_quaternions_is_irrelevant():
+    """q and -q are the same rotation: flipping any node's quaternion (node 0 too) changes
+    nothing but the sign convention, which align_signs removes."""
+    rng = np.random.default_rng(5)
+    rod, qe, xe = make_rod(3, 4, 30, rng, bound=True)
+    flipped = qe * np.where(rng.random(qe.shape[:2]) < 0.5, -1.0, 1.0)[..., None]
+    a = elastic_compiled.element_terms(rod, qe, xe)
+    b = elastic_compiled.element_terms(rod, flipped, xe)
+    assert_same(b, a, "flipped signs")
+
+
+def test_explicit_reference_strains_and_non_contiguous_input():
+    """e0 given explicitly overrides rod.e0; strided inputs (a gather such as q[lconn]) work."""
+    rng = np.random.default_rng(11)
+    rod, qe, xe = make_rod(2, 3, 20, rng, bound=False)
+    e0 = rod.e0 + 0.05 * rng.normal(size=rod.e0.shape)
+    ref = rod.element_terms_reference(qe, xe, e0)
+    got = elastic_compiled.element_terms(rod, np.asfortranarray(qe), xe[:, :, :], e0)
+    assert_same(got, ref, "explicit e0")
+    assert np.abs(got[0] - rod.element_terms_reference(qe, xe)[0]).max() > 1e-6
+
+
+def test_curvature_bound_below_every_flexure_and_above_all():
+    """The bound active at every point, and set but active nowhere (= no bound)."""
+    rng = np.random.default_rng(3)
+    rod, qe, xe = make_rod(3, 3, 25, rng, bound=False)
+    kappa = np.linalg.norm(rod.strains(qe, xe)[..., 3:5], axis=-1)
+    free = elastic_compiled.element_terms(rod, qe, xe)
+    rod.set_curvature_limit(0.5 * kappa.min(), 10.0)
+    assert_same(elastic_compiled.element_terms(rod, qe, xe), rod.element_terms_reference(qe, xe),
+                "bound everywhere")
+    assert np.all(elastic_compiled.element_terms(rod, qe, xe)[0] > free[0])
+    rod.set_curvature_limit(2.0 * kappa.max(), 10.0)
+    assert_same(elastic_compiled.element_terms(rod, qe, xe), free, "bound nowhere")
+
+
+def test_no_elements():
+    rod = elastic.ElasticRod(3, 3, 0.3, STIFF)
+    rod.set_reference(np.zeros((0, 3, 6)))
+    E, vec, H = elastic_compiled.element_terms(rod, np.zeros((0, 4, 4)), np.zeros((0, 4, 3)))
+    assert E.shape == (0,) and vec.shape == (0, 4, 6) and H.shape == (0, 24, 24)
