@@ -108,6 +108,7 @@ from scipy.spatial import cKDTree
 from . import fe
 
 __all__ = ["default_exclusion", "default_penalty", "element_bounds", "candidate_pairs",
+           "spheres_within", "element_capsules", "segment_distance", "capsules_within",
            "element_node_ids", "max_arclength_distance", "co_master_pairs", "strand_index",
            "ContactKernel"]
 
@@ -160,6 +161,8 @@ def default_penalty(EI, eps, penetration=0.01):
 _NSAMP_BOUNDS = 65
 _LAMBDA2 = {}
 _NS_BOUNDS = {}
+_BOUNDS_BATCH = 2048     # elements per batch of element_bounds
+_CHORD = {}              # _chord_deviation_matrix by order
 
 
 def _lambda2(order):
@@ -176,24 +179,98 @@ def element_bounds(x_elem):
 
     x_elem (ne, p+1, 3) -> centers (ne, 3), radii (ne,) with |x_e(xi) - c_e| <= R_e for all xi in
     [-1, 1] (proof in the module docstring: sample bound + Dxi^2/8 * Lambda2_p * max_a |x_a - c|,
-    covering the overshoot of p >= 2 curves beyond their nodes).
+    covering the overshoot of p >= 2 curves beyond their nodes).  O(ne): per batch of
+    _BOUNDS_BATCH elements one matrix product (3 batch, p+1) x (p+1, samples) and reductions
+    along the samples (batches keep the samples in cache).
     """
     x = np.asarray(x_elem, dtype=float)
     ne, n1, _ = x.shape
     p = n1 - 1
-    if ne == 0:
-        return np.zeros((0, 3)), np.zeros(0)
     if p not in _NS_BOUNDS:
-        _NS_BOUNDS[p] = fe.lagrange(p, np.linspace(-1.0, 1.0, _NSAMP_BOUNDS))[0]
-    Ns = _NS_BOUNDS[p]
-    pts = np.einsum("ma,ead->emd", Ns, x)
-    c = 0.5 * (pts.min(axis=1) + pts.max(axis=1))
-    rs = np.linalg.norm(pts - c[:, None, :], axis=2).max(axis=1)
-    spread = np.linalg.norm(x - c[:, None, :], axis=2).max(axis=1)
+        Ns = fe.lagrange(p, np.linspace(-1.0, 1.0, _NSAMP_BOUNDS))[0]
+        _NS_BOUNDS[p] = np.ascontiguousarray(Ns.T)                  # (p+1, samples)
+    c, rs = np.zeros((ne, 3)), np.zeros(ne)
+    xt = np.ascontiguousarray(x.transpose(0, 2, 1))                 # (ne, 3, p+1)
+    for b in range(0, ne, _BOUNDS_BATCH):
+        xb = xt[b:b + _BOUNDS_BATCH]
+        pts = (xb.reshape(-1, n1) @ _NS_BOUNDS[p]).reshape(len(xb), 3, -1)
+        cb = 0.5 * (pts.min(axis=2) + pts.max(axis=2))
+        pts -= cb[:, :, None]
+        c[b:b + _BOUNDS_BATCH] = cb
+        rs[b:b + _BOUNDS_BATCH] = np.sqrt(np.einsum("edm,edm->em", pts, pts).max(axis=1))
+    dx = x - c[:, None, :]
+    spread = np.sqrt(np.einsum("ead,ead->ea", dx, dx).max(axis=1, initial=0.0))
     dxi = 2.0 / (_NSAMP_BOUNDS - 1)
     pad = (dxi ** 2 / 8.0) * 1.05 * _lambda2(p) * spread if p >= 2 else 0.0
-    R = rs + pad + 1e-12 * (spread + np.abs(c).max(axis=1))
+    R = rs + pad + 1e-12 * (spread + np.abs(c).max(axis=1, initial=0.0))
     return c, R
+
+
+def _chord_deviation_matrix(order):
+    """Q (p+1, p+1): the Bernstein coefficients of x(xi) - l(xi), l the chord from the first
+    to the last node, are Q x (x the nodal values)."""
+    if order not in _CHORD:
+        from math import comb
+        t = (fe.reference_nodes(order) + 1.0) / 2.0
+        V = np.array([[comb(order, k) * tt ** k * (1.0 - tt) ** (order - k)
+                       for k in range(order + 1)] for tt in t])
+        lam = np.arange(order + 1) / order
+        chord = np.zeros((order + 1, order + 1))
+        chord[:, 0], chord[:, -1] = 1.0 - lam, lam
+        _CHORD[order] = np.linalg.inv(V) - chord
+    return _CHORD[order]
+
+
+def element_capsules(x_elem):
+    """Capsules around interpolated Lagrange elements: x_elem (ne, p+1, 3) -> chord ends a, b
+    (ne, 3) (the first and last node) and radius rho (ne,) with
+
+        dist(x_e(xi), [a_e, b_e]) <= |x_e(xi) - l_e(xi)| <= rho_e,   l_e the chord at xi,
+
+    because x_e - l_e is a polynomial of degree p vanishing at both ends whose values lie in the
+    convex hull of its Bernstein coefficients Q x (``_chord_deviation_matrix``): rho_e = max_k
+    |(Q x_e)_k|.  Tighter than the bounding sphere (``element_bounds``) for a slender, gently
+    bent element: rho ~ 4/3 (p >= 3; 2 for p = 2) of its sagitta against R ~ h/2."""
+    x = np.asarray(x_elem, dtype=float)
+    ne, n1, _ = x.shape
+    if ne == 0 or n1 < 3:
+        return x[:, 0], x[:, -1], np.zeros(ne)
+    dev = np.einsum("ka,ead->ekd", _chord_deviation_matrix(n1 - 1), x)   # (ne, p+1, 3)
+    return x[:, 0], x[:, -1], np.sqrt(np.einsum("ekd,ekd->ek", dev, dev).max(axis=1))
+
+
+def segment_distance(p1, q1, p2, q2):
+    """Distance between the segments [p1, q1] and [p2, q2] row by row (the closest points by
+    the clamped solution of the two lines' normal equations, Ericson, Real-Time Collision
+    Detection 5.1.9; parallel segments through s = 0).  Segments of zero length are points."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a = np.einsum("nd,nd->n", d1, d1)
+    e = np.einsum("nd,nd->n", d2, d2)
+    b = np.einsum("nd,nd->n", d1, d2)
+    c = np.einsum("nd,nd->n", d1, r)
+    f = np.einsum("nd,nd->n", d2, r)
+
+    def unit(v):                                   # clamped to [0, 1]
+        return np.minimum(np.maximum(v, 0.0), 1.0)
+
+    a_, e_ = np.where(a > 0.0, a, 1.0), np.where(e > 0.0, e, 1.0)
+    den = a * e - b * b
+    s = np.where(den > 1e-14 * a * e, unit((b * f - c * e) / np.where(den > 0.0, den, 1.0)), 0.0)
+    t = (b * s + f) / e_
+    s = np.where(t < 0.0, unit(-c / a_), np.where(t > 1.0, unit((b - c) / a_), s))
+    s = np.where(a > 0.0, s, 0.0)
+    t = np.where(e > 0.0, unit(t), 0.0)
+    w = r + d1 * s[:, None] - d2 * t[:, None]
+    return np.sqrt(np.einsum("nd,nd->n", w, w))
+
+
+def capsules_within(caps_a, caps_b, reach):
+    """Rows whose two capsules (``element_capsules``: chord ends and radius, row by row) come
+    within ``reach``: dist(chord_a, chord_b) <= reach + rho_a + rho_b (with 1e-9 reach for the
+    roundoff of the distance).  Every couple of points of the two elements closer than
+    ``reach`` passes it."""
+    (a1, b1, r1), (a2, b2, r2) = caps_a, caps_b
+    return segment_distance(a1, b1, a2, b2) <= reach * (1.0 + 1e-9) + r1 + r2
 
 
 def element_node_ids(ids, order, nelem, closed):
@@ -231,38 +308,45 @@ def candidate_pairs(own_ids, own_centers, own_radii, all_ids, all_centers, all_r
                     reach, L, h, closed, delta):
     """Element pairs (e_own, e_other) that may contain a slave/master couple within ``reach``.
 
-    Kept iff |c_own - c_other| <= reach + R_own + R_other (bounding spheres, ``element_bounds``)
-    and some sigma in e_other is admissible for some s in e_own, i.e. the maximal (periodic)
-    arclength distance between the two elements is >= delta (so e_other == e_own survives only
-    when the element is longer than the exclusion, h >= delta).  reach should be 2 eps + a margin
-    (for a contact at distance < 2 eps the two centrelines are within 2 eps).  Search: one
-    cKDTree over all_centers, query_ball_point with radius reach + R_own + max(all_radii), then the
-    exact sphere test: O(N log N + pairs).  Returns int64 (npair, 2) of global ids, sorted.
+    Kept iff |c_own - c_other| <= reach + R_own + R_other (bounding spheres, ``element_bounds``;
+    ``spheres_within``) and some sigma in e_other is admissible for some s in e_own, i.e. the
+    maximal (periodic) arclength distance between the two elements is >= delta (so e_other ==
+    e_own survives only when the element is longer than the exclusion, h >= delta).  reach
+    should be 2 eps + a margin (for a contact at distance < 2 eps the two centrelines are within
+    2 eps).  Search: cKDTrees over own_centers and all_centers, every couple of centres within
+    reach + max(own_radii) + max(all_radii) as index arrays (sparse_distance_matrix, no Python
+    loop), then the exact sphere test: O(N log N + pairs).  Returns int64 (npair, 2) of global
+    ids, sorted.
     """
     own_ids = np.asarray(own_ids, dtype=np.int64)
     all_ids = np.asarray(all_ids, dtype=np.int64)
+    none = np.zeros((0, 2), dtype=np.int64)
     if len(own_ids) == 0 or len(all_ids) == 0:
-        return np.zeros((0, 2), dtype=np.int64)
+        return none
     oc = np.asarray(own_centers, dtype=float).reshape(-1, 3)
     orad = np.asarray(own_radii, dtype=float).ravel()
     ac = np.asarray(all_centers, dtype=float).reshape(-1, 3)
     arad = np.asarray(all_radii, dtype=float).ravel()
-    tree = cKDTree(ac)
-    lists = tree.query_ball_point(oc, reach + orad + arad.max())
-    counts = np.fromiter((len(l) for l in lists), dtype=np.int64, count=len(lists))
-    if counts.sum() == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    io = np.repeat(np.arange(len(own_ids)), counts)
-    ia = np.fromiter((j for l in lists for j in l), dtype=np.int64, count=int(counts.sum()))
-    dist = np.linalg.norm(oc[io] - ac[ia], axis=1)
-    keep = dist <= reach + orad[io] + arad[ia]
-    io, ia = io[keep], ia[keep]
-    ea, eb = own_ids[io], all_ids[ia]
+    near = cKDTree(oc).sparse_distance_matrix(cKDTree(ac), reach + orad.max() + arad.max(),
+                                              output_type="ndarray")
+    io, ia = near["i"].astype(np.int64), near["j"].astype(np.int64)
+    keep = spheres_within(oc[io], orad[io], ac[ia], arad[ia], reach)
+    ea, eb = own_ids[io[keep]], all_ids[ia[keep]]
     keep = max_arclength_distance(ea, eb, L, h, closed) >= delta
-    out = np.stack([ea[keep], eb[keep]], axis=1)
-    if len(out):
-        out = np.unique(out, axis=0)
-    return out.astype(np.int64)
+    ea, eb = ea[keep], eb[keep]
+    if not len(ea):
+        return none
+    n = int(max(own_ids.max(), all_ids.max())) + 1
+    key = np.unique(ea * n + eb)                   # sorted by (e_own, e_other), no repeats
+    return np.stack([key // n, key % n], axis=1).astype(np.int64)
+
+
+def spheres_within(ca, ra, cb, rb, reach):
+    """|c_a - c_b| <= reach + R_a + R_b row by row: the bounding spheres (``element_bounds``) of
+    two elements come within ``reach``, the test of ``candidate_pairs``.  Every couple of
+    points of the two elements closer than ``reach`` passes it."""
+    d = ca - cb
+    return np.sqrt(np.einsum("nd,nd->n", d, d)) <= reach + ra + rb
 
 
 def strand_index(pairs, nelem, closed, near=0):
@@ -609,7 +693,7 @@ class ContactKernel:
         return xi_out, f_out
 
     # -- main entry ---------------------------------------------------------------------------
-    def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True):
+    def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True, report=True):
         """The contact term of every strand in reach, summed:
 
             E_c = (mu/2) sum_k int <d_k(s)>^2 ds,   d_k(s) = 2 eps - min_{sigma in I(s) cap S_k(s)} |r(s) - r(sigma)|
@@ -626,32 +710,79 @@ class ContactKernel:
         moved by 1e-9, and every Newton solve stalled at |F| ~ 1.5.  Summed per strand, each
         term is as smooth as a two-strand contact, and a point squeezed between two strands
         is pushed by both.  Same outputs as ``evaluate_strand`` (gap: the deepest d_k,
-        force: the sum of mu <d_k>, sbar: of the deepest; the per-point arrays concatenated)."""
+        force: the sum of mu <d_k>, sbar: of the deepest; the per-point arrays concatenated).
+
+        The report (gap, force, sbar at the Gauss points) is this law's own quadrature, or
+        what finds its zones: always made (``report`` is the interface of
+        contact_potential.PotentialKernel).  Without ``tangent``, ``add_tangent`` makes mat,
+        switch and switch_mat later from what the evaluation kept (``_deferred``).  ``depth``:
+        the deepest d over the Gauss and zone points (RodProblem.precheck's penetration limit)."""
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         k = strand_index(pairs, self.nelem, self.closed,
                          int(np.ceil(self.delta / self.h)) + 1)
         nk = int(k.max()) + 1 if len(k) else 1
         if nk == 1:
-            return self.evaluate_strand(own_ids, x_own, other_ids, x_other, pairs, tangent)
-        outs = [self.evaluate_strand(own_ids, x_own, other_ids, x_other, pairs[k == j], tangent)
-                for j in range(nk)]
-        out = outs[0]
-        for o in outs[1:]:
-            deeper = o["gap"] > out["gap"]
-            out["sbar"] = np.where(deeper, o["sbar"], out["sbar"])
-            out["gap"] = np.maximum(out["gap"], o["gap"])
-            out["force"] = out["force"] + o["force"]
-            for key in ("energy", "total_force", "complementarity", "zones"):
-                out[key] += o[key]
-            for key in ("active", "vec", "qp", "xi", "xi_slave", "normal", "interior",
-                        "d_active", "switch"):
-                out[key] = np.concatenate([out[key], o[key]])
-            if tangent:
-                for key in ("mat", "switch_mat"):
+            out = self.evaluate_strand(own_ids, x_own, other_ids, x_other, pairs, tangent)
+        else:
+            outs = [self.evaluate_strand(own_ids, x_own, other_ids, x_other, pairs[k == j],
+                                         tangent) for j in range(nk)]
+            out = outs[0]
+            for o in outs[1:]:
+                deeper = o["gap"] > out["gap"]
+                out["sbar"] = np.where(deeper, o["sbar"], out["sbar"])
+                out["gap"] = np.maximum(out["gap"], o["gap"])
+                out["force"] = out["force"] + o["force"]
+                for key in ("energy", "total_force", "complementarity", "zones"):
+                    out[key] += o[key]
+                for key in ("active", "vec", "qp", "xi", "xi_slave", "normal", "interior",
+                            "d_active", "switch"):
                     out[key] = np.concatenate([out[key], o[key]])
+                if tangent:
+                    for key in ("mat", "switch_mat"):
+                        out[key] = np.concatenate([out[key], o[key]])
+                else:
+                    out["_deferred"] += o["_deferred"]
+        return self._depth(out)
+
+    @staticmethod
+    def _depth(out):
+        """``depth`` (the deepest d of the Gauss and zone points) and ``reported`` of an
+        output."""
+        gap, dact = out["gap"], out["d_active"]
+        out["depth"] = max(float(gap.max()) if gap.size else -np.inf,
+                           float(dact.max()) if len(dact) else -np.inf)
+        out["reported"] = True
         return out
 
-    def evaluate_strand(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True):
+    def add_tangent(self, out):
+        """mat, switch and switch_mat of an evaluation made without its tangent (in place;
+        nothing to do if it has them): ``_terms_tangent`` and ``_switch_terms`` on the points
+        and cuts that the evaluation kept, strand by strand in its order of rows."""
+        if out["mat"] is not None:
+            return out
+        n1 = self.p + 1
+        mats, sws, swms = [np.zeros((0, 6 * n1, 6 * n1))], [out["switch"]], \
+            [np.zeros((0, 9 * n1, 9 * n1))]
+        for ctx, wJ, cl, cuts in out.pop("_deferred"):
+            mats.append(self._terms_tangent(ctx, wJ, cl))
+            if cuts is not None:
+                part = {"switch": np.zeros((0, 3), dtype=np.int64),
+                        "switch_mat": np.zeros((0, 9 * n1, 9 * n1))}
+                self._switch_terms(ctx, *cuts, True, part)
+                sws.append(part["switch"])
+                swms.append(part["switch_mat"])
+        out["mat"] = np.concatenate(mats)
+        out["switch"] = np.concatenate(sws)
+        out["switch_mat"] = np.concatenate(swms)
+        return out
+
+    @staticmethod
+    def add_report(out):
+        """The report points of this law are its own Gauss points: always there."""
+        return out
+
+    def evaluate_strand(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True,
+                        report=True):
         """Gap, energy, residual and tangent of the contact term over the own elements.
 
         own_ids (no,) global element ids; x_own (no, p+1, 3) their nodal positions;
@@ -683,19 +814,25 @@ class ContactKernel:
           switch  (nsw, 3)  (own element, element A, element B) of every switch point (segments:
                   a cut where the closest point jumps from A to B)
           switch_mat  (nsw, 9(p+1), 9(p+1))  its tangent term over the nodes [own, A, B]
+          depth   the deepest d of the Gauss and zone points (max of gap and d_active)
+          reported  True (the report is this law's own quadrature; ``report`` is ignored)
+        Without ``tangent``: mat and switch_mat None, switch empty, made by ``add_tangent``.
         """
         nqc, h = self.nqc, self.h
         own_ids, x_own, other_ids, x_other, pairs = self.as_inputs(own_ids, x_own, other_ids,
                                                                     x_other, pairs)
         no = len(own_ids)
         out = self.empty_output(no, tangent)
+        if not tangent:
+            out["_deferred"] = []
         if no == 0 or len(pairs) == 0:
-            return out
+            return self._depth(out)
         ctx = self._context(own_ids, x_own, other_ids, x_other, pairs)
 
         # the Gauss points: reported gap and force, and the quadrature unless segments
         cl, out["gap"], out["sbar"] = self.report_points(ctx, no)
         out["force"] = self.mu * np.maximum(out["gap"], 0.0)
+        cuts = None
         if self.segments:
             o_q, xi_q, w_q, nz, cuts = self._zones(ctx, out["gap"])
             cl = self._closest(ctx, o_q, xi_q)
@@ -709,7 +846,9 @@ class ContactKernel:
             qp = np.tile(np.arange(nqc), no)
             out["zones"] = int(np.count_nonzero(cl["d"] > 0.0))
         self._terms(ctx, o_q, xi_q, w_q, qp, cl, tangent, out)
-        return out
+        if not tangent:             # what add_tangent needs, at the same positions
+            out["_deferred"] = [(ctx, w_q, cl, cuts)]
+        return self._depth(out)
 
     # -- building blocks ----------------------------------------------------------------------
     def as_inputs(self, own_ids, x_own, other_ids, x_other, pairs):
@@ -746,13 +885,19 @@ class ContactKernel:
         sb[has] = ctx["pool_ids"][cl["m"][has]] * h + (cl["xi_m"][has] + 1.0) * 0.5 * h
         return cl, cl["d"].reshape(no, nqc), sb.reshape(no, nqc)
 
-    def _context(self, own_ids, x_own, other_ids, x_other, pairs):
-        """Master pool (other first, then own; first occurrence wins), monomial coefficients,
-        bounding spheres, and the candidate masters of every own element (CSR by own index)."""
+    @staticmethod
+    def master_pool(own_ids, x_own, other_ids, x_other):
+        """The elements that may hold a master point: other first, then own (first occurrence
+        wins), sorted ids and their nodes."""
         pool_ids = np.concatenate([other_ids, own_ids])
         pool_x = np.concatenate([x_other, x_own], axis=0)
         pool_ids, first = np.unique(pool_ids, return_index=True)
-        pool_x = pool_x[first]
+        return pool_ids, pool_x[first]
+
+    def _context(self, own_ids, x_own, other_ids, x_other, pairs):
+        """Master pool (other first, then own; first occurrence wins), monomial coefficients,
+        bounding spheres, and the candidate masters of every own element (CSR by own index)."""
+        pool_ids, pool_x = self.master_pool(own_ids, x_own, other_ids, x_other)
         oi = _lookup(own_ids, pairs[:, 0], "own")
         mi = _lookup(pool_ids, pairs[:, 1], "other")
         order = np.argsort(oi, kind="stable")
@@ -1258,8 +1403,7 @@ class ContactKernel:
     def _terms(self, ctx, o, xi, wJ, qp, cl, tangent, out):
         """Energy, residual and tangent of the slave points (o, xi) with weights w J
         (module docstring, "Formulas used"); fills ``out``."""
-        p, eps, mu = self.p, self.eps, self.mu
-        n1 = p + 1
+        p, mu = self.p, self.mu
         d = cl["d"]
         dpos = np.maximum(d, 0.0)
         out["energy"] = float(0.5 * mu * np.sum(wJ * dpos ** 2))
@@ -1270,8 +1414,7 @@ class ContactKernel:
             return
         m, xm = cl["m"][act], cl["xi_m"][act]
         Dv, g, d = cl["D"][act], cl["g"][act], d[act]
-        Nm, dNm, d2Nm = (mm @ self.C for mm in _monomials(p, xm))
-        xmn = ctx["pool_x"][m]
+        Nm = _monomials(p, xm)[0] @ self.C
         Ns = cl["N"][act]
         interior = cl["interior"][act]
         gs = np.maximum(g, 1e-300)
@@ -1284,21 +1427,43 @@ class ContactKernel:
         out["d_active"] = d
         out["normal"], out["interior"] = nu, interior
         if tangent:
-            nact = len(d)
-            A3 = (2.0 * eps / gs)[:, None, None] * nu[:, :, None] * nu[:, None, :] \
-                - (d / gs)[:, None, None] * np.eye(3)[None]
-            K = np.einsum("na,nb,nij->naibj", Nt, Nt, A3 * cw[:, None, None])
-            t = np.einsum("na,nad->nd", dNm, xmn)
-            r2 = np.einsum("na,nad->nd", d2Nm, xmn)
-            k = np.einsum("nd,nd->n", t, t) - np.einsum("nd,nd->n", Dv, r2)
-            use = interior & (k > 0.0)
-            if np.any(use):
-                c = np.concatenate([-Ns[:, :, None] * t[:, None, :],
-                                    Nm[:, :, None] * t[:, None, :] - dNm[:, :, None] * Dv[:, None, :]],
-                                   axis=1)                           # (nact, 2(p+1), 3)
-                fac = np.where(use, cw * d / (gs * np.where(use, k, 1.0)), 0.0)
-                K += fac[:, None, None, None, None] * c[:, :, :, None, None] * c[:, None, None, :, :]
-            out["mat"] = K.reshape(nact, 6 * n1, 6 * n1)
+            out["mat"] = self._terms_tangent(ctx, wJ, cl)
+
+    def _terms_tangent(self, ctx, wJ, cl):
+        """d2E_c/dx2 (nact, 6(p+1), 6(p+1)) of the slave points in contact (d > 0) of the
+        closest-point record cl with weights w J, in the row order of ``_terms`` (module
+        docstring, "Formulas used")."""
+        p, eps, mu = self.p, self.eps, self.mu
+        n1 = p + 1
+        d = cl["d"]
+        act = d > 0.0
+        if not np.any(act):
+            return np.zeros((0, 6 * n1, 6 * n1))
+        m, xm = cl["m"][act], cl["xi_m"][act]
+        Dv, g, d = cl["D"][act], cl["g"][act], d[act]
+        Nm, dNm, d2Nm = (mm @ self.C for mm in _monomials(p, xm))
+        xmn = ctx["pool_x"][m]
+        Ns = cl["N"][act]
+        interior = cl["interior"][act]
+        gs = np.maximum(g, 1e-300)
+        nu = Dv / gs[:, None]
+        Nt = np.concatenate([Ns, -Nm], axis=1)                     # (nact, 2(p+1))
+        cw = wJ[act] * mu                                           # w J mu
+        nact = len(d)
+        A3 = (2.0 * eps / gs)[:, None, None] * nu[:, :, None] * nu[:, None, :] \
+            - (d / gs)[:, None, None] * np.eye(3)[None]
+        K = np.einsum("na,nb,nij->naibj", Nt, Nt, A3 * cw[:, None, None], optimize=True)
+        t = np.einsum("na,nad->nd", dNm, xmn)
+        r2 = np.einsum("na,nad->nd", d2Nm, xmn)
+        k = np.einsum("nd,nd->n", t, t) - np.einsum("nd,nd->n", Dv, r2)
+        use = interior & (k > 0.0)
+        if np.any(use):
+            c = np.concatenate([-Ns[:, :, None] * t[:, None, :],
+                                Nm[:, :, None] * t[:, None, :] - dNm[:, :, None] * Dv[:, None, :]],
+                               axis=1)                           # (nact, 2(p+1), 3)
+            fac = np.where(use, cw * d / (gs * np.where(use, k, 1.0)), 0.0)
+            K += fac[:, None, None, None, None] * c[:, :, :, None, None] * c[:, None, None, :, :]
+        return K.reshape(nact, 6 * n1, 6 * n1)
 
 
 def _lookup(ids, query, what):

@@ -65,16 +65,25 @@ Reported (same keys as ContactKernel.evaluate): the gap d = 2 eps - min |D| at t
 points of the slave elements, by the closest-point projection of contact.py (a diagnostic here:
 the penetration the penalty promises, the KKT picture; d_active also holds the depth
 2 eps - min_j |D_qj| at the nqp points, so that the deepest point of a crossing between two
-reporting points is seen); the force is the line force density |f(s)|, f(s) = -d/dr(s) of the inner integral over all masters, at the same points (a point
-squeezed between two strands reports the net force, where the closest-point law's per-strand
-sum reports the sum of the magnitudes); total_force = int |f| ds by
-the nqp rule; complementarity = int <d> |f| ds by the nqc rule; active rows are the element
-pairs (e, m) with a point couple in contact (one tangent block each).
+reporting points is seen); the force is the line force density |f(s)|, f(s) = -d/dr(s) of the
+inner integral over all masters, at the same points (a point squeezed between two strands
+reports the net force, where the closest-point law's per-strand sum reports the sum of the
+magnitudes); total_force = int |f| ds by the nqp rule; complementarity = int <d> |f| ds by the
+nqc rule; active rows are the element pairs (e, m) with a point couple in contact (one tangent
+block each).
+
+Cost: each part is made only when asked for (``PotentialKernel.evaluate``): the energy and
+residual always, over the element pairs whose capsules come within 2 eps (the others hold no
+couple in contact: ``contact.capsules_within``), with the reductions over the pairs that touch;
+the tangent (``add_tangent``) and the report (``add_report``) from what the residual kept, at
+the same positions.  ``depth`` = max 2 eps - |D_qj| over the admissible couples of the near
+pairs (the potential's own points; -inf without any): RodProblem.precheck's penetration limit
+compares it at the iterate and at its trials, with no closest point.
 """
 import numpy as np
 
 from . import fe
-from .contact import ContactKernel, _lookup
+from .contact import ContactKernel, _lookup, capsules_within, element_capsules
 
 __all__ = ["DENSITY", "MAX_POINTS", "pair_stiffness", "support_length", "points_per_element",
            "PotentialKernel"]
@@ -115,6 +124,17 @@ def points_per_element(h, eps, penetration, density=DENSITY):
     return int(np.ceil(density * float(h) / support_length(eps, penetration)))
 
 
+_SYM6 = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))     # entries of a symmetric 3 x 3
+_FULL9 = np.array([0, 3, 4, 3, 1, 5, 4, 5, 2])                   # ... back to its 9, row-major
+
+
+def _rows(rows, *arrays):
+    """arrays[rows], without a copy when rows are all of them."""
+    if len(rows) == len(arrays[0]):
+        return arrays
+    return tuple(x[rows] for x in arrays)
+
+
 class PotentialKernel:
     """The pair potential (1) over a set of own (slave) elements; the interface of
     contact.ContactKernel (evaluate, slave_arclength, mu, eps, delta, h, nqc, wq, Nq)."""
@@ -137,6 +157,11 @@ class PotentialKernel:
         self.xm = np.concatenate([self.xp, [-1.0, 1.0]])
         self.Nm = fe.lagrange(self.p, self.xm)[0]
         self.cap = 0.5 / self.k_per_mu
+        # shape-function products of the tangent's blocks (add_tangent)
+        self._NpT = np.ascontiguousarray(self.Np.T)                     # (p+1, nqp)
+        self._NmT = np.ascontiguousarray(self.Nm.T)                     # (p+1, nqp + 2)
+        self._NNp = np.einsum("qa,qb->abq", self.Np, self.Np).reshape(-1, self.nqp)
+        self._NNm = np.einsum("ja,jb->abj", self.Nm, self.Nm).reshape(-1, self.nqp + 2)
 
     @property
     def mu(self):
@@ -186,82 +211,179 @@ class PotentialKernel:
         nu = D / np.where(r > 0.0, r, 1.0)[..., None]
         return a, r, nu
 
-    def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True):
-        """Energy, residual and tangent of (1) over the own elements, with the outputs of
-        contact.ContactKernel.evaluate_strand (active = element pairs, no switch points)."""
-        nqc, h = self.nqc, self.h
-        n1 = self.p + 1
-        J = 0.5 * h
+    def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True, report=True):
+        """Energy and residual of (1) over the own elements, with the outputs of
+        contact.ContactKernel.evaluate_strand (active = element pairs, no switch points); with
+        ``tangent`` the tangent blocks (``add_tangent``), with ``report`` the closest-point
+        report (``add_report``).  Either can be added later to the same output (it keeps what
+        they need under the private key ``_near``); ``reported`` tells whether it has the
+        report.  The energy, residual and depth do not depend on tangent or report."""
         g = self.gauge
-        own_ids, x_own, other_ids, x_other, pairs = g.as_inputs(own_ids, x_own, other_ids,
-                                                                 x_other, pairs)
-        no = len(own_ids)
-        out = g.empty_output(no, tangent)
-        if no == 0 or len(pairs) == 0:
-            return out
-        # the diagnostic gap (closest point) at the nqc Gauss points
-        ctx = g._context(own_ids, x_own, other_ids, x_other, pairs)
-        _, gap, out["sbar"] = g.report_points(ctx, no)
-        out["gap"] = gap
-        out["d_active"] = gap[gap > 0.0]
-        out["zones"] = int(np.count_nonzero(gap > 0.0))
+        inputs = g.as_inputs(own_ids, x_own, other_ids, x_other, pairs)
+        no = len(inputs[0])
+        out = g.empty_output(no, False)
+        out.update(depth=-np.inf, reported=False, _inputs=inputs, _near=None)
+        if no and len(inputs[4]):
+            out["_near"] = self._near_couples(*inputs)
+            self._residual(out)
+        if tangent:
+            self.add_tangent(out)
+        if report:
+            self.add_report(out)
+        return out
 
-        pool_ids, pool_x = ctx["pool_ids"], ctx["pool_x"]
+    def _near_couples(self, own_ids, x_own, other_ids, x_other, pairs):
+        """The point couples of the element pairs that may be in contact: pairs whose capsules
+        (contact.element_capsules) come within 2 eps (no couple of another pair is closer),
+        the distances |D| of their couples D = r_e(xi_q) - r_m(xi_j) at the nqp slave and
+        nqp + 2 master points (coordinate by coordinate: no (pairs, nqp, nqp + 2, 3) array),
+        and, of the pairs that touch (an admissible couple closer than 2 eps), a, |D|, D, the
+        weights W and the master weights, in the order of the pairs."""
+        pool_ids, pool_x = self.gauge.master_pool(own_ids, x_own, other_ids, x_other)
         oi = _lookup(own_ids, pairs[:, 0], "own")
         mi = _lookup(pool_ids, pairs[:, 1], "other")
-        Nm = self.Nm
-        xm = np.einsum("ja,pad->pjd", Nm, pool_x[mi])                 # (npair, nqp + 2, 3)
-        wm = self.master_weights(pairs[:, 1])                          # (npair, nqp + 2)
+        ko, kp = element_capsules(x_own), element_capsules(pool_x)
+        near = np.flatnonzero(capsules_within([v[oi] for v in ko], [v[mi] for v in kp],
+                                              2.0 * self.eps))
+        oi, mi, e, m = oi[near], mi[near], pairs[near, 0], pairs[near, 1]
+        xs = (self.Np @ x_own)[oi]                                     # (nn, nqp, 3)
+        xm = (self.Nm @ pool_x)[mi]                                    # (nn, nqp + 2, 3)
+        r2 = np.square(xs[:, :, None, 0] - xm[:, None, :, 0])
+        for d in (1, 2):
+            t = xs[:, :, None, d] - xm[:, None, :, d]
+            t *= t
+            r2 += t
+        r = np.sqrt(r2)
+        # the exclusion, on the pairs that come closer than delta in arclength
+        ra = r
+        part = np.flatnonzero(self._min_arclength(e, m) < self.delta)
+        if len(part):
+            ra = r.copy()
+            ra[part] = np.where(self._admissible(e[part], m[part], self.xp, self.xm), r[part],
+                                np.inf)
+        rmin = ra.min(axis=(1, 2)) if len(near) else np.zeros(0)
+        touch = np.flatnonzero(rmin < 2.0 * self.eps)
+        wm = self.master_weights(m[touch])
+        W = (self.wp * (0.5 * self.h))[None, :, None] * wm[:, None, :]   # (nt, nqp, nqp + 2)
+        return {"oi": oi, "e": e, "m": m, "xm": xm, "touch": touch,
+                "depth": 2.0 * self.eps - float(rmin.min()) if len(rmin) else -np.inf,
+                "a": np.maximum(2.0 * self.eps - ra[touch], 0.0), "r": r[touch],
+                "D": xs[touch][:, :, None, :] - xm[touch][:, None, :, :], "wm": wm, "W": W}
+
+    def _min_arclength(self, e, m):
+        """Least arclength distance between points of elements e and m (periodic on a ring)."""
+        k = np.abs(np.asarray(e) - np.asarray(m))
+        if self.closed:
+            k = np.minimum(k, self.nelem - k)
+        return np.maximum(k - 1, 0) * self.h
+
+    def _residual(self, out):
+        """Energy, residual rows (one per element pair with a couple in contact) and depth of
+        (1) from the couples of ``_near_couples``:
+
+            dE/dx_A = - sum W k a Ntil_A nu,   Ntil = [N(xi_q), -N(xi_j)]."""
+        n1 = self.p + 1
+        c = out["_near"]
         k = self.k
-
-        # line force density at the reporting Gauss points: f(s) = k sum_j w_j a nu
-        xs_r = np.einsum("qa,pad->pqd", self.Nq, x_own[oi])
-        a, r, nu = self._couples(xs_r, xm, self._admissible(pairs[:, 0], pairs[:, 1], self.xq, self.xm))
-        f = np.zeros((no, nqc, 3))
-        np.add.at(f, oi, k * np.einsum("pj,pqj,pqjd->pqd", wm, a, nu))
-        out["force"] = np.linalg.norm(f, axis=2)
-        out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
-
-        # the potential's own quadrature
-        ws = self.wp * J
-        xs = np.einsum("qa,pad->pqd", self.Np, x_own[oi])
-        a, r, nu = self._couples(xs, xm, self._admissible(pairs[:, 0], pairs[:, 1], self.xp, self.xm))
-        W = ws[None, :, None] * wm[:, None, :]                           # (npair, nqp, nqp + 2)
+        a, W = c["a"], c["W"]
+        out["depth"] = c["depth"]
         out["energy"] = 0.5 * k * float(np.sum(W * a * a))
-        fp = np.zeros((no, self.nqp, 3))
-        np.add.at(fp, oi, k * np.einsum("pj,pqj,pqjd->pqd", wm, a, nu))
-        out["total_force"] = float(np.sum(ws * np.linalg.norm(fp, axis=2)))
-        # the depth at the nqp slave points against the master points (a lower bound of d
-        # there): the deepest point of a crossing may lie between the nqc reporting points
-        deep = a.max(axis=2)
-        out["d_active"] = np.concatenate([out["d_active"], deep[deep > 0.0]])
         act = np.flatnonzero((W * a > 0.0).any(axis=(1, 2)))
+        c["act"] = act
         if not len(act):
-            return out
-        a, r, nu, W = a[act], r[act], nu[act], W[act]
-        out["active"] = pairs[act]
-        nact = len(act)                  # one row per element pair: no single point, no normal
+            return
+        a, r, D, W = _rows(act, a, c["r"], c["D"], W)
+        nact = len(act)
+        out["active"] = np.stack([c["e"], c["m"]], axis=1)[c["touch"][act]]
         out.update(qp=np.full(nact, -1, dtype=np.int64), xi=np.full(nact, np.nan),
                    xi_slave=np.full(nact, np.nan), normal=np.full((nact, 3), np.nan),
                    interior=np.zeros(nact, dtype=bool))
-        G = -k * (W * a)[..., None] * nu                                 # dE/dD
-        vec = np.empty((len(act), 2 * n1, 3))
-        vec[:, :n1] = np.einsum("qa,pqjd->pad", self.Np, G)
-        vec[:, n1:] = -np.einsum("ja,pqjd->pad", Nm, G)
+        # dE/dD = -k W a nu per couple, summed over the masters (slave rows) and the slaves
+        G = (-k * W * a / np.where(r > 0.0, r, 1.0))[..., None] * D
+        vec = np.empty((nact, 2 * n1, 3))
+        vec[:, :n1] = self._NpT @ G.sum(axis=2)
+        vec[:, n1:] = -(self._NmT @ G.sum(axis=1))
         out["vec"] = vec
-        if tangent:
-            c = np.where(a > 0.0, a / np.where(r > 0.0, r, 1.0), 0.0)
-            on = (a > 0.0) * k * W
-            H = (on * (1.0 + c))[..., None, None] * np.einsum("pqji,pqjk->pqjik", nu, nu) \
-                - (on * c)[..., None, None] * np.eye(3)
-            N = self.Np
-            ss = np.einsum("qa,qb,pqik->paibk", N, N, H.sum(axis=2))
-            mm = np.einsum("ja,jb,pjik->paibk", Nm, Nm, H.sum(axis=1))
-            sm = -np.einsum("jb,pajik->paibk", Nm, np.einsum("qa,pqjik->pajik", N, H))
-            m6 = np.empty((len(act), 2 * n1, 3, 2 * n1, 3))
-            m6[:, :n1, :, :n1] = ss
-            m6[:, n1:, :, n1:] = mm
-            m6[:, :n1, :, n1:] = sm
-            m6[:, n1:, :, :n1] = np.swapaxes(np.swapaxes(sm, 1, 3), 2, 4)
-            out["mat"] = m6.reshape(len(act), 6 * n1, 6 * n1)
+
+    def add_tangent(self, out):
+        """The tangent blocks of an evaluation (in place; nothing to do if it has them), from
+        the couples its residual kept:
+
+            d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (1 + a/|D|) nu nu^T - (a/|D|) I ]   (a > 0)
+
+        over [slave element, master element] of every active pair: the slave-slave block sums
+        the couples' Hessians H_qj over the masters j first, the master-master block over the
+        slave points q, the slave-master block contracts q with N(xi_q) and j with N(xi_j):
+        matrix products, O(active pairs x nqp^2)."""
+        if out["mat"] is not None:
+            return out
+        n1 = self.p + 1
+        out["switch_mat"] = np.zeros((0, 9 * n1, 9 * n1))
+        c = out["_near"]
+        act = c["act"] if c is not None and "act" in c else np.zeros(0, dtype=np.int64)
+        nact = len(act)
+        if not nact:
+            out["mat"] = np.zeros((0, 6 * n1, 6 * n1))
+            return out
+        a, r, D, W = _rows(act, c["a"], c["r"], c["D"], c["W"])
+        nqp, nm = a.shape[1], a.shape[2]
+        rs = np.where(r > 0.0, r, 1.0)
+        on = np.where(a > 0.0, self.k * W, 0.0)
+        cr = a / rs
+        # H = on (1 + a/|D|) nu nu^T - on (a/|D|) I (nu nu^T = D D^T / |D|^2), its 6 entries
+        U = (on * (1.0 + cr) / rs ** 2)[..., None] * D
+        H = np.empty(a.shape + (6,))
+        for n, (i, j) in enumerate(_SYM6):
+            np.multiply(U[..., i], D[..., j], out=H[..., n])
+        H[..., :3] -= (on * cr)[..., None]
+        ss = self._NNp @ H.sum(axis=2)                                   # (nact, (a, b), 6)
+        mm = self._NNm @ H.sum(axis=1)
+        Hq = (self._NpT @ H.reshape(nact, nqp, nm * 6)).reshape(nact * n1, nm, 6)
+        sm = -(self._NmT @ Hq)                                           # (nact n1, n1, 6)
+        ss, mm, sm = (b.reshape(nact, n1, n1, 6)[..., _FULL9].reshape(nact, n1, n1, 3, 3)
+                      for b in (ss, mm, sm))                              # [p, a, b, i, k]
+        m6 = np.empty((nact, 2 * n1, 3, 2 * n1, 3))
+        m6[:, :n1, :, :n1] = ss.transpose(0, 1, 3, 2, 4)
+        m6[:, n1:, :, n1:] = mm.transpose(0, 1, 3, 2, 4)
+        m6[:, :n1, :, n1:] = sm.transpose(0, 1, 3, 2, 4)
+        m6[:, n1:, :, :n1] = sm.transpose(0, 2, 4, 1, 3)
+        out["mat"] = m6.reshape(nact, 6 * n1, 6 * n1)
+        return out
+
+    def add_report(self, out):
+        """The report of an evaluation (in place; nothing to do if it has it): the gap and
+        sbar at the nqc Gauss points by the closest-point projection of contact.py, the line
+        force density |f(s)| there, f(s) = k sum_j w_j a nu over the master points of the near
+        pairs, total_force (nqp rule), complementarity (nqc rule), zones, and d_active: the
+        gap > 0 at the report points and the depth > 0 at the nqp points."""
+        if out["reported"]:
+            return out
+        out["reported"] = True
+        c = out["_near"]
+        if c is None:
+            return out
+        own_ids, x_own, other_ids, x_other, pairs = out["_inputs"]
+        g = self.gauge
+        no, nqc, J, k = len(own_ids), self.nqc, 0.5 * self.h, self.k
+        ctx = g._context(own_ids, x_own, other_ids, x_other, pairs)
+        _, gap, out["sbar"] = g.report_points(ctx, no)
+        out["gap"] = gap
+        out["zones"] = int(np.count_nonzero(gap > 0.0))
+        # line force density at the report points, over the near pairs
+        xs = self.Nq @ x_own[c["oi"]]
+        a, r, nu = self._couples(xs, c["xm"], self._admissible(c["e"], c["m"], self.xq, self.xm))
+        wm = self.master_weights(c["m"])
+        f = np.zeros((no, nqc, 3))
+        np.add.at(f, c["oi"], k * (np.matmul((wm[:, None, :] * a)[:, :, None, :], nu)[:, :, 0]))
+        out["force"] = np.linalg.norm(f, axis=2)
+        out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
+        # total force by the nqp rule, and the depth at the nqp points, over the touching pairs
+        t = c["touch"]
+        fp = np.zeros((no, self.nqp, 3))
+        if len(t):
+            coef = c["wm"][:, None, :] * c["a"] / np.where(c["r"] > 0.0, c["r"], 1.0)
+            np.add.at(fp, c["oi"][t], k * np.matmul(coef[:, :, None, :], c["D"])[:, :, 0])
+        out["total_force"] = float(np.sum(self.wp * J * np.linalg.norm(fp, axis=2)))
+        deep = c["a"].max(axis=2)
+        out["d_active"] = np.concatenate([gap[gap > 0.0], deep[deep > 0.0]])
         return out

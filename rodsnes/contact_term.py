@@ -2,25 +2,32 @@
 forest, assembly (DESIGN.md: "partition.py and problem.py own all communication"; this module is
 the contact part of that communication around the pure kernel of contact.py).
 
-Per evaluation (residual or Jacobian), on every rank:
-  1. bounding spheres of the owned elements (contact.element_bounds), allgathered (4 doubles
-     per element: the only global exchange, O(N));
-  2. candidate pairs (owned element, any element) from a cKDTree (contact.candidate_pairs),
-     reach = 2 eps + margin;
+Per evaluation (residual, line-search trial or Jacobian), on every rank:
+  1. bounding spheres of the owned elements (contact.element_bounds);
+  2. candidate pairs (owned element, any element), a Verlet list: a search (spheres allgathered,
+     4 doubles per element: the only global exchange, O(N); a cKDTree, contact.candidate_pairs)
+     within reach + skin (reach = 2 eps + margin) is kept while no sphere has moved by skin / 2
+     since (the largest move |dc| + max(dR, 0) over all ranks, one allreduce): then no pair's
+     sphere distance has fallen by more than skin, and every pair within reach now was within
+     reach + skin then;
   3. the nodes of the candidate master elements are fetched from their owners through a PetscSF
      (leaves = needed nodes, roots = owned nodes); the SF is rebuilt only when that node set
-     changes;
-  4. the kernel evaluates gap, closest points, energy, residual and tangent on owned slave points;
-  5. slave-side residual goes into the owned/ghost rows; master-side residual is sent back to
+     changes (with a new search);
+  4. the candidates within reach at these positions: the sphere test of candidate_pairs on the
+     current spheres (the same pairs as a fresh search within reach);
+  5. the kernel evaluates energy and residual on owned slave points; the tangent and the report
+     (gap, penetration, KKT picture) only when a caller asks for them (``evaluate``), made later
+     from what the residual kept at the same positions;
+  6. slave-side residual goes into the owned/ghost rows; master-side residual is sent back to
      the owners through the same SF (reduce with MPI.SUM); tangent blocks go straight into the
      global matrix (MatSetValuesBlocked with off-process rows, communicated at assembly).
 The Jacobian's block pattern holds the candidate pairs found with a wider margin
-(pattern_reach) at the start of every load step, and before every Newton step the candidates of
-the iterate (within reach) are checked against it (RodProblem.ensure_pattern): a pair outside
-the pattern gets a new, wider-preallocated matrix before any value is set.  Entries are never
-inserted beyond the preallocation: on PETSc 3.18, a new off-diagonal block inserted into an
-assembled MPIBAIJ lands in a wrong column, and MUMPS reuses a symbolic analysis that no longer
-fits (a segfault).
+(pattern_reach) at the start of every load step, and before every Newton step the pairs of
+the iterate's evaluation are checked against it (RodProblem.ensure_pattern, pattern_covers): a
+pair outside the pattern gets a new, wider-preallocated matrix before any value is set.  Entries
+are never inserted beyond the preallocation: on PETSc 3.18, a new off-diagonal block inserted
+into an assembled MPIBAIJ lands in a wrong column, and MUMPS reuses a symbolic analysis that no
+longer fits (a segfault).
 """
 import numpy as np
 from mpi4py import MPI
@@ -33,6 +40,8 @@ from .support import SupportTerm
 
 
 class ContactTerm:
+    SKIN = 1.0          # Verlet skin of the candidate search, in eps (module docstring, 2.)
+
     def __init__(self, scene, mesh, layout):
         rod, c = scene.rod, scene.contact
         self.mesh, self.layout = mesh, layout
@@ -60,6 +69,7 @@ class ContactTerm:
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
         self.pattern_reach = 2.0 * self.eps + 4.0 * self.eps + mesh.h   # preallocation margin per step
+        self.skin = self.SKIN * self.eps                         # Verlet skin of the search
         self.own_ids = layout.owned_elems
         self.lconn = layout.lconn
         self.unit = MPI.DOUBLE.Create_contiguous(3).Commit()
@@ -67,9 +77,12 @@ class ContactTerm:
         self.leaf_nodes = None
         self.last = None
         self.last_min_gap = np.nan
-        self.near_local = np.zeros(0, dtype=np.int64)
         self.sf_builds = 0
-        self._cache = None              # (positions, evaluation, near_local) of the last one
+        self._all_ids = None            # every rank's owned elements, in allgather order
+        self._search = None             # (own centres, own radii, pairs within reach + skin)
+        self.searches = 0               # candidate searches made ...
+        self.search_reuses = 0          # ... and evaluations that reused one
+        self._state = None              # the last evaluation (positions, mu, output, pairs)
         self.cache_hits = 0
         # the clamps' mounts (support.py): a rod clamped at its start and sliding at its end
         self.supports = None
@@ -84,23 +97,9 @@ class ContactTerm:
         evaluation, whose residual and tangent belong to the old mu."""
         self.mu = float(mu)
         self.kernel.mu = self.mu
-        self._cache = None
+        self._state = None
 
     # -- communication ----------------------------------------------------------------
-    def _pairs(self, r_loc, reach, bounds=False):
-        x_own = r_loc[self.lconn]
-        cen, rad = ck.element_bounds(x_own)
-        ids = self.comm.allgather(self.own_ids)
-        all_ids = np.concatenate(ids)
-        cens = np.concatenate(self.comm.allgather(cen))
-        rads = np.concatenate(self.comm.allgather(rad))
-        pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, cens, rads, reach,
-                                   self.mesh.length, self.mesh.h, self.mesh.closed, self.delta)
-        if bounds:                       # bounding spheres of all elements, by element id
-            order = np.argsort(all_ids)
-            return x_own, pairs, cens[order], rads[order]
-        return x_own, pairs
-
     def _ensure_sf(self, nodes):
         """PetscSF from the owners of ``nodes`` (natural ids, sorted) to this rank's leaves."""
         same = self.leaf_nodes is not None and np.array_equal(nodes, self.leaf_nodes)
@@ -137,46 +136,121 @@ class ContactTerm:
         return root
 
     # -- evaluation -------------------------------------------------------------------
-    def evaluate(self, r_loc, tangent):
-        """The kernel's evaluation at local positions r_loc (collective).  Residual and Jacobian
-        at one iterate, or the line search's accepted trial and the residual after it, see the
-        same positions: the last evaluation is kept (with its tangent) and reused when every
-        rank's positions are bit for bit those it was made at."""
-        hit = self._cache is not None and self._cache[0].shape == r_loc.shape \
-            and np.array_equal(self._cache[0], r_loc)
+    def evaluate(self, r_loc, tangent=False, report=False):
+        """The kernel's evaluation at local positions r_loc (collective): energy and residual;
+        with ``tangent`` its tangent blocks, with ``report`` the report (gap, force and
+        penetration at the report points: summary, qp_fields, the penalty's promise).  The last
+        evaluation is kept and reused when every rank's positions are bit for bit those it was
+        made at and mu is the same (residual and Jacobian at one iterate, the line search's
+        accepted trial and the residual after it): a tangent or report asked for later is made
+        then, from what the residual kept (kernel.add_tangent, add_report; both local)."""
+        st = self._state
+        hit = st is not None and st["mu"] == self.kernel.mu and st["r"].shape == r_loc.shape \
+            and np.array_equal(st["r"], r_loc)
         if self.comm.allreduce(hit, op=MPI.LAND):
             self.cache_hits += 1
-            out, self.near_local = self._cache[1], self._cache[2]
-            self.last = out
-            return out
-        out = self._evaluate(r_loc)
-        self._cache = (np.array(r_loc, copy=True), out, self.near_local)
+        else:
+            st = self._evaluate(r_loc)
+        out = st["out"]
+        if tangent and out["mat"] is None:
+            self.kernel.add_tangent(out)
+            if "support" in out:
+                self.supports.add_tangent(out["support"])
+        if report:
+            self.kernel.add_report(out)
+        self.last = out
         return out
+
+    def _candidates(self, r_loc):
+        """Nodes of the own elements (no, p+1, 3), their bounding spheres, and the candidate
+        pairs within reach + skin of the last search, made anew when some sphere has moved by
+        skin / 2 since (module docstring, 2.; the decision is the same on every rank).
+        Collective."""
+        x_own = r_loc[self.lconn]
+        cen, rad = ck.element_bounds(x_own)
+        s = self._search
+        stale = s is None
+        if not stale and len(cen):
+            move = np.linalg.norm(cen - s[0], axis=1) + np.maximum(rad - s[1], 0.0)
+            stale = not float(move.max()) < 0.5 * self.skin * (1.0 - 1e-6)
+        if self.comm.allreduce(stale, op=MPI.LOR):
+            self._search = (cen, rad, self._search_pairs(cen, rad, self.reach + self.skin))
+            self.searches += 1
+        else:
+            self.search_reuses += 1
+        return x_own, cen, rad, self._search[2]
+
+    def _search_pairs(self, cen, rad, reach, bounds=False):
+        """Candidate pairs (own element, any element) within ``reach`` of the bounding spheres
+        (cen, rad) of the own elements: the spheres of all ranks allgathered, a cKDTree
+        (contact.candidate_pairs).  With ``bounds`` also the spheres of all elements, by
+        element id.  Collective."""
+        if self._all_ids is None:
+            self._all_ids = np.concatenate(self.comm.allgather(self.own_ids))
+        all_ids = self._all_ids
+        cens = np.concatenate(self.comm.allgather(cen))
+        rads = np.concatenate(self.comm.allgather(rad))
+        pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, cens, rads, reach,
+                                   self.mesh.length, self.mesh.h, self.mesh.closed, self.delta)
+        if bounds:
+            order = np.argsort(all_ids)
+            return pairs, cens[order], rads[order]
+        return pairs
 
     def _evaluate(self, r_loc):
         m = self.mesh
-        x_own, pairs = self._pairs(r_loc, self.reach)
-        other = np.unique(pairs[:, 1]) if len(pairs) else np.zeros(0, dtype=np.int64)
+        n1 = m.order + 1
+        x_own, cen, rad, cand = self._candidates(r_loc)
+        other = np.unique(cand[:, 1]) if len(cand) else np.zeros(0, dtype=np.int64)
         other_nodes = ck.element_node_ids(other, m.order, m.nelem, m.closed)
         nodes = np.unique(other_nodes)
         # every rank takes part in the SF collectives, even with nothing to fetch
         leaf = self._fetch(r_loc, nodes)
-        x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, m.order + 1, 3))
-        out = self.kernel.evaluate(self.own_ids, x_own, other, x_other, pairs, tangent=True)
+        x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, n1, 3))
+        # the candidates within reach at these positions: the test of a fresh search
+        c_other, r_other = ck.element_bounds(x_other)
+        if len(cand):
+            io = ck._lookup(self.own_ids, cand[:, 0], "own")
+            ia = np.searchsorted(other, cand[:, 1])
+            pairs = cand[ck.spheres_within(cen[io], rad[io], c_other[ia], r_other[ia], self.reach)]
+        else:
+            pairs = cand
+        used = np.isin(other, pairs[:, 1])
+        out = self.kernel.evaluate(self.own_ids, x_own, other[used], x_other[used], pairs,
+                                   tangent=False, report=False)
         out["nodes"] = nodes
         if self.supports is not None:
-            out["support"] = self.supports.evaluate(r_loc)
+            out["support"] = self.supports.evaluate(r_loc, tangent=False)
             out["energy"] += out["support"]["energy"]
-        # owned nodes of elements within one contact radius of touching something (gap > -eps):
-        # the step limiter watches them
-        close = np.flatnonzero(out["gap"].max(axis=1) > -self.eps) if len(self.own_ids) else []
-        near = np.unique(self.lconn[close]) if len(close) else np.zeros(0, dtype=np.int64)
-        self.near_local = near[near < self.layout.n_owned]
-        self.last = out
-        return out
+        self._state = {"r": np.array(r_loc, copy=True), "mu": self.kernel.mu, "out": out,
+                       "pairs": pairs, "near": None,
+                       "bounds": (np.concatenate([self.own_ids, other]),
+                                  np.concatenate([cen, c_other]), np.concatenate([rad, r_other]))}
+        return self._state
+
+    @property
+    def near_local(self):
+        """Owned nodes of the elements near contact at the last evaluation (the step limiter
+        of RodProblem.precheck watches them): with the closest-point law the elements with a
+        report point within one contact radius of touching (gap > -eps), with the pair
+        potential (whose report is made only when asked for) every element with a candidate
+        within reach."""
+        st = self._state
+        if st is None:
+            return np.zeros(0, dtype=np.int64)
+        if st["near"] is None:
+            if not len(self.own_ids):
+                close = np.zeros(0, dtype=np.int64)
+            elif self.model == "potential":
+                close = np.unique(ck._lookup(self.own_ids, st["pairs"][:, 0], "own"))
+            else:
+                close = np.flatnonzero(st["out"]["gap"].max(axis=1) > -self.eps)
+            near = np.unique(self.lconn[close]) if len(close) else np.zeros(0, dtype=np.int64)
+            st["near"] = near[near < self.layout.n_owned]
+        return st["near"]
 
     def add_residual(self, r_loc, Floc):
-        out = self.evaluate(r_loc, tangent=False)
+        out = self.evaluate(r_loc)
         n1 = self.p + 1
         act = out["active"]
         leaf_force = np.zeros((len(out["nodes"]), 3))
@@ -207,7 +281,7 @@ class ContactTerm:
         add_position_blocks(P, self.layout, nodes, mat)
 
     def energy(self, r_loc):
-        return self.evaluate(r_loc, tangent=False)["energy"]
+        return self.evaluate(r_loc)["energy"]
 
     def pattern_pairs(self, r_loc, reach):
         """All ranks' element pairs coupled in the Jacobian by the candidates within ``reach``,
@@ -215,7 +289,8 @@ class ContactTerm:
         candidate pair (slave, master), and every two masters of the same slave element (a
         switch point couples them, ``ContactKernel._switch_terms``, if they lie within 4 eps + margin
         of each other)."""
-        _, pairs, cen, rad = self._pairs(r_loc, reach, bounds=True)
+        pairs, cen, rad = self._search_pairs(*ck.element_bounds(r_loc[self.lconn]), reach,
+                                             bounds=True)
         # two closest points of one slave point both lie within 2 eps of it: masters farther
         # apart than 4 eps never share a switch point.  The margin is the evaluation's own
         # (reach - 2 eps), not the wider preallocation margin: these pairs would fill most
@@ -229,6 +304,30 @@ class ContactTerm:
         if len(pairs):
             pairs = np.unique(np.sort(pairs, axis=1), axis=0)
         return pairs.reshape(-1, 2).astype(np.int64)
+
+    def pattern_covers(self, r_loc, have):
+        """Whether the element pairs ``have`` (sorted unique rows a <= b: the Jacobian's
+        preallocated pattern) hold every pair that the evaluation at r_loc couples: its
+        candidates within reach and, with the closest-point law, their co-masters, as
+        pattern_pairs(r_loc, reach) finds them, without its allgather (each rank checks its
+        own pairs; the mounts' pairs are in every pattern).  Collective."""
+        self.evaluate(r_loc)
+        st = self._state
+        pairs = st["pairs"]
+        if self.model != "potential" and len(pairs):
+            ids, cen, rad = st["bounds"]
+            c = np.zeros((self.mesh.nelem, 3))
+            r = np.zeros(self.mesh.nelem)
+            c[ids], r[ids] = cen, rad
+            pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, c, r,
+                                                              self.reach + 2.0 * self.eps)])
+        ok = True
+        if len(pairs):
+            n = self.mesh.nelem
+            rows = np.sort(pairs, axis=1)
+            ok = len(have) > 0 and bool(np.isin(rows[:, 0] * n + rows[:, 1],
+                                                have[:, 0] * n + have[:, 1]).all())
+        return self.comm.allreduce(ok, op=MPI.LAND)
 
     def node_groups(self, pairs):
         """Natural node groups (npair, 2(p+1)) coupled all-to-all by the element pairs."""
@@ -279,7 +378,7 @@ class ContactTerm:
         complementarity = int <d> f_c ds (zero for exact contact; the penalty makes it ~1/mu)
         by the contact quadrature (the zones, by default), active_points = points of that
         quadrature with d > 0 (they carry the contact force), zones = contact zones."""
-        out = self.last
+        out = self.kernel.add_report(self.last)
         loc = np.array([out["total_force"], out["complementarity"], len(out["d_active"]),
                         out["zones"]], dtype=float)
         tot = self.comm.allreduce(loc)
@@ -291,25 +390,36 @@ class ContactTerm:
                 "radius": self.eps, "exclusion": self.delta,
                 **(self.supports.summary(out["support"]) if self.supports is not None else {})}
 
-    def deepest(self, r_loc=None):
+    def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
-        positions r_loc (local nodes), or of the last evaluation.  Collective.  The deepest
-        point of a zone may lie between the Gauss points: the zone points count too."""
-        out = self.last if r_loc is None else self.evaluate(r_loc, tangent=False)
-        return self.comm.allreduce(self.deepest_local(out), op=MPI.MAX)
+        positions r_loc (local nodes), or of the last evaluation.  Collective.  With ``report``
+        (the penalty's promise: -contact_penalty_adapt, relax.py, the summary) at the report
+        points and the law's own points (deepest_local); without, at the law's own points
+        alone (RodProblem.precheck compares it at the iterate and its trials, where the pair
+        potential makes no report)."""
+        out = self.last if r_loc is None else self.evaluate(r_loc, report=report)
+        if report:
+            self.kernel.add_report(out)
+        return self.comm.allreduce(self.deepest_local(out, report), op=MPI.MAX)
 
     @staticmethod
-    def deepest_local(out):
-        """max d over this rank's Gauss and zone points of an evaluation ``out``."""
-        gap = out["gap"]
-        deep = max(float(gap.max()) if gap.size else -np.inf,
-                   float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
+    def deepest_local(out, report=False):
+        """max d over this rank's points of an evaluation ``out``: its ``depth``, at the points
+        of the law's own quadrature (the closest-point law's Gauss and zone points, the pair
+        potential's point couples); with ``report`` (out has it) the report's gap and d_active
+        (the report points, and the law's own points in contact).  The mounts count in both."""
+        if report:
+            gap = out["gap"]
+            deep = max(float(gap.max()) if gap.size else -np.inf,
+                       float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
+        else:
+            deep = out["depth"]
         if "support" in out:            # the tube pressing into a clamp's mount (support.py)
             deep = max(deep, SupportTerm.deepest_local(out["support"]))
         return deep
 
     def qp_fields(self):
-        out = self.last
+        out = self.kernel.add_report(self.last)
         ids = (self.own_ids[:, None] * self.nqc + np.arange(self.nqc)[None, :]).ravel()
         s = self.kernel.slave_arclength(self.own_ids).ravel()
         gap = out["gap"].ravel()

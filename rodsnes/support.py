@@ -35,31 +35,36 @@ from . import contact as ck
 from .partition import add_position_blocks
 
 
-def half_line_distance(x, p, e):
+def half_line_distance(x, p, e, projector=True):
     """Distance of points x (M, 3) to the half-line {p + t e, t >= 0} (|e| = 1): dist (M,),
-    unit normal n = (x - c) / dist (M, 3) and the projector A (M, 3, 3) of the distance's
-    Hessian (A - n n^T) / dist (I - e e^T where the closest point c is on the body, I at p)."""
+    unit normal n = (x - c) / dist (M, 3) and (with ``projector``, else None) the projector A
+    (M, 3, 3) of the distance's Hessian (A - n n^T) / dist (I - e e^T where the closest point c
+    is on the body, I at p)."""
     v = np.asarray(x, dtype=float) - p
     t = v @ e
     body = t > 0.0
     w = v - np.where(body, t, 0.0)[:, None] * e
     dist = np.linalg.norm(w, axis=1)
     n = w / np.where(dist > 0.0, dist, 1.0)[:, None]
+    if not projector:
+        return dist, n, None
     A = np.broadcast_to(np.eye(3), (len(v), 3, 3)).copy()
     A[body] -= np.outer(e, e)
     return dist, n, A
 
 
-def penalty(x, wds, p, e, eps, mu):
+def penalty(x, wds, p, e, eps, mu, hessian=True):
     """(mu/2) sum_q wds_q <g_q>^2 with g = eps - dist(x_q, H) for the half-line H = {p + t e}:
-    energy, g (M,), gradient dE/dx (M, 3) and Hessian H (M, 3, 3) per point (module docstring;
-    d/dp is minus the gradient, and -H, H)."""
-    dist, n, A = half_line_distance(x, p, e)
+    energy, g (M,), gradient dE/dx (M, 3) and (with ``hessian``, else None) Hessian H (M, 3, 3)
+    per point (module docstring; d/dp is minus the gradient, and -H, H)."""
+    dist, n, A = half_line_distance(x, p, e, projector=hessian)
     g = eps - dist
     act = g > 0.0
     gp = np.where(act, g, 0.0)
     energy = 0.5 * mu * float(np.sum(wds * gp ** 2))
     grad = -(mu * wds * gp)[:, None] * n
+    if not hessian:
+        return energy, g, grad, None
     nn = np.einsum("mi,mj->mij", n, n)
     curv = (A - nn) / np.where(act, dist, 1.0)[:, None, None]
     H = (mu * wds * act)[:, None, None] * nn - (mu * wds * gp)[:, None, None] * curv
@@ -92,23 +97,29 @@ class SupportTerm:
         x = r_loc[self.end_local] if self.end_local >= 0 else np.zeros(3)
         return self.comm.allreduce(np.asarray(x, dtype=float))
 
-    def evaluate(self, r_loc):
+    def obstacles(self, p_end):
+        """(point, direction) of H_0 and H_1, with the sliding end at p_end."""
+        return (self.x_start, self.e[0]), (p_end, self.e[1])
+
+    def evaluate(self, r_loc, tangent=True):
         """Energy (this rank), per point g (no, nqc) per obstacle, element residual (no, p+1,
-        3), the end node's reaction (3,) of this rank, and per active element the Hessian
-        blocks (ne, p+2, p+2, 3, 3) over its nodes and the end node.  Collective."""
+        3), the end node's reaction (3,) of this rank, and with ``tangent`` (or later,
+        ``add_tangent``) per active element the Hessian blocks (ne, p+2, p+2, 3, 3) over its
+        nodes and the end node.  Collective."""
         k = self.kernel
         X = r_loc[self.lconn]                                        # (no, p+1, 3)
         xq = np.einsum("qa,eac->eqc", k.Nq, X)
         p_end = self.end_position(r_loc)
         no, n1 = X.shape[0], X.shape[1]
         out = {"energy": 0.0, "vec": np.zeros((no, n1, 3)), "end_force": np.zeros(3),
-               "gap": [], "force": np.zeros((no, k.nqc)), "blocks": [], "elems": []}
-        for j, (p, e) in enumerate(((self.x_start, self.e[0]), (p_end, self.e[1]))):
+               "gap": [], "force": np.zeros((no, k.nqc)), "blocks": None, "elems": None,
+               "_at": (xq, p_end)}
+        for j, (p, e) in enumerate(self.obstacles(p_end)):
             m = self.mask[j]
             if not no or not m.any():
                 out["gap"].append(np.full((no, k.nqc), -np.inf))
                 continue
-            energy, g, grad, H = penalty(xq[m], self.wds[m], p, e, k.eps, k.mu)
+            energy, g, grad, _ = penalty(xq[m], self.wds[m], p, e, k.eps, k.mu, hessian=False)
             gap = np.full((no, k.nqc), -np.inf)
             gap[m] = g
             out["gap"].append(gap)
@@ -120,15 +131,30 @@ class SupportTerm:
             f = np.zeros((no, k.nqc))
             f[m] = k.mu * np.maximum(g, 0.0)                         # line force density
             out["force"] += f
-            act = np.flatnonzero((gap > 0.0).any(axis=1))
+        if tangent:
+            self.add_tangent(out)
+        return out
+
+    def add_tangent(self, out):
+        """The Hessian blocks of an evaluation (in place; nothing to do if it has them): per
+        obstacle the elements with a point pressing into it (g > 0)."""
+        if out["blocks"] is not None:
+            return out
+        k = self.kernel
+        xq, p_end = out["_at"]
+        no, n1 = xq.shape[0], self.lconn.shape[1]
+        out["blocks"], out["elems"] = [], []
+        for j, (p, e) in enumerate(self.obstacles(p_end)):
+            m = self.mask[j]
+            act = np.flatnonzero((out["gap"][j] > 0.0).any(axis=1)) if no else []
             if not len(act):
                 continue
             Hq = np.zeros((no, k.nqc, 3, 3))
-            Hq[m] = H
+            Hq[m] = penalty(xq[m], self.wds[m], p, e, k.eps, k.mu)[3]
             Hq = Hq[act]
             Nq = k.Nq
             B = np.zeros((len(act), n1 + 1, n1 + 1, 3, 3))
-            B[:, :n1, :n1] = np.einsum("qa,qb,eqij->eabij", Nq, Nq, Hq)
+            B[:, :n1, :n1] = np.einsum("qa,qb,eqij->eabij", Nq, Nq, Hq, optimize=True)
             if j == 1:                       # the end point slides: its coupling
                 NH = np.einsum("qa,eqij->eaij", Nq, Hq)
                 B[:, :n1, n1] = -NH
@@ -148,6 +174,7 @@ class SupportTerm:
 
     def add_jacobian(self, out, P):
         m = self.mesh
+        self.add_tangent(out)
         for elems, B in zip(out["elems"], out["blocks"]):
             nodes = ck.element_node_ids(elems, m.order, m.nelem, m.closed)
             nodes = np.concatenate([nodes, np.full((len(elems), 1), self.end)], axis=1)

@@ -239,3 +239,140 @@ def test_newton_step_may_not_deepen_the_penetration_beyond_the_limit():
     Z.set(0.0)
     p.residual(None, X, p.F)
     assert not p.precheck(X, Z)
+
+
+# ------------------------------------------------------------------------------------------
+# each caller pays for what it needs (ContactTerm.evaluate): residual alone, tangent and report
+# made later at the same positions, the candidate search kept within its skin
+# ------------------------------------------------------------------------------------------
+LAW = {"projection": {}, "potential": dict(contact_model="potential", contact_quadrature=24)}
+@pytest.mark.mpi
+@pytest.mark.parametrize("model", ["projection", "potential"])
+def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
+    """The residual-only evaluation (line search, residual) gives the energy, residual rows and
+    assembled residual of the evaluation with tangent and report, bit for bit; its tangent and
+    report, made later from what it kept, are those of the full evaluation, bit for bit; and
+    the Jacobian after the residual at the same positions makes no new evaluation."""
+    run = coiled(**LAW[model])
+    c, p = run.contact, run.problem
+    r, _ = p.state.local_config()
+
+    def fresh(**kw):
+        c._state = None
+        return c.evaluate(r, **kw)
+
+    def assembled():
+        Floc = np.zeros((len(r), NDOF))
+        c.add_residual(r, Floc)
+        return Floc
+
+    alone = fresh()
+    assert alone["mat"] is None and alone["reported"] == (model == "projection")
+    F_alone = assembled()
+    full = fresh(tangent=True, report=True)
+    F_full = assembled()
+    assert full["energy"] == alone["energy"] and np.array_equal(F_full, F_alone)
+    assert np.array_equal(full["active"], alone["active"]) and len(full["active"]) > 0
+    assert np.array_equal(full["vec"], alone["vec"])
+    later = fresh()
+    hits = c.cache_hits
+    c.evaluate(r, tangent=True)
+    c.evaluate(r, report=True)
+    assert c.cache_hits == hits + 2
+    for key in ("mat", "switch", "switch_mat", "gap", "force", "sbar", "d_active"):
+        assert np.array_equal(later[key], full[key]), key
+    for key in ("total_force", "complementarity", "zones", "depth"):
+        assert later[key] == full[key], key
+    if model == "potential":
+        # its guard depth (the point couples) sees the report's penetration here
+        assert later["depth"] > 0 and c.deepest(report=False) == pytest.approx(c.deepest(), rel=0.1)
+
+
+def _fresh_search_pairs(c, r):
+    """The candidates within reach of a fresh search at r (what the evaluation must use)."""
+    from rodsnes import contact as ck
+    return c._search_pairs(*ck.element_bounds(r[c.lconn]), c.reach)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("model", ["projection", "potential"])
+def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
+    """Verlet list (contact_term, 2.): a state whose bounding spheres moved by less than half
+    the skin reuses the last search, and the pairs it evaluates are those of a fresh search
+    within reach, also where the move brought new pairs within reach; a move beyond half the
+    skin searches again.  The same decisions and the same residual on every rank."""
+    run = coiled(**LAW[model])
+    c, p = run.contact, run.problem
+    r0, _ = p.state.local_config()
+    c.evaluate(r0)
+    n0, pairs0 = c.searches, c._state["pairs"]
+    assert np.array_equal(pairs0, _fresh_search_pairs(c, r0))
+    # slide the free end along x by 0.4 skin (a ramp over s/L in [0.6, 0.8]): element 10 comes
+    # within reach of element 0 (sphere distance 0.282 at reach 0.25, skin 0.1)
+    s = run.mesh.s_nodes[run.layout.local_nodes] / run.mesh.length
+    r1 = r0 + 0.4 * c.skin * np.clip((s - 0.6) / 0.2, 0.0, 1.0)[:, None] * np.array([1.0, 0, 0])
+    c.evaluate(r1)
+    assert c.searches == n0                          # reused
+    pairs1 = c._state["pairs"]
+    assert np.array_equal(pairs1, _fresh_search_pairs(c, r1))
+    grown = run.layout.comm.tompi4py().allreduce(len(pairs1) - len(pairs0))
+    assert grown > 0                                 # new pairs within reach, none missed
+    # the residual is the one of an evaluation with a search of its own
+    Floc = np.zeros((len(r1), NDOF))
+    c.add_residual(r1, Floc)
+    c._search, c._state = None, None
+    Fnew = np.zeros((len(r1), NDOF))
+    c.add_residual(r1, Fnew)
+    assert c.searches == n0 + 1 and np.array_equal(Floc, Fnew)
+    # a rigid move by 0.6 skin: beyond half the skin, a new search
+    r2 = r1 + np.array([0.6 * c.skin, 0.0, 0.0])
+    c.evaluate(r2)
+    assert c.searches == n0 + 2
+    assert np.array_equal(c._state["pairs"], _fresh_search_pairs(c, r2))
+    r3 = r2 + np.array([0.0, 0.4 * c.skin, 0.0])      # then within half the skin again
+    c.evaluate(r3)
+    assert c.searches == n0 + 2 and c.search_reuses >= 2
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("model", ["projection", "potential"])
+def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
+    """RodProblem.ensure_pattern asks ContactTerm.pattern_covers (the pairs of the iterate's
+    evaluation, each rank its own) instead of a search within reach gathered on every rank:
+    the same answer as that search's pairs checked against the pattern, for a pattern that
+    holds them and for one that misses one of them."""
+    run = coiled(**LAW[model])
+    c, p = run.contact, run.problem
+    r, _ = p.state.local_config()
+    assert not c.pattern_covers(r, p._pattern_pairs)     # made for the straight rod
+    p.refresh_pattern()                                   # as at the start of a load step
+    need = c.pattern_pairs(r, c.reach)
+    have = p._pattern_pairs
+    n = run.mesh.nelem
+    assert np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all()
+    assert c.pattern_covers(r, have)
+    contact_pairs = need[need[:, 0] != need[:, 1]]
+    # a pattern without one pair that the evaluation couples (the same on every rank)
+    drop = contact_pairs[np.argmax(np.abs(contact_pairs[:, 0] - contact_pairs[:, 1]))]
+    less = have[~((have[:, 0] == drop[0]) & (have[:, 1] == drop[1]))]
+    assert len(less) == len(have) - 1
+    assert not c.pattern_covers(r, less)
+
+
+@pytest.mark.parametrize("model", ["projection", "potential"])
+def test_a_penalty_change_drops_the_kept_evaluation(model):
+    """mu is part of the kept evaluation's validity: set_penalty drops it, and a kernel whose
+    mu changed is evaluated anew at the same positions (energy and tangent scale with mu)."""
+    run = coiled(**LAW[model])
+    c, p = run.contact, run.problem
+    r, _ = p.state.local_config()
+    out1 = c.evaluate(r, tangent=True)
+    e1, k1 = out1["energy"], out1["mat"].copy()
+    assert e1 > 0 and len(k1)
+    c.set_penalty(2.0 * c.mu)
+    hits = c.cache_hits
+    out2 = c.evaluate(r, tangent=True)
+    assert c.cache_hits == hits and out2["energy"] == pytest.approx(2.0 * e1, rel=1e-12)
+    assert np.allclose(out2["mat"], 2.0 * k1, rtol=1e-12, atol=0)
+    c.kernel.mu = 0.5 * c.kernel.mu                  # behind the term's back
+    assert c.evaluate(r)["energy"] == pytest.approx(e1, rel=1e-12) and c.cache_hits == hits

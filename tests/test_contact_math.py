@@ -575,6 +575,101 @@ def test_element_bounds_contain_curve(p):
         assert np.any(far > rn * 1.01)
 
 
+@pytest.mark.parametrize("p", [1, 2, 3, 4])
+def test_element_capsules_contain_curve(p):
+    """Every point of an element lies within rho of its chord (element_capsules), rho from the
+    Bernstein coefficients of the deviation (wiggly random elements); on a rod's element, an
+    arc bent by up to 0.5 rad, rho is within the control polygon's overshoot of the largest
+    deviation (a parabola's: 2 for p = 2, 4/3 for p >= 3, 1.36 at 0.5 rad; the sphere's
+    radius is h/2)."""
+    rng = np.random.default_rng(10 + p)
+    x = rng.standard_normal((200, p + 1, 3))
+    x[:, :, 0] += 3 * np.linspace(-1, 1, p + 1)
+    a, b, rho = C.element_capsules(x)
+    xs = np.linspace(-1, 1, 2001)
+    pts = np.einsum("ma,ead->emd", fe.lagrange(p, xs)[0], x)
+    t = (xs + 1) / 2
+    chord = a[:, None] * (1 - t)[None, :, None] + b[:, None] * t[None, :, None]
+    dev = np.linalg.norm(pts - chord, axis=2).max(axis=1)
+    assert np.all(dev <= rho + 1e-12)
+    if p == 1:
+        assert np.all(rho == 0)
+        return
+    th = np.linspace(-1, 1, p + 1)[None, :] * np.linspace(0.05, 0.5, 20)[:, None]   # arcs
+    arc = np.stack([np.sin(th), 1 - np.cos(th), 0 * th], axis=2)
+    a, b, rho = C.element_capsules(arc)
+    pts = np.einsum("ma,ead->emd", fe.lagrange(p, xs)[0], arc)
+    chord = a[:, None] * (1 - t)[None, :, None] + b[:, None] * t[None, :, None]
+    dev = np.linalg.norm(pts - chord, axis=2).max(axis=1)
+    assert np.all(dev <= rho + 1e-15) and np.all(rho <= (2.0 if p == 2 else 1.4) * dev)
+
+
+def test_segment_distance_against_sampling():
+    """segment_distance against the minimum over a fine sampling of both segments, for random,
+    parallel, collinear, crossing and degenerate (point) segments."""
+    rng = np.random.default_rng(3)
+    n = 400
+    p1, q1, p2, q2 = (rng.standard_normal((n, 3)) for _ in range(4))
+    q2[:50] = p2[:50] + 0.7 * (q1[:50] - p1[:50])           # parallel
+    p2[50:80] = p1[50:80] + 2.0 * (q1[50:80] - p1[50:80])     # collinear, apart
+    q2[50:80] = p1[50:80] + 3.0 * (q1[50:80] - p1[50:80])
+    q1[80:90] = p1[80:90]                                      # a point
+    mid = 0.5 * (p1[90:120] + q1[90:120])                      # crossing at the middles
+    d = rng.standard_normal((30, 3))
+    p2[90:120], q2[90:120] = mid - d, mid + d
+    got = C.segment_distance(p1, q1, p2, q2)
+    t = np.linspace(0, 1, 801)
+    A = p1[:, None] + t[None, :, None] * (q1 - p1)[:, None]
+    B = p2[:, None] + t[None, :, None] * (q2 - p2)[:, None]
+    ref = np.array([np.linalg.norm(A[i][:, None] - B[i][None], axis=2).min() for i in range(n)])
+    assert np.all(got <= ref + 1e-12)                          # a lower bound of the sampled ...
+    h = np.maximum(np.linalg.norm(q1 - p1, axis=1), np.linalg.norm(q2 - p2, axis=1)) / 800
+    assert np.all(ref - got <= h + 1e-12)                      # ... to the sampling's spacing
+    assert np.all(got[90:120] < 1e-12)
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_capsule_test_keeps_every_pair_within_reach(closed):
+    """capsules_within: on a dense random coil, every candidate pair with a couple of sampled
+    points closer than reach passes."""
+    p, nelem, step = 3, 200, 0.1
+    X = random_coil(p, nelem, step, seed=7)
+    if closed:
+        X = X[:-1]
+    eps = 0.05
+    rod = Rod(X, p, closed, nelem * step, eps=eps, reach=2 * eps + 0.05)
+    pairs = rod.pairs(X)
+    xe = X[rod.conn]
+    caps = C.element_capsules(xe)
+    keep = C.capsules_within([v[pairs[:, 0]] for v in caps], [v[pairs[:, 1]] for v in caps],
+                             2 * eps)
+    xs = np.einsum("ma,ead->emd", fe.lagrange(p, np.linspace(-1, 1, 41))[0], xe)
+    dmin = np.linalg.norm(xs[pairs[:, 0]][:, :, None] - xs[pairs[:, 1]][:, None], axis=3)
+    close = dmin.min(axis=(1, 2)) < 2 * eps
+    assert close.sum() > nelem and np.all(keep[close])
+
+
+@pytest.mark.parametrize("segments", [False, True])
+def test_tangent_made_later_is_the_tangent_made_at_once(segments):
+    """ContactKernel.evaluate without its tangent keeps what add_tangent needs: the tangent
+    and switch terms it makes later are those of the evaluation with tangent, bit for bit, and
+    the residual is the same with or without (the noisy cubic helix: switch points)."""
+    p = 3
+    rod, X = helix_config(p, seed=41)
+    k = C.ContactKernel(p, p + 1, rod.eps, 1.0, rod.delta, rod.L, rod.nelem, False,
+                        segments=segments)
+    pairs = rod.pairs(X)
+    args = (rod.ids, X[rod.conn], rod.ids, X[rod.conn], pairs)
+    full = k.evaluate(*args, tangent=True)
+    alone = k.evaluate(*args, tangent=False)
+    assert alone["mat"] is None and len(full["active"]) > 0
+    assert alone["energy"] == full["energy"] and np.array_equal(alone["vec"], full["vec"])
+    k.add_tangent(alone)
+    for key in ("mat", "switch", "switch_mat"):
+        assert np.array_equal(alone[key], full[key]), key
+    assert len(full["switch"]) > 0 if segments else True
+
+
 # ------------------------------------------------------------------------------------------
 # 6. invariance, action = reaction; partitioned evaluation = serial
 # ------------------------------------------------------------------------------------------

@@ -178,6 +178,61 @@ def test_gradient_and_tangent_at_the_edge_of_contact(closed):
     check_tangent(rod, X, pairs, 1e-8, tol=1e-5, maxcols=80)
 
 
+def dense_reference(k, X, conn, pairs):
+    """Energy, residual rows and tangent blocks of (1) on every candidate pair, dense over the
+    couples (the module docstring's formulas, no pair left out), for rows that touch."""
+    e, m = pairs[:, 0], pairs[:, 1]
+    xs = np.einsum("qa,pad->pqd", k.Np, X[conn[e]])
+    xm = np.einsum("ja,pad->pjd", k.Nm, X[conn[m]])
+    a, r, nu = k._couples(xs, xm, k._admissible(e, m, k.xp, k.xm))
+    W = (k.wp * 0.5 * k.h)[None, :, None] * k.master_weights(m)[:, None, :]
+    act = np.flatnonzero((W * a > 0).any(axis=(1, 2)))
+    a, r, nu, W = a[act], r[act], nu[act], W[act]
+    G = -k.k * (W * a)[..., None] * nu
+    vec = np.concatenate([np.einsum("qa,pqjd->pad", k.Np, G),
+                          -np.einsum("ja,pqjd->pad", k.Nm, G)], axis=1)
+    c = np.where(a > 0, a / r, 0.0)
+    on = (a > 0) * k.k * W
+    H = (on * (1 + c))[..., None, None] * np.einsum("pqji,pqjk->pqjik", nu, nu) \
+        - (on * c)[..., None, None] * np.eye(3)
+    Nt = np.concatenate([np.broadcast_to(k.Np[:, None, :], (k.nqp, k.nqp + 2, k.p + 1)),
+                         -np.broadcast_to(k.Nm[None, :, :], (k.nqp, k.nqp + 2, k.p + 1))], axis=2)
+    mat = np.einsum("qja,qjb,pqjik->paibk", Nt, Nt, H, optimize=True)
+    n = 6 * (k.p + 1)
+    return 0.5 * k.k * np.sum(W * a * a), pairs[act], vec, mat.reshape(len(act), n, n)
+
+
+def test_near_pairs_and_the_parts_made_on_demand_against_the_dense_potential():
+    """On the plectoneme's 9.72-turn line contact: the pairs left out by the spheres and
+    capsules hold no couple in contact (energy, residual and tangent equal the dense reference
+    over every candidate pair to roundoff), fewer than two thirds of the candidates are
+    evaluated, the residual-only evaluation is the full one's bit for bit, and the tangent and
+    report made afterwards are the full evaluation's."""
+    X = np.load(os.path.join(DATA, "plectoneme_9.72_line_contact.npy"))
+    rod = potential_rod(X, 3, False, 1.0, 0.025, 5.754172062186161e7, reach=2.5 * 0.025)
+    pairs = rod.pairs(X)
+    k = rod.k
+    args = (rod.ids, X[rod.conn], rod.ids, X[rod.conn], pairs)
+    full = k.evaluate(*args, tangent=True, report=True)
+    E, act, vec, mat = dense_reference(k, X, rod.conn, pairs)
+    assert len(act) > 100 and np.array_equal(full["active"], act)
+    assert full["energy"] == pytest.approx(E, rel=1e-13)
+    assert np.abs(full["vec"] - vec).max() <= 1e-13 * np.abs(vec).max()
+    assert np.abs(full["mat"] - mat).max() <= 1e-13 * np.abs(mat).max()
+    assert len(full["_near"]["oi"]) < 2 / 3 * len(pairs)
+    alone = k.evaluate(*args, tangent=False, report=False)
+    assert alone["mat"] is None and not alone["reported"] and np.all(alone["gap"] == -np.inf)
+    assert alone["energy"] == full["energy"] and np.array_equal(alone["vec"], full["vec"])
+    assert alone["depth"] == full["depth"] > 0
+    k.add_report(k.add_tangent(alone))
+    for key in ("mat", "gap", "force", "sbar", "d_active"):
+        assert np.array_equal(alone[key], full[key]), key
+    for key in ("total_force", "complementarity", "zones"):
+        assert alone[key] == full[key], key
+    # the guard's depth at the point couples against the report's deepest point
+    assert full["depth"] == pytest.approx(full["gap"].max(), rel=0.05)
+
+
 def test_residual_is_smooth_where_the_closest_point_races():
     """The plectoneme at 9.72 turns, strands in line contact (test_contact_zones: a C0-kink
     minimum takes over from the minimum inside an element between two samples; the
