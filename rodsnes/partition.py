@@ -135,8 +135,9 @@ class Layout:
         kind = J.getType()
         if kind in (PETSc.Mat.Type.SEQSBAIJ, PETSc.Mat.Type.MPISBAIJ):
             ai, aj = _upper_blocks(ai, aj, self.starts[self.comm.getRank()])
-            J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
             J.setPreallocationCSR((ai, aj))
+            # only once the blocks exist (before it, MPISBAIJ crashes in MatSetOption)
+            J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
         elif kind in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
             J.setPreallocationCSR((ai, aj))
         else:                     # -mat_type aij etc.: expand the block structure to scalars
@@ -168,6 +169,40 @@ class Layout:
         for i, v in zip(ids, vals):
             out[i] = v
         return out
+
+
+class DirichletRows:
+    """A matrix seen through Dirichlet rows and columns: every block set through it
+    (setValuesBlockedRCV, the one way the terms add their tangents) has the entries of
+    constrained rows and columns zeroed first; ``finish`` puts 1 on their diagonal.  The result
+    is MatZeroRowsColumns(P, rows, 1) of the sum, built before assembly, so it also works where
+    that operation does not exist (MPISBAIJ) and keeps a symmetric matrix symmetric.
+
+    mask: (global blocks, 6) bool, True on the constrained dofs (PETSc block numbering)."""
+
+    def __init__(self, mat, mask):
+        self.mat, self.mask = mat, mask
+        self.touched = mask.any(axis=1)
+
+    def setValuesBlockedRCV(self, R, C, V, addv=None):
+        R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
+        hit = np.flatnonzero(self.touched[R2].any(axis=1) | self.touched[C2].any(axis=1))
+        if len(hit):
+            V = np.array(V, copy=True)
+            keep_r = ~self.mask[R2[hit]].reshape(len(hit), -1)
+            keep_c = ~self.mask[C2[hit]].reshape(len(hit), -1)
+            V[hit] *= keep_r[:, :, None] & keep_c[:, None, :]
+        self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+
+    def finish(self, rows_global):
+        """Before assembly: 1 on the diagonal of this rank's constrained rows (global scalar
+        indices)."""
+        if len(rows_global):
+            r = np.asarray(rows_global, dtype=PETSc.IntType)[:, None]
+            self.mat.setValuesRCV(r, r, np.ones((len(r), 1, 1)), addv=PETSc.InsertMode.ADD)
+
+    def __getattr__(self, name):
+        return getattr(self.mat, name)
 
 
 def _upper_blocks(ai, aj, row0):

@@ -16,7 +16,7 @@ from petsc4py import PETSc
 
 from . import elastic, fe, so3
 from .loads import Loads, nonconservative
-from .partition import NDOF
+from .partition import NDOF, DirichletRows
 
 
 def reference_strains(rod, mesh, conn, strains):
@@ -99,6 +99,7 @@ class Constraints:
         self.layout = layout
         n = mesh.n_nodes
         fixed = []                 # (natural node, component)
+        self.end_turns = 0.0       # turns prescribed at the end s = L (stepped with lambda)
         self.rotation_targets = []  # (natural node, callable lam -> q)
         x_init, q_init = mesh.x_init, mesh.q_init
         if mesh.closed:
@@ -122,13 +123,19 @@ class Constraints:
                 self.rotation_targets.append((0, lambda lam: q_init[0]))
             if bc.end in ("clamped", "sliding"):
                 d3 = so3.rot(q_init[n - 1])[:, 2]
-                turns = bc.end_turns
+                turns = self.end_turns = float(bc.end_turns)
                 self.rotation_targets.append(
                     (n - 1, lambda lam: so3.qmul(so3.qexp(2 * np.pi * turns * lam * d3), q_init[n - 1])))
         fixed = sorted(set(fixed))
         nodes = np.array([f[0] for f in fixed], dtype=np.int64)
         comps = np.array([f[1] for f in fixed], dtype=np.int64)
         self._build(nodes, comps, np.where(comps < 3, x_init[nodes, np.minimum(comps, 2)], 0.0))
+
+    def max_load_increment(self, max_turn):
+        """The largest load increment whose prescribed end rotation (-bc_end_turns T, applied
+        as lambda 2 pi T about the end's axis) turns the end by at most max_turn turns
+        (inf without prescribed turns)."""
+        return max_turn / abs(self.end_turns) if self.end_turns else np.inf
 
     def hold(self, node, comp, value):
         """One more fixed position dof (natural node, component 0..2) at ``value``."""
@@ -147,6 +154,9 @@ class Constraints:
         self.rows_local = (gidx[own] - lo).astype(np.int64)
         self.target_own = self.target[own]
         self.is_rows = PETSc.IS().createGeneral(self.rows_global, comm=layout.comm)
+        mask = np.zeros((layout.n_global, NDOF), dtype=bool)      # PETSc block numbering
+        mask[layout.nat2petsc[nodes], comps] = True
+        self.block_mask = mask
 
     def apply(self, lam, state):
         """Put the prescribed values at load factor lam into the state."""
@@ -199,15 +209,13 @@ class RodProblem:
         self.J = layout.create_matrix(contact.node_groups(self._pattern_pairs)
                                       if contact is not None else None)
         self.F = layout.create_vec()
-        self.symmetric = False              # set_symmetric: J is the chart Hessian, in SBAIJ
-        self.jacobians = 0                  # Jacobians assembled (the solver's inertia check)
-        self.last_jacobian_plain = False    # ... the last one the energy Hessian alone
         self.lconn = lconn
         # element node rows -> local nodes: F_loc = S vec (the assembly sum as one sparse product)
         import scipy.sparse as sp
         self._scatter = sp.csr_matrix((np.ones(lconn.size), (lconn.ravel(), np.arange(lconn.size))),
                                       shape=(len(layout.local_nodes), lconn.size))
         self.stats = {}
+        self.inertia = None                 # stability.Inertia, made at the first count
         self._e0_nodes = None
         # further terms with add_residual(r, q, Floc), add_jacobian(r, q, P), energy(r, q) on
         # local (owned + ghost) nodes; P is the global matrix (add with ADD_VALUES, before
@@ -297,9 +305,12 @@ class RodProblem:
         search reach of the contact evaluation) must be preallocated, else a new matrix with
         the candidates within pattern_reach of the iterate, plus the old pattern, is made
         before the Jacobian is assembled.  No entry is ever inserted beyond the preallocation
-        (see contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column)."""
+        (see contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column).  The
+        check reads the pairs of the iterate's evaluation (ContactTerm.pattern_covers)."""
         c = self.contact
         r, _ = self.state.local_config()
+        if c.pattern_covers(r, self._pattern_pairs):
+            return
         need = c.pattern_pairs(r, c.reach)
         if not len(need):
             return
@@ -311,31 +322,12 @@ class RodProblem:
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
 
-    def set_symmetric(self, on=True):
-        """Newton's matrix becomes the symmetric Hessian of the energy in the exponential chart
-        (symmetric=True of element_terms: the consistent tangent without its -1/2 g_theta^x
-        term, which vanishes at equilibrium, so Newton stays quadratic), stored as SBAIJ and
-        factored by LDL^T, whose negative pivots are the Hessian's negative eigenvalues
-        (Sylvester): the stability check reads them from Newton's own factorisation
-        (stability.newton_inertia).  Conservative loads only (a follower load's tangent is not
-        symmetric)."""
-        on = bool(on)
-        if on == self.symmetric:
-            return
-        self.symmetric = on
-        groups = self.contact.node_groups(self._pattern_pairs) if self.contact is not None else None
-        old = self.J
-        self.J = self.layout.create_matrix(groups, symmetric=on)
-        if self.on_pattern_change is not None:
-            self.on_pattern_change(self.J)
-        old.destroy()
-
     def _new_matrix(self, pairs):
         """A fresh matrix preallocated for the elements + the contact pairs.  Not an in-place
         re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
         (on_pattern_change) takes the new matrix and drops its factorisation."""
         old = self.J
-        self.J = self.layout.create_matrix(self.contact.node_groups(pairs), symmetric=self.symmetric)
+        self.J = self.layout.create_matrix(self.contact.node_groups(pairs))
         self._pattern_pairs = pairs
         if self.on_pattern_change is not None:
             self.on_pattern_change(self.J)
@@ -371,33 +363,36 @@ class RodProblem:
             c = self.constraints
             fa[c.rows_local] = xa[c.rows_local] - np.where(c.rows_local % NDOF < 3, c.target_own, 0.0)
 
-    def jacobian(self, snes, X, J, P, symmetric=None):
-        """The tangent at X into P: the consistent Newton tangent, or with symmetric (default:
-        set_symmetric's choice) the chart Hessian of the energy."""
-        if symmetric is None:
-            symmetric = self.symmetric
+    def jacobian(self, snes, X, J, P, symmetric=False):
+        """The tangent at X into P: the consistent Newton tangent, or with symmetric the chart
+        Hessian of the energy (stability.py).  Dirichlet rows and columns hold the identity:
+        zeroed after assembly (MatZeroRowsColumns), or for SBAIJ, which lacks that operation
+        in parallel, in every block before it enters the matrix (partition.DirichletRows)."""
+        masked = "sbaij" in P.getType()
         r, q = self.state.local_config(X)
         _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True,
                                              symmetric=symmetric)
         P.zeroEntries()
+        T = DirichletRows(P, self.constraints.block_mask) if masked else P
         g = self.layout.gconn.astype(PETSc.IntType)
-        P.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
+        T.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
         lg = self.layout.nat2petsc[self.layout.local_nodes]
         for i, j, B in ([] if symmetric else self.loads.add_jacobian_blocks(self.lam, q)):
-            P.setValuesBlocked([lg[i]], [lg[j]], B, addv=PETSc.InsertMode.ADD)
+            T.setValuesBlockedRCV(np.array([[lg[i]]], dtype=PETSc.IntType),
+                                  np.array([[lg[j]]], dtype=PETSc.IntType), B[None],
+                                  addv=PETSc.InsertMode.ADD)
         if self.contact is not None:
-            self.contact.add_jacobian(r, P)
+            self.contact.add_jacobian(r, T)
         for term in self.extra_terms:
-            term.add_jacobian(r, q, P)
+            term.add_jacobian(r, q, T)
+        if masked:
+            T.finish(self.constraints.rows_global)
         P.assemble()
         self._check_no_mallocs(P)
-        P.zeroRowsColumns(self.constraints.is_rows, 1.0)
-        own = P.handle == self.J.handle     # SNES hands a new wrapper of the same Mat
+        if not masked:
+            P.zeroRowsColumns(self.constraints.is_rows, 1.0)
         if J != P:
             J.assemble()
-        if own:
-            self.jacobians += 1
-            self.last_jacobian_plain = bool(symmetric) and not self.extra_terms
 
     def _check_no_mallocs(self, P):
         """Safety net for ensure_pattern: an entry beyond the preallocation would be wrong in
@@ -454,7 +449,7 @@ class RodProblem:
             self.stats["limited_steps"] = self.stats.get("limited_steps", 0) + 1
             changed = True
         c = self.contact
-        d_allow = max(2.0 * c.deepest(), 0.02 * 2.0 * c.eps)
+        d_allow = max(2.0 * c.deepest(report=False), 0.02 * 2.0 * c.eps)   # as at the trials
         use_energy = self._energy_descent_applies(Y)
         if use_energy:
             r0, q0 = self.state.local_config(X)

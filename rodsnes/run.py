@@ -235,7 +235,6 @@ class Run:
              "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
              "stagnated_solves": self.solver.stagnations,
              "damped_solves": self.solver.damped_solves,
-             "inertia_counts": dict(self.solver.inertia_counts),
              "steps": self.history}
         tip = self._tip(self.last_fields)
         if tip is not None:

@@ -31,17 +31,16 @@ from .partition import NDOF
 
 # the smallest penalty raise keep_penetration cuts a failed one back to (x mu)
 RAISE_MIN = 1.1
-
-
-_DEFAULTED = set()     # options this module set itself (not the user's): a later solver may change them
+# the largest turn of a prescribed end rotation (-bc_end_turns) in one load step: the end's
+# rotation is set as a point of SO(3), which knows it only modulo a full turn, and Newton
+# starts from the neighbouring nodes' rotations, so a step of more than half a turn would be
+# taken the short way round (3 turns in one step gave the untwisted rod, 0.6 turns link -0.4)
+MAX_TURN_STEP = 0.25
 
 
 def _default(opts, name, value):
-    """Set an option unless the user gave it (the options database outlives one solver: a
-    default set for an earlier solver in the same process is not the user's)."""
-    if not opts.hasName(name) or name in _DEFAULTED:
+    if not opts.hasName(name):
         opts.setValue(name, value)
-        _DEFAULTED.add(name)
 
 
 class StepResult:
@@ -61,15 +60,8 @@ class NewtonSolver:
         _default(opts, "snes_stol", "1e-16")
         _default(opts, "snes_max_it", "40")
         _default(opts, "ksp_type", "preonly")
-        # -stability with conservative loads: Newton factors the symmetric energy Hessian by
-        # MUMPS LDL^T, whose negative pivots are the stability count (stability.newton_inertia:
-        # no second factorisation); otherwise the consistent tangent by LU
-        symmetric = bool(check_stability) and _nonconservative(problem.scene.loads) is None
-        problem.set_symmetric(symmetric)
-        _default(opts, "pc_type", "cholesky" if symmetric else "lu")
+        _default(opts, "pc_type", "lu")
         _default(opts, "pc_factor_mat_solver_type", "mumps")
-        if symmetric:
-            _default(opts, "mat_mumps_icntl_13", "1")   # the inertia right on any number of ranks
         if problem.contact is not None:
             # contact pairs add fill the analysis did not see: room for it (else INFOG(1) = -9)
             _default(opts, "mat_mumps_icntl_14", "100")
@@ -104,8 +96,6 @@ class NewtonSolver:
         self.damped_its = PETSc.Options().getInt("load_damped_its", 0)
         self.damped_solves = 0
         self.check_stability = check_stability
-        self._jac_before = None             # problem.jacobians when the last solve_at began
-        self.inertia_counts = {"newton": 0, "separate": 0}   # where the stability counts came from
         self.f0 = None
         self.total_its = 0
         # branch switching (-stability_switch, on by default with -stability): relax an unstable
@@ -181,7 +171,6 @@ class NewtonSolver:
         t0 = time.perf_counter()
         p.set_load(lam)
         self.snes.setConvergenceHistory(length=1000, reset=True)
-        self._jac_before = p.jacobians
         try:
             self.snes.solve(None, p.state.X)
             reason = self.snes.getConvergedReason()
@@ -229,7 +218,12 @@ class NewtonSolver:
         continuation (the fold's load; dlam0 is then its next arclength increment)."""
         p = self.problem
         self.fail_reason = None
-        nominal = self.nominal = 1.0 / steps   # the same load grid when a run is restarted from lam0
+        # the same load grid when a run is restarted from lam0; no step turns a prescribed end
+        # by more than MAX_TURN_STEP (a rotation is known only modulo a full turn on SO(3))
+        nominal = self.nominal = min(1.0 / steps, p.constraints.max_load_increment(MAX_TURN_STEP))
+        if nominal < 1.0 / steps:
+            self._say(f"  -bc_end_turns {p.scene.bc.end_turns:g}: load steps of at most "
+                      f"{MAX_TURN_STEP:g} turn ({int(np.ceil(1.0 / nominal - 1e-9))} steps from 0 to 1)")
         lam, dlam = lam0, (nominal if dlam0 is None else min(nominal, dlam0))
         cutbacks = 0
         results = self.results = []
@@ -487,25 +481,9 @@ class NewtonSolver:
 
     # -- branch switching -------------------------------------------------------------
     def _count_negative(self, counter):
-        """The negative eigenvalues of the energy Hessian at the current state, the same on
-        every rank: 0 when the LDL^T factorisation of the last solve_at, of this state's Newton
-        iterates, has no negative pivot (stability.newton_inertia), else counter(problem) (a
-        factorisation of its own).  Call it right after the solve it belongs to."""
+        """counter(problem), the same on every rank (max over ranks)."""
         from mpi4py import MPI
-        from .stability import newton_inertia
-        n = None
-        if self._jac_before is not None:
-            n = newton_inertia(self.snes, self.problem, self._jac_before)
-            self._jac_before = None          # one count per solve
-        if n == 0:
-            self.inertia_counts["newton"] += 1
-        else:
-            # no Newton factorisation of this state, or it has negative pivots: an exact zero
-            # mode (a symmetry) can pivot at roundoff of either sign, so an instability is
-            # confirmed by the shifted, scaled factorisation of its own (rare: unstable states)
-            n = counter(self.problem)
-            self.inertia_counts["separate"] += 1
-        return int(self.problem.layout.comm.tompi4py().allreduce(int(n), op=MPI.MAX))
+        return int(self.problem.layout.comm.tompi4py().allreduce(int(counter(self.problem)), op=MPI.MAX))
 
     def _say(self, text):
         if not self.quiet and self.problem.layout.comm.getRank() == 0:

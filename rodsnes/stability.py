@@ -23,37 +23,85 @@ def zero_shift(A):
     return 1e3 * np.finfo(float).eps * A.getDiagonal().norm(PETSc.NormType.INFINITY)
 
 
-def newton_inertia(snes, problem, jacobians_before):
-    """The number of negative eigenvalues of the energy Hessian from the LDL^T factorisation
-    that Newton's last step made (MUMPS INFOG(12), the negative pivots; with
-    -mat_mumps_icntl_13 1 the count is right on any number of ranks), or None when that
-    factorisation is not of the plain energy Hessian at this solve's iterates: Newton ran
-    with the consistent (LU) tangent, no Jacobian was assembled since ``jacobians_before``
-    (a solve converged at its first residual), extra terms (a relaxation's c M) were in it,
-    or the factorisation was dropped since (a new contact pattern).
+class Inertia:
+    """The negative eigenvalues of the energy Hessian, counted by MUMPS LDL^T (INFOG(12), the
+    negative pivots; -stability_mat_mumps_icntl_13 1 makes the count right on any number of
+    ranks).  The Hessian goes into an SBAIJ matrix of the problem's layout (the upper block
+    triangle, half the entries; Dirichlet rows masked as it is assembled) that is kept, with
+    its factorisation's symbolic analysis, while the block pattern stays the same: a count is
+    one Hessian assembly and one numeric LDL^T (half the flops of Newton's LU).  The diagonal
+    is shifted by tau = 1000 eps max|diag| (zero_shift) so that exact zero modes count as
+    positive.  Newton itself factors the consistent tangent by LU: on the symmetric Hessian
+    (equal at equilibrium, O(|F|) apart elsewhere) Newton stagnated on the Michell ring's
+    unstable branch near its bifurcation (test_restart), where the consistent tangent
+    converges."""
 
-    The factorisation is of the last iterate but one; the converged state differs from it by
-    one Newton step (|dx| ~ |F| / stiffness), which moves an eigenvalue by O(|dx|): the count
-    can differ only for an eigenvalue within that distance of zero, i.e. exactly at a
-    bifurcation.  Collective."""
-    if not (problem.symmetric and problem.last_jacobian_plain and problem.jacobians > jacobians_before):
-        return None
-    pc = snes.getKSP().getPC()
-    try:
-        if pc.getType() != PETSc.PC.Type.CHOLESKY or pc.getFactorSolverType() != "mumps":
-            return None
-        F = pc.getFactorMatrix()
-        if F.getMumpsInfog(1) < 0:
-            return None
-        return int(F.getMumpsInfog(12))
-    except PETSc.Error:
-        return None
+    def __init__(self, problem):
+        self.problem = problem
+        self.pairs = None
+        self.H = None
+        self.pc = None
+        self.builds = 0                  # matrices (and symbolic analyses) made
+        self.counts = 0
+
+    def _pattern(self):
+        p = self.problem
+        if p.contact is None:
+            return np.zeros((0, 2), dtype=np.int64)
+        r_loc, _ = p.state.local_config()
+        return p.contact.pattern_pairs(r_loc, p.contact.pattern_reach)
+
+    def _build(self, pairs):
+        p = self.problem
+        self.destroy()
+        groups = p.contact.node_groups(pairs) if p.contact is not None and len(pairs) else None
+        self.H = p.layout.create_matrix(groups, symmetric=True)
+        pc = PETSc.PC().create(comm=p.layout.comm)
+        pc.setOptionsPrefix("stability_")
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("mumps")
+        opts = PETSc.Options()
+        if not opts.hasName("stability_mat_mumps_icntl_13"):
+            opts.setValue("stability_mat_mumps_icntl_13", "1")
+        pc.setFromOptions()
+        self.pc, self.pairs = pc, pairs
+        self.builds += 1
+
+    def count(self):
+        """Negative eigenvalues of the symmetric Hessian at the problem's current state.
+        Collective."""
+        p = self.problem
+        pairs = self._pattern()
+        if self.pairs is None or not np.array_equal(pairs, self.pairs):
+            self._build(pairs)
+        H = self.H
+        p.jacobian(None, p.state.X, H, H, symmetric=True)
+        H.shift(zero_shift(H))
+        self.pc.setOperators(H)
+        self.pc.setUp()
+        self.counts += 1
+        return int(self.pc.getFactorMatrix().getMumpsInfog(12))
+
+    def destroy(self):
+        for obj in (self.pc, self.H):
+            if obj is not None:
+                obj.destroy()
+        self.pc = self.H = None
 
 
 def negative_eigenvalues(problem):
-    """Number of negative eigenvalues of the symmetric tangent at the current state, from a
-    factorisation of its own (for states Newton's LDL^T did not just factor:
-    ``newton_inertia``)."""
+    """Number of negative eigenvalues of the symmetric tangent at the current state
+    (Inertia, kept on the problem between counts)."""
+    if problem.inertia is None:
+        problem.inertia = Inertia(problem)
+    return problem.inertia.count()
+
+
+def negative_eigenvalues_scaled(problem):
+    """The same count by a factorisation made afresh: the Hessian in AIJ, Jacobi-scaled
+    (a congruence, so the inertia is kept), shifted by zero_shift, MUMPS Cholesky with
+    MatGetInertia (ICNTL(24) null pivots).  The reference the kept-factorisation count is
+    tested against."""
     H = hessian(problem)
     A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
@@ -67,14 +115,14 @@ def negative_eigenvalues(problem):
     d.reciprocal()
     A.diagonalScale(d, d)
     pc = PETSc.PC().create(comm=problem.layout.comm)
-    pc.setOptionsPrefix("stability_")
+    pc.setOptionsPrefix("stability_check_")
     pc.setOperators(A)
     pc.setType(PETSc.PC.Type.CHOLESKY)
     pc.setFactorSolverType("mumps")
     opts = PETSc.Options()
     for icntl in ("13", "24"):     # 13: inertia over all ranks; 24: null pivots (MatGetInertia needs it)
-        if not opts.hasName("stability_mat_mumps_icntl_" + icntl):
-            opts.setValue("stability_mat_mumps_icntl_" + icntl, "1")
+        if not opts.hasName("stability_check_mat_mumps_icntl_" + icntl):
+            opts.setValue("stability_check_mat_mumps_icntl_" + icntl, "1")
     pc.setFromOptions()
     pc.setUp()
     nneg, nzero, npos = pc.getFactorMatrix().getInertia()

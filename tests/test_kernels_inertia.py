@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rodsnes import elastic, so3
-from conftest import run_case
+from conftest import gathered_positions, place, run_case
 
 STIFF = [3.0, 4.0, 50.0, 1.0, 2.0, 1.5]
 
@@ -57,58 +57,52 @@ def test_kernel_choice():
         elastic.ElasticRod(3, 3, 0.1, STIFF, kernel="fortran")
 
 
-def test_every_kernel_gives_the_same_cantilever(tmp_path):
+@pytest.mark.mpi
+def test_every_kernel_gives_the_same_cantilever():
     """Mattiasson's cantilever with each kernel: the same tip to solver tolerance."""
     tips = {}
     for kernel in ("numpy", "reference") + (("compiled",) if elastic.compiled_available() else ()):
-        run = run_case("mattiasson", outdir=tmp_path / kernel, rod_kernel=kernel)
+        run = run_case("mattiasson", rod_kernel=kernel)
         assert run.ok
-        tips[kernel] = np.array(json.load(open(os.path.join(tmp_path / kernel, "summary.json")))["tip_position"])
+        tips[kernel] = gathered_positions(run)[-1]
     for kernel, tip in tips.items():
         assert np.abs(tip - tips["reference"]).max() < 1e-9, kernel
 
 
-def test_stability_count_comes_from_newtons_factorisation(tmp_path):
-    """-stability: Newton factors the symmetric Hessian (SBAIJ, MUMPS LDL^T); a stable step's
-    count is read from that factorisation, an unstable one is confirmed by a factorisation of
-    its own.  A perfect Euler
-    column at 1.2 P_cr held on the straight branch (no switch) has the two buckling modes
-    (y and z) negative; the buckled branch (imperfection) has none."""
+@pytest.mark.mpi
+def test_stability_count_by_the_kept_ldlt_equals_a_fresh_factorisation():
+    """-stability counts the Hessian's negative eigenvalues by the kept SBAIJ LDL^T
+    (stability.Inertia: one matrix and symbolic analysis for the whole path); the count equals
+    a fresh, Jacobi-scaled AIJ factorisation's.  A perfect Euler column at 1.2 P_cr held on the
+    straight branch (no switch) has its two buckling modes (y and z) negative; the buckled
+    branch (imperfection) none."""
     from rodsnes import stability
-    counts = []
     for imperfection, want in ((0.0, 2), (1e-3, 0)):
-        run = run_case("euler", outdir=tmp_path / str(imperfection), stability=True,
-                       stability_switch=0, rod_imperfection=imperfection,
+        run = run_case("euler", stability=True, stability_switch=0, rod_imperfection=imperfection,
                        load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4), load_steps=4)
         p = run.problem
-        assert p.symmetric and "sbaij" in p.J.getType()
-        assert run.solver.snes.getKSP().getPC().getType() == "cholesky"
-        counted = run.solver.inertia_counts
-        if want == 0:      # every accepted (stable) step counted from Newton's factorisation
-            assert counted["newton"] >= len(run.solver.results) >= 4
-        else:              # the unstable ones confirmed by a factorisation of their own
-            assert counted["separate"] >= 1
-        last = run.solver.results[-1]
-        assert last.negative_eigenvalues == want
-        assert stability.negative_eigenvalues(p) == want          # a factorisation of its own
-        counts.append(last.negative_eigenvalues)
-        summary = json.load(open(os.path.join(tmp_path / str(imperfection), "summary.json")))
-        assert summary["inertia_counts"]["newton"] == run.solver.inertia_counts["newton"]
-    assert counts == [2, 0]
+        assert run.solver.results[-1].negative_eigenvalues == want
+        assert stability.negative_eigenvalues(p) == want
+        assert stability.negative_eigenvalues_scaled(p) == want
+        inertia = p.inertia
+        assert "sbaij" in inertia.H.getType()
+        assert inertia.builds == 1 and inertia.counts >= len(run.solver.results) + 1
 
 
-def test_newton_on_the_symmetric_hessian_takes_the_steps_of_the_consistent_tangent(tmp_path):
-    """The symmetric Hessian differs from the consistent tangent by -1/2 g_theta^x = O(|F|), so
-    Newton keeps its rate: Mattiasson's cantilever takes the same iterations per step with
-    either (the residual histories agree to the level the dropped term reaches) and ends at
-    the same tip."""
-    runs = [run_case("mattiasson", outdir=tmp_path / str(flag), stability=flag)
-            for flag in (False, True)]
-    assert not runs[0].problem.symmetric and runs[1].problem.symmetric
-    for a, b in zip(runs[0].solver.results, runs[1].solver.results, strict=True):
-        assert a.its == b.its
-        big = a.history > 1e-4
-        assert np.allclose(a.history[big], b.history[big], rtol=1e-4)
-    tips = [np.array(json.load(open(os.path.join(tmp_path / str(flag), "summary.json")))["tip_position"])
-            for flag in (False, True)]
-    assert np.abs(tips[0] - tips[1]).max() < 1e-9
+@pytest.mark.mpi
+def test_the_kept_ldlt_follows_a_new_contact_pattern():
+    """With contact the Hessian's pattern follows the candidate pairs: the same state keeps
+    the matrix; a state without contact (the rod put back straight) makes a new one; every
+    count equals the fresh factorisation's."""
+    from rodsnes import stability
+    run = run_case("rollup_contact", rod_nelem=16, load_steps=5, stability=True)
+    assert run.ok and run.problem.contact.summary()["active_points"] > 0
+    p = run.problem
+    builds = p.inertia.builds
+    assert stability.negative_eigenvalues(p) == stability.negative_eigenvalues_scaled(p)
+    assert p.inertia.builds == builds                   # same state, same pattern: kept
+    n = run.mesh.n_nodes
+    s_nodes = np.linspace(0.0, run.mesh.length, n)
+    place(run, np.c_[s_nodes, np.zeros(n), np.zeros(n)], np.tile([1.0, 0.0, 0.0], (n, 1)))
+    assert stability.negative_eigenvalues(p) == stability.negative_eigenvalues_scaled(p)
+    assert p.inertia.builds == builds + 1            # other pairs: a new matrix
