@@ -68,8 +68,11 @@ class ContactTerm:
                                            segments=c.zones)
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
-        self.pattern_reach = 2.0 * self.eps + 4.0 * self.eps + mesh.h   # preallocation margin per step
         self.skin = self.SKIN * self.eps                         # Verlet skin of the search
+        # the Jacobian is preallocated for the pairs of the search's Verlet list (reach + skin);
+        # RodProblem.ensure_pattern grows it when an iterate needs more.  A wider margin
+        # (6 eps + h before) filled the compact plectoneme's matrix: its LU took 1.8x longer
+        self.pattern_reach = self.reach + self.skin
         self.own_ids = layout.owned_elems
         self.lconn = layout.lconn
         self.unit = MPI.DOUBLE.Create_contiguous(3).Commit()

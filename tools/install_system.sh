@@ -2,7 +2,8 @@
 # Install the Debian packages rodsnes needs, only those that are missing.
 set -euo pipefail
 PKGS="python3-petsc4py petsc-dev python3-mpi4py python3-h5py-mpi python3-meshio python3-scipy
-python3-matplotlib python3-pytest python3-pytest-xdist python3-venv libmetis-dev openmpi-bin gcc"
+python3-matplotlib python3-pytest python3-pytest-xdist python3-venv libmetis-dev openmpi-bin gcc
+libopenblas0-serial"
 missing=""
 for p in $PKGS; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "ok installed" || missing="$missing $p"
