@@ -1,0 +1,108 @@
+"""tools/bench_scaling.py: its -log_view parsing and per-iteration split, on a real 4-element run
+(cases/mattiasson.opts, started through the tool's child mode, serial) and on a synthetic log."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "tools"))
+import bench_scaling as bs  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def mattiasson_run(tmp_path_factory):
+    """A 4-element mattiasson run with -log_view: (parsed log, summary.json)."""
+    d = tmp_path_factory.mktemp("bench_scaling")
+    logfile = str(d / "log_view.txt")
+    # the case's own 5 load steps (the benchmark's -load_steps 2 overridden: the last one counts)
+    cmd = bs.command("cantilever", "-", 4, 1, str(d / "run"), logfile, extra=("-load_steps", "5"))
+    subprocess.run(cmd, check=True, env=bs.run_env(), cwd=ROOT, timeout=120,
+                   stdout=subprocess.DEVNULL)
+    with open(logfile) as fh:
+        log = bs.parse_log_view(fh.read())
+    with open(d / "run" / "summary.json") as fh:
+        summary = json.load(fh)
+    return log, summary
+
+
+def test_counts_match_the_run(mattiasson_run):
+    log, s = mattiasson_run
+    assert s["converged"] and s["load_steps"] == 5 and log["ranks"] == 1
+    ev = log["events"]
+    p = bs.iteration_parts(log)
+    its = sum(step["newton_iterations"] for step in s["steps"])
+    # every Newton iteration: one Jacobian, one numeric LU, one solve; no failed tries here
+    assert p["iterations"] == ev["SNESJacobianEval"]["count"] == its == s["newton_iterations"]
+    assert p["factorisations"] == its and ev["MatSolve"]["count"] == its
+    assert p["snes_solves"] == s["load_steps"] == ev["SNESSolve"]["count"]
+    # basic line search: one residual per iteration, plus the first of each solve
+    assert p["residual_evals"] == its + s["load_steps"]
+    # the elastic kernel runs once per residual and once per Jacobian (child mode's event)
+    assert ev["ElasticKernel"]["count"] == p["residual_evals"] + its
+
+
+def test_parts_positive_and_nested(mattiasson_run):
+    log, _ = mattiasson_run
+    p = bs.iteration_parts(log)
+    for key in ("total", "residual", "jacobian", "factor", "solve", "elastic"):
+        assert p[key] > 0.0, key
+    assert p["contact"] == 0.0 and p["rod_events"] == 1
+    # disjoint parts of SNESSolve cannot add up to more than it; the elastic kernel runs
+    # inside the residual and Jacobian evaluations
+    assert p["residual"] + p["jacobian"] + p["factor"] + p["solve"] <= p["total"] * (1 + 1e-9)
+    assert p["elastic"] <= p["residual"] + p["jacobian"]
+    assert p["resjac_per_factor"] == pytest.approx((p["residual"] + p["jacobian"]) / p["factor"])
+
+
+SYNTHETIC = """\
+.venv/bin/rodsnes on a  named vm with 2 processors, by Unknown Thu Nov 26 01:02:35 2026
+------------------------------------------------------------------------------------------------------------------------
+Event                Count      Time (sec)     Flop                              --- Global ---  --- Stage ----  Total
+                   Max Ratio  Max     Ratio   Max  Ratio  Mess   AvgLen  Reduct  %T %F %M %L %R  %T %F %M %L %R Mflop/s
+------------------------------------------------------------------------------------------------------------------------
+
+--- Event Stage 0: Main Stage
+
+MatSolve               4 1.0 2.0000e-02 1.0 2.54e+06 1.0 0.0e+00 0.0e+00 0.0e+00  1 99  0  0  0   1 99  0  0  0   732
+MatLUFactorNum         4 1.0 8.0000e-02 1.1 3.89e+03 1.0 0.0e+00 0.0e+00 0.0e+00  2  0  0  0  0   2  0  0  0  0     0
+SNESSolve              1 1.0 4.0000e-01 1.0 2.57e+06 1.0 0.0e+00 0.0e+00 0.0e+00 48 100  0  0  0  48 100  0  0  0    10
+SNESFunctionEval       5 1.0 5.0000e-02 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00  4  0  0  0  0   4  0  0  0  0     0
+SNESJacobianEval       4 1.0 1.0000e-01 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00 40  0  0  0  0  40  0  0  0  0     0
+SNESLineSearch         4 1.0 6.0000e-02 1.0 1.95e+04 1.0 0.0e+00 0.0e+00 0.0e+00  3  1  0  0  0   3  1  0  0  0     1
+ContactSearch         10 1.0 1.0000e-02 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00  0  0  0  0  0   0  0  0  0  0     0
+
+--- Event Stage 1: Relaxation
+
+SNESSolve              1 1.0 4.0000e-01 1.0 2.57e+06 1.0 0.0e+00 0.0e+00 0.0e+00 48 100  0  0  0  48 100  0  0  0    10
+SNESJacobianEval       4 1.0 1.0000e-01 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00 40  0  0  0  0  40  0  0  0  0     0
+ContactEval            8 1.0 3.0000e-02 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00  0  0  0  0  0   0  0  0  0  0     0
+------------------------------------------------------------------------------------------------------------------------
+
+Object Type          Creations   Destructions. Reports information only for process 0.
+              Vector    28             28
+"""
+
+
+def test_parse_synthetic_log():
+    log = bs.parse_log_view(SYNTHETIC)
+    ev = log["events"]
+    assert log["ranks"] == 2
+    assert ev["SNESJacobianEval"] == {"count": 8, "time": pytest.approx(0.2)}   # both stages
+    assert ev["SNESSolve"]["count"] == 2 and "Vector" not in ev
+    p = bs.iteration_parts(log)
+    assert p["iterations"] == 8
+    assert p["total"] == pytest.approx(0.8 / 8)
+    assert p["factor"] == pytest.approx(0.08 / 8)
+    assert p["linesearch"] == pytest.approx((0.06 - 4 * 0.05 / 5) / 8)
+    assert p["contact"] == pytest.approx(0.04 / 8)
+    assert p["contact_per_factor"] == pytest.approx(0.5)
+
+
+def test_parse_rejects_other_text():
+    with pytest.raises(ValueError):
+        bs.parse_log_view("no PETSc here\n")
+    with pytest.raises(ValueError):       # a log without a Newton solve
+        bs.parse_log_view(SYNTHETIC.replace("SNESSolve", "KSPSolve"))
