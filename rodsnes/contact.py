@@ -1403,52 +1403,54 @@ class ContactKernel:
     def _terms(self, ctx, o, xi, wJ, qp, cl, tangent, out):
         """Energy, residual and tangent of the slave points (o, xi) with weights w J
         (module docstring, "Formulas used"); fills ``out``."""
-        p, mu = self.p, self.mu
+        mu = self.mu
         d = cl["d"]
         dpos = np.maximum(d, 0.0)
         out["energy"] = float(0.5 * mu * np.sum(wJ * dpos ** 2))
         out["total_force"] = float(mu * np.sum(wJ * dpos))
         out["complementarity"] = float(mu * np.sum(wJ * dpos ** 2))
-        act = d > 0.0
-        if not np.any(act):
+        a = self._active(cl, wJ)
+        if a is None:
             return
-        m, xm = cl["m"][act], cl["xi_m"][act]
-        Dv, g, d = cl["D"][act], cl["g"][act], d[act]
-        Nm = _monomials(p, xm)[0] @ self.C
-        Ns = cl["N"][act]
-        interior = cl["interior"][act]
-        gs = np.maximum(g, 1e-300)
-        nu = Dv / gs[:, None]
-        Nt = np.concatenate([Ns, -Nm], axis=1)                     # (nact, 2(p+1))
-        cw = wJ[act] * mu                                           # w J mu
+        act, m, xm, d, nu, Nt = a["act"], a["m"], a["xm"], a["d"], a["nu"], a["Nt"]
+        cw = a["cw"]
         out["active"] = np.stack([ctx["own_ids"][o[act]], ctx["pool_ids"][m]], axis=1)
         out["vec"] = -(cw * d)[:, None, None] * Nt[:, :, None] * nu[:, None, :]
         out["qp"], out["xi"], out["xi_slave"] = qp[act], xm, xi[act]
         out["d_active"] = d
-        out["normal"], out["interior"] = nu, interior
+        out["normal"], out["interior"] = nu, a["interior"]
         if tangent:
             out["mat"] = self._terms_tangent(ctx, wJ, cl)
+
+    def _active(self, cl, wJ):
+        """The slave points of the closest-point record cl in contact (d > 0): their mask act,
+        master m and xi_m, depth d, offset D, distance g (floored), normal nu, shape functions
+        N_s, N_m and Nt = (N_s, -N_m), weights w J mu, interior flags; None when none is."""
+        act = cl["d"] > 0.0
+        if not np.any(act):
+            return None
+        xm, g = cl["xi_m"][act], cl["g"][act]
+        gs = np.maximum(g, 1e-300)
+        Dv = cl["D"][act]
+        Ns, Nm = cl["N"][act], _monomials(self.p, xm)[0] @ self.C
+        return {"act": act, "m": cl["m"][act], "xm": xm, "d": cl["d"][act], "Dv": Dv, "gs": gs,
+                "nu": Dv / gs[:, None], "Ns": Ns, "Nm": Nm,
+                "Nt": np.concatenate([Ns, -Nm], axis=1),                 # (nact, 2(p+1))
+                "cw": wJ[act] * self.mu, "interior": cl["interior"][act]}
 
     def _terms_tangent(self, ctx, wJ, cl):
         """d2E_c/dx2 (nact, 6(p+1), 6(p+1)) of the slave points in contact (d > 0) of the
         closest-point record cl with weights w J, in the row order of ``_terms`` (module
         docstring, "Formulas used")."""
-        p, eps, mu = self.p, self.eps, self.mu
+        p, eps = self.p, self.eps
         n1 = p + 1
-        d = cl["d"]
-        act = d > 0.0
-        if not np.any(act):
+        a = self._active(cl, wJ)
+        if a is None:
             return np.zeros((0, 6 * n1, 6 * n1))
-        m, xm = cl["m"][act], cl["xi_m"][act]
-        Dv, g, d = cl["D"][act], cl["g"][act], d[act]
-        Nm, dNm, d2Nm = (mm @ self.C for mm in _monomials(p, xm))
+        m, d, Dv, gs, nu = a["m"], a["d"], a["Dv"], a["gs"], a["nu"]
+        Ns, Nm, Nt, cw, interior = a["Ns"], a["Nm"], a["Nt"], a["cw"], a["interior"]
+        _, dNm, d2Nm = (mm @ self.C for mm in _monomials(p, a["xm"]))
         xmn = ctx["pool_x"][m]
-        Ns = cl["N"][act]
-        interior = cl["interior"][act]
-        gs = np.maximum(g, 1e-300)
-        nu = Dv / gs[:, None]
-        Nt = np.concatenate([Ns, -Nm], axis=1)                     # (nact, 2(p+1))
-        cw = wJ[act] * mu                                           # w J mu
         nact = len(d)
         A3 = (2.0 * eps / gs)[:, None, None] * nu[:, :, None] * nu[:, None, :] \
             - (d / gs)[:, None, None] * np.eye(3)[None]

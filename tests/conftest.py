@@ -10,6 +10,15 @@ from petsc4py import PETSc
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+def load_tool(name):
+    """The module tools/<name>.py (tools are scripts, not a package)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(f"tool_{name}", os.path.join(ROOT, "tools", f"{name}.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def read_opts_file(path):
     """Options file -> list of (name, value) pairs (PETSc syntax: '-name value', '#' comments)."""
     pairs = []

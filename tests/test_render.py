@@ -1,7 +1,6 @@
 """tools/render.py on synthetic results (a helix, a closed twisted ring) and the rate fitting and
 CSV of tools/work_precision.py with a fake runner (no solver needed)."""
 import csv
-import importlib.util
 import json
 import math
 import sys
@@ -10,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import load_tool
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the package may not be pip-installed yet
     sys.path.insert(0, str(ROOT))
@@ -17,15 +18,10 @@ if str(ROOT) not in sys.path:  # the package may not be pip-installed yet
 from rodsnes import output  # noqa: E402
 
 
-def _tool(name):
-    spec = importlib.util.spec_from_file_location(f"tool_{name}", ROOT / "tools" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
-render = _tool("render")
-wp = _tool("work_precision")
+render = load_tool("render")
+wp = load_tool("work_precision")
 
 
 def _frames(t, d1):

@@ -10,7 +10,6 @@ this mu is 1.85e-4), err_tip 2.55e-5 (d0 / L = 2.53e-5), err_force_law 2.16e-5, 
 be the penalty law's (force deficit above half of it, tip error = d0 / L within 10 %): the
 reference is the hard contact and the run's mu is the one asked for."""
 import csv
-import importlib.util
 import json
 import math
 import sys
@@ -19,19 +18,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import load_tool
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the package may not be pip-installed yet
     sys.path.insert(0, str(ROOT))
 
 
-def _tool(name):
-    spec = importlib.util.spec_from_file_location(f"tool_{name}", ROOT / "tools" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
-wp = _tool("work_precision")
+wp = load_tool("work_precision")
 CASE = ROOT / "cases" / "rollup_contact.opts"
 
 
