@@ -105,6 +105,7 @@ elements share a node or coincide).
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .profiling import logged
 from . import fe
 
 __all__ = ["default_exclusion", "default_penalty", "element_bounds", "candidate_pairs",
@@ -693,6 +694,7 @@ class ContactKernel:
         return xi_out, f_out
 
     # -- main entry ---------------------------------------------------------------------------
+    @logged("ContactEval")
     def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True, report=True):
         """The contact term of every strand in reach, summed:
 
@@ -754,6 +756,7 @@ class ContactKernel:
         out["reported"] = True
         return out
 
+    @logged("ContactTangent")
     def add_tangent(self, out):
         """mat, switch and switch_mat of an evaluation made without its tangent (in place;
         nothing to do if it has them): ``_terms_tangent`` and ``_switch_terms`` on the points

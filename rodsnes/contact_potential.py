@@ -82,6 +82,7 @@ compares it at the iterate and at its trials, with no closest point.
 """
 import numpy as np
 
+from .profiling import logged
 from . import fe
 from .contact import ContactKernel, _lookup, capsules_within, element_capsules
 
@@ -211,6 +212,7 @@ class PotentialKernel:
         nu = D / np.where(r > 0.0, r, 1.0)[..., None]
         return a, r, nu
 
+    @logged("ContactEval")
     def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True, report=True):
         """Energy and residual of (1) over the own elements, with the outputs of
         contact.ContactKernel.evaluate_strand (active = element pairs, no switch points); with
@@ -305,6 +307,7 @@ class PotentialKernel:
         vec[:, n1:] = -(self._NmT @ G.sum(axis=1))
         out["vec"] = vec
 
+    @logged("ContactTangent")
     def add_tangent(self, out):
         """The tangent blocks of an evaluation (in place; nothing to do if it has them), from
         the couples its residual kept:

@@ -33,6 +33,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from .profiling import logged
 from . import contact as ck, so3
 from .partition import add_position_blocks
 from .contact_potential import PotentialKernel
@@ -123,6 +124,7 @@ class ContactTerm:
         self.sf, self.leaf_nodes = sf, nodes.copy()
         self.sf_builds += 1
 
+    @logged("ContactHalo")
     def _fetch(self, r_loc, nodes):
         self._ensure_sf(nodes)
         root = np.ascontiguousarray(r_loc[:self.layout.n_owned], dtype=float)
@@ -131,6 +133,7 @@ class ContactTerm:
         self.sf.bcastEnd(self.unit, root, leaf, MPI.REPLACE)
         return leaf
 
+    @logged("ContactHalo")
     def _send_back(self, leaf_force):
         root = np.zeros((self.layout.n_owned, 3))
         leaf = np.ascontiguousarray(leaf_force, dtype=float)
@@ -183,6 +186,7 @@ class ContactTerm:
             self.search_reuses += 1
         return x_own, cen, rad, self._search[2]
 
+    @logged("ContactSearch")
     def _search_pairs(self, cen, rad, reach, bounds=False):
         """Candidate pairs (own element, any element) within ``reach`` of the bounding spheres
         (cen, rad) of the own elements: the spheres of all ranks allgathered, a cKDTree
@@ -277,6 +281,7 @@ class ContactTerm:
         if self.supports is not None:
             self.supports.add_jacobian(out["support"], P)
 
+    @logged("ContactAssemble")
     def _add_blocks(self, P, elems, mat):
         m = self.mesh
         nodes = np.concatenate([ck.element_node_ids(elems[:, j], m.order, m.nelem, m.closed)

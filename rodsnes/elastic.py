@@ -38,6 +38,7 @@ the unshearable (Kirchhoff) limit, up to O(shear strain) otherwise.
 """
 import numpy as np
 
+from .profiling import logged
 from . import fe, so3
 
 
@@ -293,6 +294,7 @@ class ElasticRod:
         e0 = self.e0 if e0 is None else e0
         return self.law(self.strains(qe, xe), e0)[1]
 
+    @logged("ElasticKernel")
     def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False):
         """Element residuals (ne, p+1, 6) and tangents (ne, 6(p+1), 6(p+1)) in the
         Newton unknowns (r, theta) per node, plus the energy of each element.
