@@ -52,6 +52,26 @@ typedef struct {
     double Wrr[9];                               /* 3x3: r' - r' */
 } PointTerms;
 
+/* 3-vector helpers: a.b, a x b, and the matrix a^x with a^x b = a x b */
+static ALWAYS_INLINE double dot3(const double *a, const double *b)
+{
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+}
+
+static ALWAYS_INLINE void cross3(const double *a, const double *b, double *out)
+{
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static ALWAYS_INLINE void hat3(const double *a, double h[3][3])
+{
+    h[0][0] = 0.0;   h[0][1] = -a[2]; h[0][2] = a[1];
+    h[1][0] = a[2];  h[1][1] = 0.0;   h[1][2] = -a[0];
+    h[2][0] = -a[1]; h[2][1] = a[0];  h[2][2] = 0.0;
+}
+
 /* Strain numerators at a point and their derivatives DN = dNz/dz (e = Nz / n2). */
 typedef struct {
     double n2, inv, inv2;       /* |p|^2, 1/|p|^2, 1/|p|^4 */
@@ -65,7 +85,7 @@ static ALWAYS_INLINE void strain_numerators(const double *p, const double *dp, c
 {
     const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
     const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
-    const double pvpv = pv[0] * pv[0] + pv[1] * pv[1] + pv[2] * pv[2];
+    const double pvpv = dot3(pv, pv);
     const double s = p0 * p0 - pvpv;
     z->n2 = p0 * p0 + pvpv;
     z->inv = 1.0 / z->n2;
@@ -79,21 +99,19 @@ static ALWAYS_INLINE void strain_numerators(const double *p, const double *dp, c
     z->Rt[1][0] -= 2.0 * p0 * pv[2];  z->Rt[1][2] += 2.0 * p0 * pv[0];
     z->Rt[2][0] += 2.0 * p0 * pv[1];  z->Rt[2][1] -= 2.0 * p0 * pv[0];
     for (int k = 0; k < 3; k++)
-        z->Nz[k] = z->Rt[k][0] * dr[0] + z->Rt[k][1] * dr[1] + z->Rt[k][2] * dr[2];
-    const double pxdp[3] = {pv[1] * dpv[2] - pv[2] * dpv[1],
-                            pv[2] * dpv[0] - pv[0] * dpv[2],
-                            pv[0] * dpv[1] - pv[1] * dpv[0]};
+        z->Nz[k] = dot3(z->Rt[k], dr);
+    double pxdp[3];
+    cross3(pv, dpv, pxdp);
     for (int k = 0; k < 3; k++)
         z->Nz[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]);
     /* dg/dp = 2 [p0 r' - pv x r',  pv r'^T - r' pv^T + (pv.r') I + p0 r'^x]
      * d(2w)/dp = 2 [pv', -p0' I + pv'^x],  d(2w)/dp' = 2 [-pv, p0 I - pv^x] */
-    const double pvdr = pv[0] * dr[0] + pv[1] * dr[1] + pv[2] * dr[2];
-    const double pxdr[3] = {pv[1] * dr[2] - pv[2] * dr[1],
-                            pv[2] * dr[0] - pv[0] * dr[2],
-                            pv[0] * dr[1] - pv[1] * dr[0]};
-    const double hr[3][3] = {{0.0, -dr[2], dr[1]}, {dr[2], 0.0, -dr[0]}, {-dr[1], dr[0], 0.0}};
-    const double hd[3][3] = {{0.0, -dpv[2], dpv[1]}, {dpv[2], 0.0, -dpv[0]}, {-dpv[1], dpv[0], 0.0}};
-    const double hp[3][3] = {{0.0, -pv[2], pv[1]}, {pv[2], 0.0, -pv[0]}, {-pv[1], pv[0], 0.0}};
+    const double pvdr = dot3(pv, dr);
+    double pxdr[3], hr[3][3], hd[3][3], hp[3][3];
+    cross3(pv, dr, pxdr);
+    hat3(dr, hr);
+    hat3(dpv, hd);
+    hat3(pv, hp);
     for (int k = 0; k < 3; k++) {
         z->Gp[4 * k] = 2.0 * (p0 * dr[k] - pxdr[k]);
         z->Up[4 * k] = 2.0 * dpv[k];
@@ -202,16 +220,12 @@ static ALWAYS_INLINE void geometric_tangent(const Strain *z, const double *p, co
                                      PointTerms *t)
 {
     const double p0 = p[0], *pv = p + 1, *a = S, *c = S + 3;
-    const double ab = a[0] * dr[0] + a[1] * dr[1] + a[2] * dr[2];
-    const double axb[3] = {a[1] * dr[2] - a[2] * dr[1],
-                           a[2] * dr[0] - a[0] * dr[2],
-                           a[0] * dr[1] - a[1] * dr[0]};
-    const double pva = pv[0] * a[0] + pv[1] * a[1] + pv[2] * a[2];
-    const double pxa[3] = {pv[1] * a[2] - pv[2] * a[1],
-                           pv[2] * a[0] - pv[0] * a[2],
-                           pv[0] * a[1] - pv[1] * a[0]};
-    const double ha[3][3] = {{0.0, -a[2], a[1]}, {a[2], 0.0, -a[0]}, {-a[1], a[0], 0.0}};
-    const double hc[3][3] = {{0.0, -c[2], c[1]}, {c[2], 0.0, -c[0]}, {-c[1], c[0], 0.0}};
+    const double ab = dot3(a, dr), pva = dot3(pv, a);
+    double axb[3], pxa[3], ha[3][3], hc[3][3];
+    cross3(a, dr, axb);
+    cross3(pv, a, pxa);
+    hat3(a, ha);
+    hat3(c, hc);
     const double i2 = 2.0 * z->inv;
     /* S.D2N / n2 */
     t->Wpp[0] += i2 * ab;

@@ -307,8 +307,7 @@ class ElasticRod:
         Computed by the kernel chosen at construction (class docstring)."""
         if self.kernel == "compiled":
             from . import elastic_compiled
-            return elastic_compiled.element_terms(self, qe, xe, self.e0 if e0 is None else e0,
-                                                  tangent, symmetric)
+            return elastic_compiled.element_terms(self, qe, xe, e0, tangent, symmetric)
         if self.kernel == "reference":
             return self.element_terms_reference(qe, xe, e0, tangent, symmetric)
         return self.element_terms_numpy(qe, xe, e0, tangent, symmetric)
@@ -326,10 +325,8 @@ class ElasticRod:
         e0 = self.e0 if e0 is None else e0
         ne, nn, nq = qe.shape[0], self.p + 1, self.nq
         n = ne * nq
-        qa = align_signs(qe)
-        p = (self.N @ qa).reshape(n, 4)
-        dp = (self.dN @ qa).reshape(n, 4)
-        dr = (self.dN @ xe).reshape(n, 3)
+        qa, p, dp, dr = self.interpolate(qe, xe)
+        p, dp, dr = p.reshape(n, 4), dp.reshape(n, 4), dr.reshape(n, 3)
         n2, Nz, DN, Tp = self._strain_parts(p, dp, dr)
         inv = 1.0 / n2
         inv2 = inv * inv
@@ -403,10 +400,7 @@ class ElasticRod:
         with the (6, 11, 11) second derivatives of the strains: the reference the fast kernels
         are tested against."""
         e0 = self.e0 if e0 is None else e0
-        qa = align_signs(qe)
-        p = np.einsum("qa,eai->eqi", self.N, qa)
-        dp = np.einsum("qa,eai->eqi", self.dN, qa)
-        dr = np.einsum("qa,eai->eqi", self.dN, xe)
+        qa, p, dp, dr = self.interpolate(qe, xe)
         ne, nn = qe.shape[0], self.p + 1
         if tangent:
             e, De, D2e = strain_measures(p, dp, dr, derivatives=2)

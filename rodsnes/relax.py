@@ -155,10 +155,7 @@ class RelaxationTerm:
     def add_jacobian(self, r_loc, q_loc, P):
         B = np.zeros((self.no, NDOF, NDOF))
         B[:, 0:3, 0:3] = self.c * self.M[:, None, None] * np.eye(3)
-        Jinv = left_jacobian_inverse(self._psi(q_loc))
-        if "sbaij" in P.getType():      # a symmetric matrix holds the symmetric part (|psi| small)
-            Jinv = 0.5 * (Jinv + np.swapaxes(Jinv, -1, -2))
-        B[:, 3:6, 3:6] = self.c_rot * self.M[:, None, None] * Jinv
+        B[:, 3:6, 3:6] = self.c_rot * self.M[:, None, None] * left_jacobian_inverse(self._psi(q_loc))
         P.setValuesBlockedRCV(self.rows[:, None], self.rows[:, None], B, addv=PETSc.InsertMode.ADD)
 
     def energy(self, r_loc, q_loc):
