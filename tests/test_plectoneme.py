@@ -3,7 +3,7 @@ radius 0.025, E = 1e6, G = E/1.5, end clamped in rotation and sliding along the 
 small tension), here to 1.5 turns instead of 10 with 40 elements so that it fits the test budget (~3 min): the
 straight rod's loop formation is a fold of the stable path, which -stability passes by
 relaxation (jump_branch) into a loop in self-contact.  The full 10 turns are a batch run
-(README, "Plectoneme")."""
+(docs/plectoneme_path.md)."""
 import os
 
 import numpy as np
@@ -41,13 +41,13 @@ def test_twisted_rod_snaps_into_a_loop_in_self_contact():
 
 
 CHECKPOINTS = os.path.join(ROOT, "cases", "checkpoints")
-# checkpoints that break the penetration promise (README, Plectoneme: the stable branch at
+# checkpoints that break the penetration promise (docs/plectoneme_path.md: the stable branch at
 # 9.415 turns presses the rod 2.3 % into the start clamp's mount at the penalty of the switch;
 # the first load step from it raises the penalty): kept to go on from, with their measured
 # penetration held here
 OVER_PROMISE = {"plectoneme_9.415_switched": 0.0227}
 # the contact law of each checkpoint's path: the closest-point law up to session 24, the pair
-# potential of cases/plectoneme.opts since (README, Self-contact: contact law)
+# potential of cases/plectoneme.opts since (docs/contact.md: contact law)
 PROJECTION = ("plectoneme_7.2", "plectoneme_7.54", "plectoneme_9.12", "plectoneme_9.19",
               "plectoneme_9.41", "plectoneme_9.415_switched", "plectoneme_9.72")
 
