@@ -2,42 +2,540 @@
 
     mpirun -n 2 rodsnes -options_file cases/rollup.opts -rod_nelem 64 -snes_monitor
 
-Exit codes: 0 converged to load 1; 2 bad input (message names the option); 3 the load path
-failed (the last converged step stays in DIR/result.h5 and DIR/summary.json says so).
+Exit codes: 0 converged to load 1 (or -load_stop); 2 refused before the solve (bad input: one
+line per problem on stderr, ``rodsnes: error: ...``, naming the option and the fix); 3 the load
+path failed (the last converged step stays in DIR/result.h5 and DIR/summary.json says so);
+128 + N stopped by signal N (130 SIGINT, 143 SIGTERM): summary.json says ``"interrupted": true``
+and the steps written stay readable.
+
+Before the solve the command also checks what the options database itself cannot: the
+-options_file files (before PETSc reads them), PETSc solver types and numbers, the output
+directory, whether the scene can be solved as given (scene.check_solvable), and it sets up the
+Newton path's linear solver once on a small matrix.  Options that do nothing are reported as
+warnings (``rodsnes: warning: ...`` on stderr, rank 0): rodsnes options the scene does not use
+(scene.unused_options) and PETSc options nothing read, as PETSc's -options_left, with the
+closest known option.
 """
 import os
+import re
+import shlex
+import signal
 import sys
+import tempfile
 import time
 
+EXIT_REFUSED, EXIT_FAILED = 2, 3
 
-def _print0(comm, *args, **kw):
-    if comm.getRank() == 0:
-        print(*args, **kw, flush=True)
+LINESEARCH_TYPES = ("basic", "bt", "l2", "cp", "nleqerr", "shell", "ncglinear")
+
+COMMON_PETSC_OPTIONS = (
+    "snes_type snes_monitor snes_monitor_short snes_converged_reason snes_view snes_rtol "
+    "snes_atol snes_stol snes_max_it snes_max_funcs snes_divergence_tolerance snes_lag_jacobian "
+    "snes_linesearch_type snes_linesearch_monitor snes_linesearch_damping snes_linesearch_max_it "
+    "snes_test_jacobian snes_ksp_ew snes_mf_operator "
+    "ksp_type ksp_rtol ksp_atol ksp_dtol ksp_max_it ksp_monitor ksp_monitor_true_residual "
+    "ksp_converged_reason ksp_view ksp_gmres_restart ksp_norm_type ksp_initial_guess_nonzero "
+    "pc_type pc_factor_mat_solver_type pc_factor_shift_type pc_factor_levels "
+    "pc_factor_mat_ordering_type pc_asm_overlap pc_asm_type pc_gamg_type pc_mg_levels "
+    "pc_fieldsplit_type sub_ksp_type sub_pc_type sub_pc_factor_levels mat_type mat_view "
+    "mat_mumps_icntl_4 mat_mumps_icntl_7 mat_mumps_icntl_13 mat_mumps_icntl_14 "
+    "mat_mumps_icntl_23 mat_mumps_icntl_24 mat_mumps_cntl_1 mat_mumps_cntl_3 log_view "
+    "options_left options_view help version info malloc_debug malloc_dump memory_view "
+    "on_error_abort fp_trap no_signal_handler").split()
+"""PETSc options a rodsnes user is likely to mean (did-you-mean for an option nothing read)."""
+
+FINALIZE_READ = ("options_left", "options_view", "malloc_dump", "malloc_view", "memory_view",
+                 "objects_dump", "log_view", "log_all", "log_summary", "log_trace", "history")
+"""PETSc options read at PetscInitialize or PetscFinalize, never left over in a run."""
+
+LATE_READ = re.compile(r"(^|_)(view|converged_reason|monitor\w*)$|_view_|_test_")
+"""PETSc options read during or at the end of a solve: reported only after the run."""
+
+NUMERIC_SUFFIXES = ("_rtol", "_atol", "_stol", "_dtol", "_max_it", "_max_funcs",
+                    "_divergence_tolerance", "_gmres_restart", "_asm_overlap", "_damping",
+                    "_factor_levels", "_lag_jacobian", "_lag_preconditioner", "_mg_levels")
+NUMERIC_PATTERN = re.compile(r"mat_mumps_i?cntl_\d+$")
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM during a run (raised by the handler _signals installs)."""
+
+    def __init__(self, signum):
+        super().__init__(signum)
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+
+
+def _rank_from_env():
+    """This process's MPI rank before MPI is up (mpirun's environment), 0 if serial."""
+    for key in ("OMPI_COMM_WORLD_RANK", "PMIX_RANK", "PMI_RANK"):
+        if os.environ.get(key, "").isdigit():
+            return int(os.environ[key])
+    return 0
+
+
+def _say(rank, kind, text):
+    """``rodsnes: <kind>: <line>`` on stderr, one per line of text, on rank 0 only."""
+    if rank != 0:
+        return
+    for line in str(text).splitlines() or [""]:
+        print(f"rodsnes: {kind}: {line}", file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- -options_file
+def _options_file_line_problem(tokens):
+    """What PETSc would refuse in one options-file line (its tokens, comment stripped)."""
+    first = tokens[0]
+    if first.lower() == "alias":
+        return None if len(tokens) == 3 else "an alias line is 'alias -new -old'"
+    if not first.startswith("-") or first == "-":
+        return f"'{first}' is not an option (an option starts with '-')"
+    more = [t for t in tokens[1:] if _is_option_token(t)]
+    if more:
+        return f"two options on one line ({first} and {more[0]}): one option per line"
+    if len(tokens) > 2:
+        return (f"{first} has more than one value ({' '.join(tokens[1:])}): a vector is "
+                f"written without spaces, e.g. 0,0,1")
+    return None
+
+
+def _is_option_token(tok):
+    """A token PETSc takes for an option name: '-' and not a number (-1, -.5, -1e3 are values)."""
+    if not tok.startswith("-") or tok == "-":
+        return False
+    try:
+        float(tok.split(",")[0])
+        return False
+    except ValueError:
+        return True
+
+
+def options_file_problems(argv):
+    """Messages for every -options_file of argv that PETSc would refuse: missing, a directory,
+    unreadable, or holding a line that is not '-option [value]', a '#' comment or an alias."""
+    out = []
+    for i, arg in enumerate(argv):
+        if arg != "-options_file":
+            continue
+        path = argv[i + 1] if i + 1 < len(argv) else None
+        if path is None or (path.startswith("-") and not os.path.exists(path)):
+            out.append("-options_file needs a file name (-options_file cases/mattiasson.opts)")
+            continue
+        if not os.path.exists(path):
+            out.append(f"-options_file {path}: no such file (check the path; cases are in cases/)")
+        elif os.path.isdir(path):
+            out.append(f"-options_file {path}: is a directory; give an options file in it "
+                       f"(e.g. {os.path.join(path, 'case.opts')})")
+        else:
+            problem = _options_file_problem(path)
+            if problem:
+                out.append(f"-options_file {path}: {problem}")
+    return out
+
+
+def _options_file_problem(path):
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            lines = fh.read().splitlines()
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    for number, line in enumerate(lines, 1):
+        text = line.split("#", 1)[0]
+        try:
+            tokens = shlex.split(text)
+        except ValueError:
+            tokens = text.split()
+        if not tokens:
+            continue
+        problem = _options_file_line_problem(tokens)
+        if problem:
+            return (f"line {number} '{line.strip()}': {problem}; each line holds one "
+                    f"'-option value', '#' starts a comment")
+    return None
+
+
+# --------------------------------------------------------------------------- PETSc start-up
+def _petsc_started():
+    mod = sys.modules.get("petsc4py.PETSc")
+    return mod is not None and mod.Sys.isInitialized()
+
+
+def _start_petsc(argv):
+    """Start PETSc with argv's options (None), or return why it refused them.  PETSc prints its
+    errors itself at start-up, so its stderr is captured and only the message kept.  If PETSc
+    is already running (cli.main called in-process), argv's options are added to its database."""
+    import petsc4py
+    if _petsc_started():
+        from petsc4py import PETSc
+        try:
+            PETSc.Options().insertString(" ".join(shlex.quote(a) for a in argv[1:]))
+        except PETSc.Error:
+            return petsc_error_text() or "PETSc refused the options"
+        return None
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        failed = None
+        try:
+            petsc4py.init(argv)
+            from petsc4py import PETSc  # noqa: F401  (PetscInitialize runs at this import)
+        except Exception as exc:  # noqa: BLE001 - any start-up failure is reported in one line
+            failed = exc
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode(errors="replace")
+    if failed is None:
+        sys.stderr.write(text)
+        return None
+    msgs = [m.group(1).strip() for m in re.finditer(r"PETSC ERROR: (.*)", text)]
+    msgs = [m for m in msgs if m and not m.startswith(("-", "#", "See ", "Petsc ", "Configure",
+                                                         "Libraries", "/", "PETSc", "Option left",
+                                                         "Invalid argument", "--"))
+            and " at " not in m]
+    return "PETSc could not start: " + (msgs[-1] if msgs else str(failed))
+
+
+# --------------------------------------------------------------------------- PETSc's options
+def _type_names(kind):
+    from petsc4py import PETSc
+    if kind == "SNESLineSearch":
+        return LINESEARCH_TYPES
+    cls = {"KSP": PETSc.KSP.Type, "PC": PETSc.PC.Type, "SNES": PETSc.SNES.Type,
+           "MatSolver": PETSc.Mat.SolverType, "Mat": PETSc.Mat.Type}[kind]
+    return tuple(sorted(v for k, v in vars(cls).items() if k.isupper() and isinstance(v, str)))
+
+
+COMMON_TYPES = {"KSP": "preonly gmres fgmres cg minres bcgs richardson",
+                "PC": "lu cholesky ilu icc jacobi bjacobi asm gamg none",
+                "SNES": "newtonls newtontr qn ngmres", "MatSolver": "mumps petsc superlu_dist",
+                "SNESLineSearch": " ".join(LINESEARCH_TYPES), "Mat": "aij baij sbaij"}
+"""The types named in a refusal when no close one is found."""
+
+TYPE_OPTIONS = (("pc_factor_mat_solver_type", "MatSolver", "LU/Cholesky package"),
+                ("snes_linesearch_type", "SNESLineSearch", "SNES line search"),
+                ("snes_type", "SNES", "nonlinear solver (SNES)"),
+                ("ksp_type", "KSP", "Krylov method (KSP)"),
+                ("pc_type", "PC", "preconditioner (PC)"),
+                ("mat_type", "Mat", "matrix type"))
+"""Option-name endings whose value must be a PETSc type: (suffix, kind, what)."""
+
+
+def _did_you_mean(word, names):
+    from .scene import _suggest, _or_list
+    close = _suggest(word.lower(), list(names), cutoff=0.7)
+    return f"; did you mean {_or_list(list(close))}?" if close else ""
+
+
+def petsc_option_problems(opts):
+    """Messages for PETSc options whose value cannot work: an unknown solver type (-ksp_type,
+    -pc_type, -snes_type, -snes_linesearch_type, -pc_factor_mat_solver_type, -mat_type, any
+    prefix) or a tolerance, iteration count or MUMPS control that is not a number."""
+    out = []
+    for name, value in sorted(opts.getAll().items()):
+        low = name.lower()
+        value = "" if value is None else str(value).strip()
+        for suffix, kind, what in TYPE_OPTIONS:
+            if low.endswith(suffix):
+                names = _type_names(kind)
+                if value.lower() not in names:
+                    hint = _did_you_mean(value, names) or (
+                        "; e.g. " + ", ".join(COMMON_TYPES[kind].split()))
+                    out.append(f"-{name} {value}: not a PETSc {what}{hint} (-help -snes_view "
+                               f"lists them all)")
+                break
+        else:
+            if low.endswith(NUMERIC_SUFFIXES) or NUMERIC_PATTERN.search(low):
+                try:
+                    float(value)
+                except ValueError:
+                    out.append(f"-{name} {value}: not a number (PETSc reads a number here, e.g. "
+                               f"-{name} {'1e-8' if low.endswith('tol') else '10'})")
+    return out
+
+
+def petsc_error_text():
+    """The message of the PETSc error just raised (petsc4py keeps its lines), without the
+    'function() at file:line' lines."""
+    from petsc4py import PETSc
+    lines = [l.strip() for l in getattr(PETSc.Error, "_traceback_", []) or []]
+    msgs = [l for l in lines if l and not re.match(r"\w+\(\) at ", l)
+            and not l.startswith("Unknown type. Check")]
+    return msgs[-1] if msgs else ""
+
+
+def petsc_error_message(exc, opts, comm):
+    """One line for a PETSc error raised while setting up or running the solver, naming the
+    option whose value caused it where the message allows."""
+    text = petsc_error_text()
+    values = {str(v).strip(): n for n, v in opts.getAll().items() if v is not None}
+    m = re.search(r"Unable to find requested (\S+) type (\S+)", text)
+    if m:
+        kind, value = m.group(1), m.group(2)
+        option = values.get(value, f"{kind.lower()}_type")
+        return (f"-{option} {value}: this PETSc has no {kind} type {value} (a misspelling, or a "
+                f"package PETSc was built without){_did_you_mean(value, _known(kind))}")
+    m = re.search(r"Input string (\S+) has no (\w+) value", text)
+    if m:
+        option = values.get(m.group(1), "?")
+        what = "an integer" if m.group(2) == "integer" else "a number"
+        return f"-{option} {m.group(1)}: not {what} (PETSc reads {what} here)"
+    m = re.search(r"Could not locate solver type (\S+) for factorization type (\S+) and matrix "
+                  r"type (\S+)", text)
+    if m:
+        option = values.get(m.group(1), "pc_factor_mat_solver_type")
+        return (f"-{option} {m.group(1)}: this PETSc has no {m.group(2)} factorisation of "
+                f"rodsnes' Jacobian ({m.group(3)}) by {m.group(1)} (not built with it); use "
+                f"mumps (the default)" + (" or petsc" if comm.getSize() == 1 else ""))
+    m = re.search(r"MatSolverType (\S+) does not support matrix type (\S+)", text)
+    if m:
+        option = values.get(m.group(1), "pc_factor_mat_solver_type")
+        return (f"-{option} {m.group(1)}: {m.group(1)} cannot factor rodsnes' Jacobian "
+                f"({m.group(2)}, 6 x 6 blocks); use mumps (the default)"
+                + (" or petsc" if comm.getSize() == 1 else ""))
+    m = re.search(r"Unknown logical value: (\S+)", text)
+    if m:
+        option = values.get(m.group(1), "?")
+        return f"-{option} {m.group(1)}: not true or false"
+    return (f"PETSc: {text or exc} (check the PETSc options given; "
+            f"run with -help -snes_view to list them)")
+
+
+def _known(kind):
+    try:
+        return _type_names(kind)
+    except KeyError:
+        return ()
+
+
+def options_left():
+    """(name, value) of every option in PETSc's database that nothing has read yet
+    (PetscOptionsLeftGet, as -options_left reports at the end); None where PETSc's library
+    cannot be reached."""
+    import ctypes
+    import numpy as np
+    from petsc4py import PETSc
+    lib = _petsc_library()
+    if lib is None:
+        return None
+    pint = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+    n = pint(0)
+    names = ctypes.POINTER(ctypes.c_char_p)()
+    values = ctypes.POINTER(ctypes.c_char_p)()
+    if lib.PetscOptionsLeftGet(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values)):
+        return None
+    out = [(names[i].decode(), values[i].decode() if values[i] else None) for i in range(n.value)]
+    lib.PetscOptionsLeftRestore(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values))
+    return out
+
+
+def _petsc_library():
+    """The PETSc shared library this process runs (from /proc/self/maps), through ctypes."""
+    import ctypes
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = {line.split()[-1] for line in fh if "libpetsc" in line}
+    except OSError:
+        return None
+    for path in sorted(paths):
+        try:
+            lib = ctypes.CDLL(path)
+            lib.PetscOptionsLeftGet  # noqa: B018 - probes the symbol
+            return lib
+        except (OSError, AttributeError):
+            continue
+    return None
+
+
+def unused_petsc_warnings(given, late):
+    """Warnings for the options of ``given`` (the names the user set) that nothing has read:
+    ``late`` False: before the solve, leaving out those read only at the end of a solve
+    (LATE_READ); True: after the run, those.  Options read at PetscFinalize are left alone."""
+    from . import scene as scn
+    left = options_left()
+    if left is None:
+        return []
+    rodsnes = {o.name.lower() for o in scn.OPTIONS}
+    given = {g.lower() for g in given}
+    out = []
+    for name, value in sorted(left):
+        low = name.lower()
+        if (low not in given or low in rodsnes or low in FINALIZE_READ
+                or bool(LATE_READ.search(low)) != late):
+            continue
+        shown = f"-{name}" + (f" {value}" if value else "")
+        close = _closest(low, COMMON_PETSC_OPTIONS)
+        if low in COMMON_PETSC_OPTIONS or not close:
+            hint = " (nothing in this run reads it: it does not apply to this load path or " \
+                   "scene, or is misspelt)"
+        else:
+            hint = f": did you mean {close}?"
+        out.append(f"option {shown} was not used{hint}")
+    return out
+
+
+def _closest(word, names):
+    """'-a', '-a or -b' ...: the names closest to word (scene._suggest), or ''."""
+    from .scene import _suggest, _or_list
+    close = _suggest(word, list(names))
+    return _or_list(["-" + c for c in close]) if close else ""
+
+
+def check_newton_linear_solver(comm):
+    """Set up the Newton path's linear solver as the options make it (NewtonSolver's defaults
+    preonly + LU by MUMPS, then the options database) on a small matrix of the Jacobian's type
+    (BAIJ, 6 x 6 blocks, two per rank): a KSP, PC or factorisation package that does not exist
+    or cannot factor rodsnes' matrices raises its PETSc.Error here, before the Run is built and
+    writes anything, instead of failing every load step.  Collective."""
+    from petsc4py import PETSc
+    ndof = 6
+    A = PETSc.Mat().create(comm=comm)
+    A.setOptionsPrefix("rodsnes_solver_check_")         # no -mat_view of this matrix
+    A.setSizes(((2 * ndof, None), (2 * ndof, None)), bsize=ndof)
+    A.setType(PETSc.Mat.Type.BAIJ)
+    A.setPreallocationNNZ(ndof)
+    lo, hi = A.getOwnershipRange()
+    for i in range(lo, hi):
+        A.setValue(i, i, 1.0)
+    A.assemble()
+    ksp = PETSc.KSP().create(comm=comm)
+    try:
+        ksp.setType("preonly")
+        ksp.getPC().setType("lu")
+        ksp.getPC().setFactorSolverType("mumps")
+        ksp.setFromOptions()
+        ksp.setOperators(A)
+        ksp.setUp()                     # the factorisation, without a solve's monitors and views
+    finally:
+        ksp.destroy()
+        A.destroy()
+
+
+def _load_path(scene):
+    """The load path the Run will take (Run._choose_path where there is one, else newton)."""
+    from .run import Run
+    choose = getattr(Run, "_choose_path", None)
+    return choose(scene) if choose is not None else "newton"
+
+
+# --------------------------------------------------------------------------- signals
+class _signals:
+    """SIGINT and SIGTERM raise Interrupted while the run is on; the old handlers come back
+    after it."""
+
+    NAMES = (signal.SIGINT, signal.SIGTERM)
+
+    def __enter__(self):
+        self.old = {}
+
+        def handler(signum, frame):
+            raise Interrupted(signum)
+
+        try:
+            for s in self.NAMES:
+                self.old[s] = signal.signal(s, handler)
+        except ValueError:          # not the main thread: leave signals alone
+            pass
+        return self
+
+    def __exit__(self, *exc):
+        for s, h in self.old.items():
+            signal.signal(s, h)
+        return False
+
+
+# --------------------------------------------------------------------------- main
 def main(argv=None):
     argv = list(sys.argv if argv is None else argv)
-    import petsc4py
-    petsc4py.init(argv)
+    rank = _rank_from_env()
+    problems = options_file_problems(argv)
+    if problems:
+        _say(rank, "error", "\n".join(problems))
+        return EXIT_REFUSED
+    failed = _start_petsc(argv)
+    if failed:
+        _say(rank, "error", failed)
+        return EXIT_REFUSED
     from petsc4py import PETSc
     from . import scene as scn
     comm = PETSc.COMM_WORLD
+    rank = comm.getRank()
     opts = PETSc.Options()
+    given = set(opts.getAll())              # what the user set (the solvers add defaults)
     if opts.hasName("help") or opts.hasName("h"):
-        _print0(comm, scn.help_text())
-        _print0(comm, "PETSc's own options (-snes_*, -ksp_*, -pc_*, -mat_*, -log_view ...) work as usual;"
-                      " run with -help -snes_view to list them.")
+        if rank == 0:
+            print(scn.help_text(), flush=True)
+            print("PETSc's own options (-snes_*, -ksp_*, -pc_*, -mat_*, -log_view ...) work as "
+                  "usual; run with -help -snes_view to list them.", flush=True)
         return 0
+    with _signals():
+        try:
+            run = _prepare(argv, comm, opts, rank, given)
+        except scn.SceneError as err:
+            _say(rank, "error", err)
+            return EXIT_REFUSED
+        except PETSc.Error as err:
+            _say(rank, "error", petsc_error_message(err, opts, comm))
+            return EXIT_REFUSED
+        except Interrupted as sig:
+            _say(rank, "error", f"interrupted by {sig.name} before the run started")
+            return 128 + sig.signum
+        try:
+            ok = run.execute()
+        except Interrupted as sig:
+            return _interrupted(run, sig)
+        except PETSc.Error as err:
+            _say(rank, "error", petsc_error_message(err, opts, comm))
+            return EXIT_REFUSED
+    for line in unused_petsc_warnings(given, late=True):
+        _say(rank, "warning", line)
+    return 0 if ok else EXIT_FAILED
+
+
+def _prepare(argv, comm, opts, rank, given):
+    """Everything before the solve: the scene, its checks, the output directory, the Run,
+    its linear solver set up once, the scene record, the warnings.  Returns the Run."""
+    from . import output
+    from . import scene as scn
+    from .run import Run
+    scn.check_unknown_options(opts)
+    scene = scn.read_scene(argv, opts)
+    scn.check_solvable(scene)
+    problems = petsc_option_problems(opts)
+    if problems:
+        raise scn.SceneError("\n".join(problems))
+    check_newton_linear_solver(comm)        # both load paths factor the tangent with it
+    why = output.check_output_dir(scene.output.dir) if rank == 0 else None
+    why = comm.tompi4py().bcast(why, root=0)
+    if why:
+        raise scn.SceneError(f"-output_dir {scene.output.dir}: {why}", ("-output_dir",))
+    run = Run(scene, comm)
+    run.record_scene()
+    for line in scn.unused_options(scene, opts, path=getattr(run, "path", None)):
+        _say(rank, "warning", line)
+    for line in unused_petsc_warnings(given, late=False):
+        _say(rank, "warning", line)
+    return run
+
+
+def _interrupted(run, sig):
+    """A run stopped by SIGINT/SIGTERM: summary.json marked interrupted (by whichever rank
+    gets here: not collective), one line, exit 128 + signal (every rank, under MPI)."""
     try:
-        scn.check_unknown_options(opts)
-        scene = scn.read_scene(argv, opts)
-        from .run import Run
-        run = Run(scene, comm)
-    except scn.SceneError as err:
-        _print0(comm, f"rodsnes: error: {err}", file=sys.stderr)
-        return 2
-    ok = run.execute()
-    return 0 if ok else 3
+        run.record_interruption(sig.name)
+    except Exception as exc:  # noqa: BLE001 - the exit must happen whatever the disk says
+        print(f"rodsnes: warning: summary.json not marked interrupted: {exc}", file=sys.stderr)
+    _say(run.rank, "error", f"interrupted by {sig.name}; the steps written stay in "
+                            f"{run.outdir}/result.h5 and summary.json says so: go on with "
+                            f"-restart {run.outdir}")
+    code = 128 + sig.signum
+    if run.comm.getSize() > 1:
+        time.sleep(0.5)             # let the other ranks mark it too before the abort
+        run.mpi.Abort(code)
+    return code
 
 
 if __name__ == "__main__":

@@ -144,3 +144,26 @@ def build_mesh(rod, bc=None):
     return RodMesh(nelem=ne, order=p, closed=rod.closed, length=L, n_nodes=n, conn=conn,
                    s_nodes=s, x_ref=r, q_ref=q, x_init=r.copy(), q_init=q_init,
                    x_perfect=r0, q_perfect=so3.quat_from_rot(R0))
+
+
+def element_turns(mesh):
+    """(nelem,) angle (rad) by which the initial frames turn across each element: the sum over
+    its consecutive nodes of the rotation angle between them, 2 arccos |q_a . q_a+1| (a ring's
+    last element ends on node 0 after a full turn, so the ends alone would not show it).  The
+    rotation interpolation works with rotations relative to a node of the element, unique only
+    below half a turn: an element that turns by pi or more (a ring of two elements) cannot be
+    represented."""
+    q = mesh.q_init[mesh.conn]                                  # (nelem, p+1, 4)
+    dots = np.abs(np.sum(q[:, 1:] * q[:, :-1], axis=2))         # (nelem, p)
+    return (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=1)
+
+
+def reference_length(rod, bc=None, samples=4096):
+    """Arclength of the stress-free centreline with its imperfection (-rod_imperfection),
+    measured along a polyline of ``samples`` segments: L for a perfect rod; an imperfection
+    lengthens it (by about (A f')^2 / 2 per unit length)."""
+    L = rod.length
+    s = np.linspace(0.0, L, samples + 1)
+    r0, t, R0 = _shape(rod, s)
+    r, _ = _imperfect(rod, s, r0, t, R0, bc)
+    return float(np.linalg.norm(np.diff(r, axis=0), axis=1).sum())

@@ -573,6 +573,18 @@ class ResultWriter:
         if err is not None:
             raise RuntimeError(f"writing step {step} of {self.path} failed on rank 0: {err}")
 
+    def add_meta(self, extra):
+        """Store more root attributes (e.g. the scene record) in result.h5 (collective)."""
+        extra = {k: v for k, v in dict(extra).items() if k not in ("format", "last_step", "n_nodes")}
+        self.meta.update(extra)
+
+        def _add():
+            with _open_h5(self.path, "a") as f:
+                for k, v in extra.items():
+                    f.attrs[k] = _attr_value(v)
+
+        _collective(self.comm, _add)
+
     def close(self):
         """Bring rod.xdmf/rod.h5 up to date if steps were left out (rank 0); nothing else stays
         open between steps (collective)."""
@@ -595,25 +607,79 @@ def write_summary(outdir, comm, summary):
     The solver's keys: converged, load, energy, tip_position [x,y,z], newton_iterations, load_steps,
     wall_time_s, dofs, ranks.
     """
-    comm = _as_comm(comm)
+    _collective(_as_comm(comm), _write_summary_file, outdir, summary)
 
-    def _write():
-        os.makedirs(outdir, exist_ok=True)
-        text = json.dumps(to_jsonable(summary), indent=2, sort_keys=True, allow_nan=False) + "\n"
-        fd, tmp = tempfile.mkstemp(prefix=".summary_", suffix=".json.tmp", dir=outdir)
-        try:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, os.path.join(outdir, SUMMARY_FILE))
-        except BaseException:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-            raise
 
-    _collective(comm, _write)
+def _write_summary_file(outdir, summary):
+    """summary.json written atomically: a temporary file, fsync, os.replace (any one process)."""
+    os.makedirs(outdir, exist_ok=True)
+    text = json.dumps(to_jsonable(summary), indent=2, sort_keys=True, allow_nan=False) + "\n"
+    fd, tmp = tempfile.mkstemp(prefix=".summary_", suffix=".json.tmp", dir=outdir)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, os.path.join(outdir, SUMMARY_FILE))
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def mark_interrupted(outdir, signal_name, base=None, extra=None):
+    """Record in DIR/summary.json that the run was stopped by ``signal_name`` (not collective:
+    any process that catches the signal may call it; the write is atomic).  The summary the run
+    wrote after its last converged step is kept and marked ``"interrupted": true``, ``"signal"``,
+    ``"converged": false`` and a ``failure`` that says where to go on from; ``base`` is the
+    summary to start from when there is none yet, ``extra`` keys (e.g. the wall time) are set
+    in any case.  Returns the summary written."""
+    try:
+        summary = read_summary(outdir)
+    except (OSError, ValueError):
+        summary = dict(base or {})
+    last = load = None
+    try:
+        last, load = _retry_read(outdir, _last_step_load, tries=1)
+    except (OSError, ValueError, KeyError, RuntimeError, IndexError):
+        pass
+    where = (f"the last converged step ({last}, load {load:.6f}) is in "
+             f"{os.path.join(outdir, RESULT_FILE)}: go on with -restart {outdir}"
+             if last is not None else "no step was written")
+    summary.update(extra or {})
+    if last is not None:
+        summary["last_step"] = last
+    summary.update(converged=False, interrupted=True, signal=signal_name,
+                   failure=f"interrupted by {signal_name}; {where}")
+    _write_summary_file(outdir, summary)
+    return summary
+
+
+def _last_step_load(f):
+    k = _steps_of(f)[-1]
+    return k, float(_from_attr(f["steps"][_step_name(k)].attrs["load"]))
+
+
+def check_output_dir(outdir):
+    """Why ``outdir`` cannot take a run's results (None if it can): it is a file, lies under a
+    file, cannot be created, or cannot be written.  Creates the directory if missing."""
+    path = os.path.abspath(outdir)
+    if os.path.exists(path) and not os.path.isdir(path):
+        return "is a file, not a directory; give a directory (it is created if missing)"
+    parent = path
+    while parent and not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if parent and not os.path.isdir(parent):
+        return f"lies under {parent}, which is a file; give a directory path"
+    try:
+        os.makedirs(path, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".rodsnes_probe_", dir=path)
+        os.close(fd)
+        os.remove(probe)
+    except OSError as exc:
+        return f"cannot be written ({exc.strerror or exc}); give a directory you may write in"
+    return None
 
 
 def read_summary(outdir):
@@ -634,10 +700,21 @@ def _retry_read(outdir, fn, tries=20, wait=0.25):
                 if _from_attr(f.attrs.get("format", "")) != FORMAT:
                     raise ValueError(f"{path} is not a {FORMAT} file")
                 return fn(f)
-        except (OSError, KeyError, RuntimeError):
-            if i == tries - 1:
+        except (OSError, KeyError, RuntimeError) as exc:
+            if i == tries - 1 or _damaged(exc):
                 raise
             time.sleep(wait)
+
+
+DAMAGE_SIGNS = ("truncated file", "file signature not found", "bad object header",
+                "bad symbol table", "is not a directory", "permission denied")
+
+
+def _damaged(exc):
+    """An error that waiting for a writer will not cure: a file cut short (a copy that stopped,
+    a full disk), not an HDF5 file, unreadable."""
+    text = str(exc).lower()
+    return any(sign in text for sign in DAMAGE_SIGNS)
 
 
 def _steps_of(f):

@@ -8,6 +8,11 @@ residual and Jacobian into the elastic kernel and the parts of self-contact
     ContactTangent   the contact kernel's tangent blocks
     ContactHalo      positions of remote master elements in, their forces back (PetscSF)
     ContactAssemble  the contact tangent blocks into the global matrix
+    MinStep          one load step of the minimiser (minimize.py; the events below inside it)
+    MinGradient      the minimiser's gradient (the residual)
+    MinNewton        the consistent tangent, its LU and the Newton direction
+    MinHessian       the symmetric Hessian and its LDL^T factorisations (shifts, certificate)
+    MinLineSearch    the energy line search (trial energies)
 
 A call site is either a ``with timed("ContactSearch"):`` block or a method decorated with
 ``@logged("ContactSearch")``.  Events nest in PETSc's log: the time of one counts inside the
@@ -19,7 +24,7 @@ import contextlib
 import functools
 
 NAMES = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "ContactHalo",
-         "ContactAssemble")
+         "ContactAssemble", "MinStep", "MinGradient", "MinNewton", "MinHessian", "MinLineSearch")
 
 _events = {}
 

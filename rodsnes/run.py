@@ -18,6 +18,7 @@ from . import mesh as rodmesh
 from . import output, partition
 from .partition import NDOF
 from .problem import RodProblem
+from .minimize import LoadPath
 from .solver import NewtonSolver
 
 
@@ -37,10 +38,19 @@ class Run:
         rod = scene.rod
         L = rod.length
         ld = scene.loads
-        self.force_scale = (max(rod.EI1, rod.EI2) / L**2 + np.linalg.norm(ld.end_force)
-                            + np.linalg.norm(ld.end_moment) / L + np.linalg.norm(ld.gravity) * L)
-        self.solver = NewtonSolver(self.problem, self.force_scale, check_stability=scene.stability)
-        if self.problem.step_limit:
+        from .scene import force_scale
+        self.force_scale = force_scale(scene)
+        from .loads import nonconservative
+        self.conservative = nonconservative(scene.loads) is None
+        self.path = self._choose_path(scene)
+        if self.path == "minimize":
+            self.solver = LoadPath(self.problem, self.force_scale,
+                                   rtol=PETSc.Options().getReal("snes_rtol", 1e-10),
+                                   max_it=ld.max_it, quiet=scene.output.quiet)
+        else:
+            self.solver = NewtonSolver(self.problem, self.force_scale,
+                                       check_stability=scene.stability)
+        if self.problem.step_limit and self.path == "newton":
             snes = self.solver.snes
             self.solver.snes.setLineSearchPreCheck(
                 lambda X, Y: self.problem.precheck(X, Y, snes.getFunction()[0]))
@@ -83,10 +93,32 @@ class Run:
         if self.solver.switch:
             self.solver.on_relaxation = self._keep_relaxation
 
+    @staticmethod
+    def _choose_path(scene):
+        """-load_path: minimize where the loads are conservative (auto), newton otherwise or
+        when pseudo-arclength continuation (-load_arclength) is asked for."""
+        from .loads import nonconservative
+        from .scene import SceneError
+        why = nonconservative(scene.loads)
+        path = scene.loads.path
+        arclength = PETSc.Options().getBool("load_arclength", False)
+        if path == "auto":
+            return "newton" if (why or arclength) else "minimize"
+        if path == "minimize" and why:
+            raise SceneError(f"-load_path minimize minimises the energy, and {why}: use "
+                             "-load_path newton (or auto) with these loads", ("-load_path",))
+        if path == "minimize" and arclength:
+            raise SceneError("-load_arclength follows unstable branches, which an energy "
+                             "minimisation never stops on: use -load_path newton with it",
+                             ("-load_path", "-load_arclength"))
+        return path
+
     # ------------------------------------------------------------------------------
     def _restart(self, rdir):
-        """Resume from the last converged step of an earlier run in rdir."""
-        last = output.read_step(rdir, -1)
+        """Resume from the last converged step of an earlier run in rdir (refused with a
+        SceneError if rdir holds no readable step or a run of another scene)."""
+        last = self._restart_step(rdir)
+        self._check_restart_scene(rdir, last["meta"])
         st = self.problem.state
         pos, dirs = np.asarray(last["positions"]), np.asarray(last["directors"])
         if pos.shape[0] != self.mesh.n_nodes:
@@ -178,6 +210,9 @@ class Run:
             rec["damped"] = True
         if getattr(res, "arclength", False):
             rec["arclength_from"] = res.arclength_from
+        for key in ("link_error", "shifts", "line_search_cuts", "escapes"):
+            if getattr(res, key, None) is not None:
+                rec[key] = res.__dict__[key]
         if getattr(res, "branch_switch", False):
             rec["branch_switch"] = True
             rec["jump"] = bool(getattr(res, "jump", False))
@@ -234,8 +269,13 @@ class Run:
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
              "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
              "stagnated_solves": self.solver.stagnations,
-             "damped_solves": self.solver.damped_solves,
+             "damped_solves": self.solver.damped_solves, "path": self.path,
              "steps": self.history}
+        nneg = self.history[-1].get("negative_eigenvalues") if self.history else None
+        s["negative_eigenvalues"] = nneg
+        # None: not counted, or loads without a potential (follower forces, 3-D end moments),
+        # for which the inertia of the elastic energy's Hessian does not decide stability
+        s["stable"] = None if nneg is None or not self.conservative else bool(nneg == 0)
         tip = self._tip(self.last_fields)
         if tip is not None:
             s["tip_position"] = tip.tolist()
@@ -291,6 +331,8 @@ class Run:
                 elif res.reason == "stagnation":
                     why = (f"Newton stagnated: |F| not halved in {self.solver.stagnation_its} its, "
                            f"{res.its} its")
+                elif self.path == "minimize":
+                    why = f"{res.reason}, {res.its} its, |g| {res.fnorm:.3e}"
                 else:
                     why = f"SNES reason {res.reason}, {res.its} its"
                 then = ("solving it again by Levenberg-Marquardt" if dlam is None
@@ -302,6 +344,14 @@ class Run:
                                        arc0=self.arc0, stop=ld.stop, resume=self.resume)
         reason = None if ok else self.solver.fail_reason or (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
+        nneg = self.history[-1].get("negative_eigenvalues") if self.history else None
+        # unstable branches asked for: continuation, or -stability with -stability_switch 0
+        unstable_asked = self.solver.arclength or (self.scene.stability and not self.solver.switch)
+        if ok and nneg and not unstable_asked and self.conservative:
+            ok, reason = False, (f"the load path ends at load {self.problem.lam:.6f} on an "
+                                 f"UNSTABLE equilibrium ({nneg} negative eigenvalues of the energy "
+                                 f"Hessian): -load_path minimize ends on stable ones; "
+                                 f"-load_arclength traces unstable branches on purpose")
         kept = self.solver.relaxation_kept
         if not ok and kept is not None and kept not in reason:
             reason += f"; the last relaxation's state is in {kept}"
@@ -310,3 +360,66 @@ class Run:
         if self.rank == 0 and not self.quiet:
             print(("converged" if ok else "FAILED: " + reason) + f"; results in {self.outdir}", flush=True)
         return ok
+
+    # ------------------------------------------------------------------------------
+    def _restart_step(self, rdir):
+        """The last complete step of rdir/result.h5, or a SceneError that says what is wrong
+        with the directory (no result.h5, unreadable or cut short, no complete step)."""
+        from .scene import SceneError
+        path = os.path.join(rdir, output.RESULT_FILE)
+        if not os.path.isdir(rdir):
+            raise SceneError(f"-restart {rdir}: not a directory (give the output directory of an "
+                             f"earlier run)", ("-restart",))
+        if not os.path.exists(path):
+            raise SceneError(f"-restart {rdir}: holds no {output.RESULT_FILE}, so no run to go on "
+                             f"from (give the output directory of an earlier run, or drop "
+                             f"-restart)", ("-restart",))
+        try:
+            return output.read_step(rdir, -1)
+        except (OSError, ValueError, KeyError, RuntimeError) as exc:
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise SceneError(f"-restart {rdir}: {path} cannot be read ({why}): it was cut short "
+                             f"or damaged; restart from another run or a checkpoint, or drop "
+                             f"-restart", ("-restart",)) from None
+
+    def _check_restart_scene(self, rdir, meta):
+        """Refuse a restart from a run of another scene: the mesh and rod stored with every file
+        (closed, length, radius, nelem, order), and, where the file holds it (runs started by
+        the rodsnes command), the whole scene record (scene.scene_record: stiffness, shape,
+        supports, loads); a file without it must at least be of the same case."""
+        from .scene import SceneError, scene_record, record_mismatches
+        import json
+        mine = scene_record(self.scene)
+        stored = {k: meta[k] for k in ("closed", "length", "radius", "nelem", "order")
+                  if k in meta}
+        record = meta.get("scene")
+        if isinstance(record, str):
+            try:
+                stored.update(json.loads(record))
+            except ValueError:
+                record = None
+        diff = record_mismatches(stored, mine)
+        case, theirs = self.scene.output.case_name, meta.get("case_name")
+        if not diff and not isinstance(record, str) and theirs is not None and theirs != case:
+            diff = [f"case {theirs} there, {case} here (-case_name, -options_file)"]
+        if diff:
+            raise SceneError(f"-restart {rdir}: it holds a run of another scene: "
+                             f"{'; '.join(diff)}; restart from a run of this scene (same rod, "
+                             f"mesh, supports and loads), or drop -restart to start afresh",
+                             ("-restart",))
+
+    def record_scene(self):
+        """Store the scene record (scene.scene_record) in result.h5 for later restarts to
+        compare against (collective)."""
+        from .scene import scene_record
+        self.meta["scene"] = scene_record(self.scene)       # relaxation files keep it too
+        self.writer.add_meta({"scene": self.meta["scene"]})
+
+    def record_interruption(self, signal_name):
+        """summary.json after a SIGINT/SIGTERM: the last step's summary marked interrupted
+        (output.mark_interrupted; not collective, so any rank may call it).  Returns it."""
+        base = {"case": self.scene.output.case_name, "load": self.lam0,
+                "load_steps": len(self.history), "dofs": NDOF * self.mesh.n_nodes,
+                "ranks": self.comm.getSize(), "steps": self.history}
+        return output.mark_interrupted(self.outdir, signal_name, base=base,
+                                       extra={"wall_time_s": time.perf_counter() - self.t_start})

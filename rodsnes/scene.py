@@ -237,6 +237,13 @@ class O:
                            "load")
     load_steps = Opt(INT, 1, "number of load increments (load factor 0 -> 1)", "load",
                      rng="[1,inf)", note="number of load steps")
+    load_path = Opt(CHOICE, "auto", "how each load step is solved: minimize (Newton on the total "
+                    "energy with an inertia-controlled shift: every step ends on a stable "
+                    "equilibrium), newton (a zero of the residual, with cut-back; the only choice "
+                    "for follower loads and 3-D end moments); auto: minimize where the loads are "
+                    "conservative", "load", choices=("auto", "minimize", "newton"))
+    load_max_it = Opt(INT, 200, "-load_path minimize: most Newton iterations of one load step",
+                      "load", rng="[1,inf)", note="a number of Newton iterations")
     load_predictor = Opt(BOOL, True, "start each load step from the secant predictor through "
                          "the last two converged states", "load")
     load_max_cutbacks = Opt(INT, 10, "times a failed increment may be halved", "load",
@@ -438,6 +445,8 @@ class Loads:
     min_step: float
     twist_turns: float = 0.0
     stop: float = 1.0
+    path: str = "auto"
+    max_it: int = 200
 
 
 @dataclass
@@ -937,7 +946,8 @@ def _loads(c, rod, bc):
     return Loads(end_force=F, end_force_follower=bool(c[O.load_end_force_follower]),
                  end_moment=M, gravity=g, steps=int(c[O.load_steps]),
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
-                 twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]))
+                 twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]),
+                 path=str(c[O.load_path]), max_it=int(c[O.load_max_it]))
 
 
 def _contact(c, rod, bc):
@@ -951,21 +961,24 @@ def _contact(c, rod, bc):
                    "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
     if enabled and c[O.contact_curvature]:
-        bends = []                              # (reference curvature, the options that set it)
+        bends = []                  # (reference curvature, the options that set it, as shown)
         if rod["arc_radius"] is not None:
-            bends.append((1.0 / rod["arc_radius"], (O.rod_arc_radius,)))
+            shown = (c.show(O.rod_arc_radius) if c.given(O.rod_arc_radius) else
+                     "-rod_shape %s of radius %.6g" % (rod["shape"], rod["arc_radius"]))
+            bends.append((1.0 / rod["arc_radius"], (O.rod_arc_radius,), shown))
         if rod["helix_radius"] is not None and rod["helix_pitch"]:
             bends.append((helix_curvature(rod["helix_radius"], rod["helix_pitch"]),
-                          (O.rod_helix_radius, O.rod_helix_pitch)))
+                          (O.rod_helix_radius, O.rod_helix_pitch),
+                          "%s, %s" % (c.show(O.rod_helix_radius), c.show(O.rod_helix_pitch))))
         if rod["kappa0"] is not None:
-            bends.append((float(np.hypot(*rod["kappa0"][:2])), (O.rod_kappa0,)))
-        for kappa, opts in bends:
+            bends.append((float(np.hypot(*rod["kappa0"][:2])), (O.rod_kappa0,),
+                          c.show(O.rod_kappa0)))
+        for kappa, opts, shown in bends:
             if kappa * rcontact > 1.0:
                 c.fail("%s: the reference centreline bends to curvature %.6g, above 1/contact "
                        "radius = %.6g, which the contact tube's thickness bound forbids; use a "
                        "smaller -contact_radius, a gentler reference shape, or "
-                       "-contact_curvature false" % (", ".join(c.show(o) for o in opts), kappa,
-                                                     1.0 / rcontact),
+                       "-contact_curvature false" % (shown, kappa, 1.0 / rcontact),
                        *opts, O.contact_radius, O.contact_curvature)
     if enabled and c.given(O.contact_supports) and c[O.contact_supports] and \
             (rod["closed"] or bc.start != "clamped" or bc.end != "sliding"):
@@ -1084,3 +1097,465 @@ def check_unknown_options(options=None):
         bad.append("-" + name)
     if msgs:
         raise SceneError("\n".join(msgs), bad)
+
+
+# ----------------------------------------------------------------------------
+# Scenes that read correctly but cannot be solved as given
+# ----------------------------------------------------------------------------
+MAX_ELEMENT_TURN = 0.75 * math.pi
+"""Largest turn of the frames across one element (rad): the rotation interpolation takes
+rotations relative to a node of the element, unique only below half a turn (a ring of two cubic
+elements, 180 degrees each, fails; of three, 120 degrees each, converges to its 24-element
+energy within 2e-7)."""
+
+CONTACT_MAX_ELEMENT = 8.0
+"""Longest element of a contact scene, in contact radii: rollup_contact with 8 elements (12.5
+radii) lands on another equilibrium, 0.11 L from the contact; with 16 (6.25 radii) it is within
+1e-4 L of the exact one (docs/data/work_precision_contact.csv)."""
+
+MAX_IMPERFECT_STRETCH = 0.1
+"""An imperfection may lengthen the stress-free centreline by at most this fraction of L."""
+
+FORCE_RANGE = (1e-140, 1e140)
+"""The force scale a problem may have: PETSc's norms square the residual (a Mattiasson twin
+scaled by 1e-200 had |F| = 0 and was accepted unloaded; by 1e200, |F| = inf)."""
+
+MAX_ROUNDOFF_SHARE = 0.1
+"""The residual's roundoff floor may be at most this fraction of the force scale."""
+
+MEMORY_BASE, MEMORY_PER_NODE = 0.15e9, 1.0e4
+"""Bytes of a run without contact: the start-up, and per node (Jacobian, MUMPS LU factors,
+vectors); measured on the cantilever, 0.41 GB at 10^4 and 2.97 GB at 10^5 cubic elements
+(docs/bench_scaling.md).  Contact adds more, growing with the pairs in contact."""
+
+
+def force_scale(scene):
+    """F_scale = EI/L^2 + |F| + |M|/L + |g| L + GJ 2 pi (|T_end| + |T_twist|) / L^2: the forces
+    the equilibrium is made of (the last term: the twisting moment of the prescribed turns
+    -bc_end_turns and of the twist load -load_twist_turns, over L), to which the residual is
+    compared (Run.force_scale).  hypot, not a 2-norm of squares, so that a problem scaled by
+    1e-200 keeps its scale."""
+    r, ld = scene.rod, scene.loads
+    L = r.length
+    turns = abs(float(getattr(scene.bc, "end_turns", 0.0) or 0.0)) + abs(float(ld.twist_turns or 0.0))
+    return (max(r.EI1, r.EI2) / L ** 2 + math.hypot(*ld.end_force)
+            + math.hypot(*ld.end_moment) / L + math.hypot(*ld.gravity) * L
+            + r.GJ * 2.0 * math.pi * turns / L ** 2)
+
+
+def residual_floor(rod):
+    """Roundoff floor of the residual: 3 eps x (largest stretch/shear stiffness + largest
+    bending/twist stiffness / L) x nodes x sqrt(nodes) (the Newton solver's floor)."""
+    n = rod.nelem * rod.order + (0 if rod.closed else 1)
+    stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
+    return 3 * np.finfo(float).eps * stiff * rod.nelem * rod.order * math.sqrt(n)
+
+
+def _show(flag, value):
+    if isinstance(value, np.ndarray):
+        value = _fmt_vec(value)
+    elif isinstance(value, float):
+        value = _fmt(value)
+    return "%s = %s" % (flag, value)
+
+
+def _bytes(n):
+    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if n >= size:
+            return "%.3g %s" % (n / size, unit)
+    return "%.3g kB" % (n / 1e3)
+
+
+def physical_memory():
+    """Bytes of physical memory of this machine (None if unknown)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _check_memory(scene, fail, memory):
+    """-rod_nelem too large for this machine's memory, or for PETSc's indices."""
+    r = scene.rod
+    nodes = r.nelem * r.order + (0 if r.closed else 1)
+    need = MEMORY_BASE + MEMORY_PER_NODE * nodes
+    try:
+        from petsc4py import PETSc
+        index_max = int(np.iinfo(PETSc.IntType).max)
+    except ImportError:
+        index_max = int(np.iinfo(np.int32).max)
+    index_fit = index_max // (6 * r.order)
+    if memory is not None and need > memory:
+        fit = min(int((memory - MEMORY_BASE) / MEMORY_PER_NODE / r.order), index_fit)
+        fail("%s: %.3g nodes need about %s of memory (%s per node for the Jacobian and its LU "
+             "factors, more with contact), this machine has %s; use -rod_nelem %d or fewer"
+             % (_show("-rod_nelem", r.nelem), nodes, _bytes(need), _bytes(MEMORY_PER_NODE),
+                _bytes(memory), max(fit, 1)), O.rod_nelem)
+        return False
+    if 6 * nodes > index_max:
+        fail("%s: %.3g nodes make %.3g unknowns, more than this PETSc's indices count (%d); "
+             "use -rod_nelem %d or fewer" % (_show("-rod_nelem", r.nelem), nodes, 6.0 * nodes,
+                                             index_max, index_fit), O.rod_nelem)
+        return False
+    return True
+
+
+_STIFFNESSES = (("EA", (O.rod_EA,), "E pi r^2"), ("GA1", (O.rod_GA,), "k G pi r^2"),
+                ("GA2", (O.rod_GA,), "k G pi r^2"), ("EI1", (O.rod_EI1, O.rod_EI), "E pi r^4/4"),
+                ("EI2", (O.rod_EI2, O.rod_EI), "E pi r^4/4"), ("GJ", (O.rod_GJ,), "G pi r^4/2"))
+"""(stiffness, the options that give it directly, its formula from the material)."""
+
+
+def _check_stiffness(scene, fail):
+    """A stiffness that underflows to 0 (or to a subnormal) or overflows in double precision, a
+    problem whose forces PETSc's norms cannot square, and a rod so slender (or a mesh so fine)
+    that the residual's roundoff swamps the forces."""
+    r = scene.rod
+    causes = {}                     # (options shown, what happened) -> [stiffness names]
+    opts = []
+    for name, direct, formula in _STIFFNESSES:
+        v = getattr(r, name)
+        if math.isfinite(v) and v >= sys.float_info.min:
+            continue
+        how = ("overflow%s to infinity" if not math.isfinite(v) else "underflow%s to 0"
+               if v == 0.0 else "%s subnormal (below %.3g)" % ("%s", sys.float_info.min))
+        given = [o for o in direct if o.name in scene.given]
+        if given:
+            key = ("%s = %.3g" % (given[0].flag, v), how)
+            opts.append(given[0])
+        else:
+            key = ("%s with %s" % (_show("-rod_radius", r.radius),
+                                   _show("-rod_youngs", r.youngs) if r.youngs is not None
+                                   else "the material"), how)
+            opts += [O.rod_radius, O.rod_youngs]
+            name = "%s = %s" % (name, formula)
+        causes.setdefault(key, []).append(name)
+    for (shown, how), names in causes.items():
+        plural = len(names) > 1
+        how = how % ("" if plural else "s") if "subnormal" not in how else \
+            how % ("are" if plural else "is")
+        fail("%s: in double precision the stiffness%s %s %s, so the rod has no usable stiffness; "
+             "choose units that keep the stiffnesses near 1 (e.g. mm and N)%s"
+             % (shown, "es" if plural else "", ", ".join(names), how,
+                "" if shown.startswith("-rod_E") or shown.startswith("-rod_G") else
+                ", or give -rod_EA, -rod_GA, -rod_EI, -rod_GJ directly"), *dict.fromkeys(opts))
+    if causes:
+        return
+    scale = force_scale(scene)
+    if not FORCE_RANGE[0] <= scale <= FORCE_RANGE[1]:
+        fail("the forces of the problem (EI/L^2 + loads = %.3g, from %s and the loads) are outside "
+             "%g .. %g, where PETSc's norms of the residual (sums of squares) still work in double "
+             "precision; choose units that keep the stiffnesses and loads near 1 (e.g. mm and N)"
+             % (scale, "-rod_EI" if {"rod_EI", "rod_EI1", "rod_EI2"} & set(scene.given) else
+                "-rod_youngs, -rod_radius", FORCE_RANGE[0], FORCE_RANGE[1]),
+             O.rod_EI, O.rod_youngs, O.load_end_force)
+        return
+    floor = residual_floor(r)
+    if floor > MAX_ROUNDOFF_SHARE * scale:
+        fail("%s, %s with %s: the residual's roundoff (%.3g, from the stretch stiffness %.3g over "
+             "%d nodes) exceeds %g of the forces of the problem (%.3g: EI/L^2 + loads), so double "
+             "precision cannot resolve the equilibrium; use a thicker rod, a softer -rod_EA and "
+             "-rod_GA (nearly inextensible is enough), or fewer elements"
+             % (_show("-rod_radius", r.radius), _show("-rod_length", r.length),
+                _show("-rod_nelem", r.nelem), floor, max(r.EA, r.GA1, r.GA2),
+                r.nelem * r.order + 1, MAX_ROUNDOFF_SHARE, scale),
+             O.rod_radius, O.rod_EA, O.rod_nelem)
+
+
+def _check_supports(scene, fail):
+    """A rod pinned at one end and free at the other turns freely about the pin: a mechanism."""
+    r, bc, ld = scene.rod, scene.bc, scene.loads
+    if r.closed or sorted((bc.start, bc.end)) != ["free", "pinned"]:
+        return
+    loaded = [(o, v) for o, v in ((O.load_end_force, ld.end_force),
+                                  (O.load_end_moment, ld.end_moment), (O.load_gravity, ld.gravity))
+              if np.any(v != 0.0)]
+    if not loaded:
+        return
+    pin = "-bc_start" if bc.start == "pinned" else "-bc_end"
+    why = ("a pin takes no moment, so nothing balances the end moment (there is no equilibrium)"
+           if np.any(ld.end_moment != 0.0) else "the unloaded rod's stiffness is singular, and the "
+           "load would swing it about the pin as a rigid body")
+    fail("%s with -bc_start %s -bc_end %s: the rod turns freely about the pin (a mechanism): %s; "
+         "clamp that end (%s clamped) or support the other one"
+         % (", ".join(_show(o.flag, v) for o, v in loaded), bc.start, bc.end, why, pin),
+         *(o for o, _ in loaded), O.bc_start, O.bc_end)
+
+
+def _imperfection_limit(rod, bc, target):
+    """The |amplitude| at which the imperfect centreline is ``target`` long (bisection)."""
+    from dataclasses import replace
+    from .mesh import reference_length
+    lo, hi = 0.0, abs(rod.imperfection)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if reference_length(replace(rod, imperfection=mid), bc, samples=1024) > target:
+            hi = mid
+        else:
+            lo = mid
+    return lo
+
+
+def _check_imperfection(scene, fail):
+    """An imperfection so large that the stress-free rod is no longer -rod_length long."""
+    from .mesh import reference_length
+    r = scene.rod
+    if r.imperfection == 0.0:
+        return
+    length = reference_length(r, scene.bc)
+    if length > (1.0 + MAX_IMPERFECT_STRETCH) * r.length:
+        limit = _imperfection_limit(r, scene.bc, (1.0 + MAX_IMPERFECT_STRETCH) * r.length)
+        fail("%s with %s: the imperfection makes the stress-free centreline %.3g times as long as "
+             "the rod (an imperfection is a small seed of the buckling mode, in length units, "
+             "e.g. 1e-3 L); use |a| below %.3g (%g longer)"
+             % (_show("-rod_imperfection", r.imperfection), _show("-rod_length", r.length),
+                length / r.length, limit, MAX_IMPERFECT_STRETCH), O.rod_imperfection)
+
+
+def contact_exclusion(scene):
+    """The exclusion arclength of the contact: -contact_exclusion, else pi x contact radius."""
+    c = scene.contact
+    return c.exclusion if c.exclusion is not None else math.pi * scene.contact_radius
+
+
+def _check_contact_reach(scene, fail):
+    """Contact that can never happen (exclusion as long as the rod) or always happens (an
+    exclusion shorter than the contact diameter)."""
+    c, r = scene.contact, scene.rod
+    if not c.enabled:
+        return
+    eps, delta = scene.contact_radius, contact_exclusion(scene)
+    span = r.length / 2 if r.closed else r.length
+    where = "half the ring" if r.closed else "the rod"
+    if c.exclusion is None and delta >= span:
+        fail("%s: the exclusion arclength pi x radius = %.4g is not shorter than %s (%.4g), so "
+             "no two points of the rod can ever touch and contact would do nothing; a contact "
+             "radius below %.4g (%s / pi) allows contact, or drop -contact"
+             % (_show("-contact_radius", eps), delta, where, span, span / math.pi,
+                "L/2" if r.closed else "L"), O.contact_radius, O.contact)
+    elif c.exclusion is not None and delta >= span:
+        fail("%s: not shorter than %s (%.4g), so no two points of the rod can ever touch and "
+             "contact would do nothing; use a shorter exclusion (default pi x contact radius = "
+             "%.4g) or drop -contact" % (_show("-contact_exclusion", delta), where, span,
+                                          math.pi * eps), O.contact_exclusion, O.contact)
+    elif c.exclusion is not None and delta < 2.0 * eps:
+        fail("%s with contact radius %g: points less than the contact diameter 2 x radius = %.4g "
+             "apart along the rod are always closer than that in space, so the rod would be in "
+             "contact with its own neighbourhood; use at least %.4g (default pi x radius = %.4g)"
+             % (_show("-contact_exclusion", delta), eps, 2 * eps, 2 * eps, math.pi * eps),
+             O.contact_exclusion, O.contact_radius)
+
+
+def _check_contact_mesh(scene, fail):
+    """Contact needs elements no longer than CONTACT_MAX_ELEMENT contact radii."""
+    c, r = scene.contact, scene.rod
+    if not c.enabled:
+        return
+    eps, h = scene.contact_radius, r.length / r.nelem
+    if h > CONTACT_MAX_ELEMENT * eps:
+        need = int(math.ceil(r.length / (CONTACT_MAX_ELEMENT * eps)))
+        fail("%s with contact radius %g: elements of length %.4g (%.3g contact radii) are too "
+             "long to resolve a contact (at most %g radii); use -rod_nelem %d or more"
+             % (_show("-rod_nelem", r.nelem), eps, h, h / eps, CONTACT_MAX_ELEMENT, need),
+             O.rod_nelem, O.contact_radius)
+
+
+def _load_turn_per_element(scene):
+    """((rad) a lower bound of the turn per element the loads force, its cause) from what is
+    known before the solve: prescribed end turns spread over the rod, and an end moment alone
+    on a cantilever (then the internal moment is that moment everywhere, the flexure at least
+    |M| / max stiffness)."""
+    r, bc, ld = scene.rod, scene.bc, scene.loads
+    h = r.length / r.nelem
+    turns = []
+    if bc.end_turns:
+        turns.append((2 * math.pi * abs(bc.end_turns) * h / r.length,
+                      _show("-bc_end_turns", bc.end_turns), O.bc_end_turns))
+    M = float(np.linalg.norm(ld.end_moment))
+    if (M and (bc.start, bc.end) == ("clamped", "free") and not np.any(ld.end_force)
+            and not np.any(ld.gravity)):
+        turns.append((M * h / max(r.EI1, r.EI2, r.GJ), _show("-load_end_moment", ld.end_moment),
+                       O.load_end_moment))
+    return max(turns, key=lambda t: t[0]) if turns else (0.0, None, None)
+
+
+def _check_element_turns(scene, mesh, fail):
+    """Elements across which the frames turn by MAX_ELEMENT_TURN or more: in the reference
+    shape (a ring, a helix, -rod_twist_turns) or, certainly, under the loads."""
+    from .mesh import element_turns
+    r = scene.rod
+    ref = float(element_turns(mesh).max())
+    load, cause, opt = _load_turn_per_element(scene)
+    turn = max(ref, load)
+    if turn < MAX_ELEMENT_TURN:
+        return
+    need = int(math.floor(r.nelem * turn / MAX_ELEMENT_TURN)) + 1
+    if load > ref:
+        what = "%s turns the frames by at least %.0f degrees per element" % (cause,
+                                                                              math.degrees(load))
+        opts = (O.rod_nelem, opt)
+    else:
+        what = "the frames of the %s%s turn by %.0f degrees across an element" % (
+            "closed ring" if r.closed else "%s rod" % r.shape,
+            " with -rod_twist_turns %g" % r.twist_turns if r.twist_turns else "",
+            math.degrees(ref))
+        opts = (O.rod_nelem, O.rod_shape)
+    fail("%s: %s, which the rotation interpolation cannot represent (at most %.0f degrees); use "
+         "-rod_nelem %d or more" % (_show("-rod_nelem", r.nelem), what,
+                                    math.degrees(MAX_ELEMENT_TURN), need), *opts)
+
+
+def check_solvable(scene, memory="machine"):
+    """Raise SceneError if the scene, valid option by option, cannot be solved as given: a
+    mesh too large for the machine (``memory`` in bytes, "machine": this one's, None: no
+    limit), a stiffness that under- or overflows or a rod too slender for double precision, a
+    mechanism (pinned and free ends under load), an imperfection that is not small, contact
+    that can never happen or always happens, elements too long for contact, and elements whose
+    frames turn by MAX_ELEMENT_TURN or more (rings of one or two elements, twisted or bent
+    rods on too few elements).  Every message names the options and the smallest fix."""
+    from .mesh import build_mesh
+    msgs, opts = [], []
+
+    def fail(msg, *options):
+        msgs.append(msg)
+        opts.extend(o.flag for o in options)
+
+    if _check_memory(scene, fail, physical_memory() if memory == "machine" else memory):
+        _check_stiffness(scene, fail)
+        _check_supports(scene, fail)
+        _check_imperfection(scene, fail)
+        _check_contact_reach(scene, fail)
+        _check_contact_mesh(scene, fail)
+        _check_element_turns(scene, build_mesh(scene.rod, scene.bc), fail)
+    if msgs:
+        raise SceneError("\n".join(msgs), opts)
+
+
+# ----------------------------------------------------------------------------
+# Options that do nothing in this scene (warnings, as PETSc's -options_left)
+# ----------------------------------------------------------------------------
+_STABILITY_ONLY = ("stability_switch", "stability_perturbation", "stability_relax_max_it",
+                   "stability_jump_overshoot")
+_PATH_ONLY = {"load_max_it": "minimize", "load_predictor": "newton",
+              "load_stagnation_its": "newton", "load_damped_its": "newton"}
+"""Options read by one load path only (-load_path, run.path)."""
+
+
+def _idle_reasons(scene, options, path):
+    """(option, why it does nothing) for every option given that this scene does not use."""
+    r, c, ld = scene.rod, scene.contact, scene.loads
+    given = set(scene.given)
+    out = []
+    if r.shape not in ("arc", "circle"):
+        out += [(o, "it shapes an arc or a circle (-rod_shape arc), and this rod is %s" % r.shape)
+                for o in (O.rod_arc_radius, O.rod_arc_angle)]
+    if r.shape != "helix":
+        out += [(o, "it shapes a helix (-rod_shape helix), and this rod is %s" % r.shape)
+                for o in (O.rod_helix_radius, O.rod_helix_pitch)]
+    if not r.closed:
+        out.append((O.rod_closed_gauge, "it holds a closed ring, and this rod is open"))
+    if not c.enabled:
+        out += [(o, "self-contact is off (add -contact)") for o in OPTIONS
+                if o.section == "contact" and o is not O.contact]
+    if not scene.stability:
+        out += [(getattr(O, n), "it acts with -stability only") for n in _STABILITY_ONLY]
+    if not bool(options.getBool("load_arclength", False)):
+        out += [(o, "it acts with -load_arclength only")
+                for o in (O.load_arclength_its, O.load_arclength_max_steps)]
+    if not np.any(ld.end_force):
+        out.append((O.load_end_force_follower, "there is no end force (-load_end_force)"))
+    direct = "every stiffness it would enter is given directly"
+    for opt, value in ((O.rod_youngs, r.youngs), (O.rod_poisson, r.poisson),
+                       (O.rod_shear, r.shear_modulus), (O.rod_shear_coefficient,
+                                                        r.shear_coefficient)):
+        if value is None:
+            out.append((opt, direct + " (-rod_EA, -rod_GA, -rod_EI, -rod_GJ)"))
+    if path is not None:
+        out += [(getattr(O, n), "it acts on -load_path %s only, and this run's path is %s"
+                 % (p, path)) for n, p in _PATH_ONLY.items() if p != path]
+    return [(o, why) for o, why in out if o.name in given]
+
+
+def unused_options(scene, options=None, path=None):
+    """Warnings (one line each) for rodsnes options given that do nothing in this scene, e.g.
+    -rod_arc_radius on a straight rod or -contact_penalty without -contact; ``path`` is the
+    run's load path (run.path), for the options of one path only."""
+    options = _default_options() if options is None else options
+    lines = []
+    for opt, why in _idle_reasons(scene, options, path):
+        raw = options.getString(opt.name, "")
+        shown = "%s = %s" % (opt.flag, raw.strip()) if raw and raw.strip() else opt.flag
+        lines.append("%s does nothing: %s; drop it" % (shown, why))
+    return lines
+
+
+# ----------------------------------------------------------------------------
+# The scene a result file was computed for (-restart compares it)
+# ----------------------------------------------------------------------------
+RECORD_OPTIONS = {
+    "length": "-rod_length", "radius": "-rod_radius", "closed": "-rod_shape",
+    "nelem": "-rod_nelem", "order": "-rod_order", "shape": "-rod_shape",
+    "EA": "-rod_EA/-rod_youngs", "GA1": "-rod_GA/-rod_youngs", "GA2": "-rod_GA/-rod_youngs",
+    "EI1": "-rod_EI/-rod_youngs", "EI2": "-rod_EI/-rod_youngs", "GJ": "-rod_GJ/-rod_youngs",
+    "kappa0": "-rod_kappa0", "arc_radius": "-rod_arc_radius/-rod_arc_angle",
+    "helix_radius": "-rod_helix_radius", "helix_pitch": "-rod_helix_pitch",
+    "twist_turns": "-rod_twist_turns", "imperfection": "-rod_imperfection",
+    "bc_start": "-bc_start", "bc_end": "-bc_end", "bc_end_turns": "-bc_end_turns",
+    "end_force": "-load_end_force", "end_force_follower": "-load_end_force_follower",
+    "end_moment": "-load_end_moment", "gravity": "-load_gravity",
+    "load_twist_turns": "-load_twist_turns",
+}
+"""What a restart must share with the run it goes on from (the rod, its mesh, supports and
+loads: the load factor of the stored state means these loads), and the options that set it.
+Solver, contact and output settings may change between stages."""
+
+
+def scene_record(scene):
+    """The physical scene as a JSON-able dict of RECORD_OPTIONS' keys (stored in result.h5)."""
+    r, bc, ld = scene.rod, scene.bc, scene.loads
+
+    def vec(v):
+        return None if v is None else [float(x) for x in v]
+
+    return {"length": r.length, "radius": r.radius, "closed": bool(r.closed), "nelem": r.nelem,
+            "order": r.order, "shape": r.shape, "EA": r.EA, "GA1": r.GA1, "GA2": r.GA2,
+            "EI1": r.EI1, "EI2": r.EI2, "GJ": r.GJ, "kappa0": vec(r.kappa0),
+            "arc_radius": r.arc_radius, "helix_radius": r.helix_radius,
+            "helix_pitch": r.helix_pitch, "twist_turns": r.twist_turns,
+            "imperfection": r.imperfection, "bc_start": bc.start, "bc_end": bc.end,
+            "bc_end_turns": bc.end_turns, "end_force": vec(ld.end_force),
+            "end_force_follower": bool(ld.end_force_follower), "end_moment": vec(ld.end_moment),
+            "gravity": vec(ld.gravity), "load_twist_turns": ld.twist_turns}
+
+
+def _same_value(a, b, rtol=1e-12):
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same_value(x, y, rtol) for x, y in zip(a, b))
+    if isinstance(a, bool) or isinstance(b, bool) or isinstance(a, str) or isinstance(b, str):
+        return a == b
+    if a is None or b is None:
+        return a is None and b is None
+    return abs(float(a) - float(b)) <= rtol * max(abs(float(a)), abs(float(b)))
+
+
+def _record_value(v):
+    if isinstance(v, (list, tuple)):
+        return ",".join(_fmt(float(x)) for x in v)
+    if isinstance(v, float):
+        return _fmt(v)
+    return str(v)
+
+
+def record_mismatches(stored, current):
+    """Differences between two scene records (keys of either; a key missing from the stored
+    record, written by an older rodsnes, is not compared): a list of 'name X there, Y here
+    (-option)'."""
+    out = []
+    for key in RECORD_OPTIONS:
+        if key not in stored or key not in current:
+            continue
+        if not _same_value(stored[key], current[key]):
+            out.append("%s %s there, %s here (%s)" % (key, _record_value(stored[key]),
+                                                      _record_value(current[key]),
+                                                      RECORD_OPTIONS[key]))
+    return out

@@ -55,8 +55,11 @@ class NewtonSolver:
         comm = problem.layout.comm
         opts = PETSc.Options()
         _default(opts, "snes_linesearch_type", "basic")
+        # |F| is judged against rtol x force_scale (_converged), so the tolerance scales with
+        # the problem; -snes_atol is an absolute test the user may add (0 by default: PETSc's
+        # 1e-50 would accept at once a problem whose forces are all below it)
         _default(opts, "snes_rtol", "1e-10")
-        _default(opts, "snes_atol", repr(1e-11 * force_scale))
+        _default(opts, "snes_atol", "0")
         _default(opts, "snes_stol", "1e-16")
         _default(opts, "snes_max_it", "40")
         _default(opts, "ksp_type", "preonly")
@@ -131,9 +134,17 @@ class NewtonSolver:
         self.relaxation_kept = None         # where on_relaxation wrote the last one (Run)
 
     def _converged(self, snes, it, norms):
-        """|F| <= atol, or |F| <= roundoff floor once Newton stagnates -> CONVERGED_FNORM_ABS; |F| <= rtol F_scale ->
-        CONVERGED_FNORM_RELATIVE (relative to the problem's force scale, not to |F_0|, which the
-        load-step predictor can inflate by orders of magnitude); NaN, blow-up beyond 1e12 |F_0|, or max_it -> diverged."""
+        """Convergence relative to the problem's scale, so that a problem and its twin with every
+        stiffness and load scaled by s take the same Newton path:
+          |F| <= rtol F_scale (rtol = -snes_rtol, 1e-10; F_scale = the force scale EI/L^2 +
+          |loads|; at iteration 0 a tenth of it; never above tolerance()) ->
+          CONVERGED_FNORM_RELATIVE (relative to the force scale, not to |F_0|, which the
+          load-step predictor can inflate by orders of magnitude);
+          |F| <= -snes_atol (absolute, off unless given) -> CONVERGED_FNORM_ABS;
+          |F| <= roundoff floor (proportional to the stiffness) once Newton stops gaining, or
+          below a tenth of it -> CONVERGED_FNORM_ABS;
+          NaN, blow-up beyond 1e12 |F_0|, no halving of |F| in -load_stagnation_its
+          iterations, or max_it -> diverged."""
         fnorm = norms[2]
         R = PETSc.SNES.ConvergedReason
         if not np.isfinite(fnorm):
@@ -143,17 +154,20 @@ class NewtonSolver:
             self.fprev = np.inf
             self.fbest, self.best_it = fnorm, 0
             self.stagnated = False
-        atol, rtol, _, maxit = snes.getTolerances()
+        rtol, atol, _, maxit = snes.getTolerances()       # petsc4py's order: rtol first
         fprev, self.fprev = self.fprev, fnorm
         if fnorm <= atol:
             return R.CONVERGED_FNORM_ABS
-        # below the roundoff floor, accept only once Newton has stopped gaining (|F| no longer
-        # falls tenfold): an iterate that merely crossed the floor on its way down is not yet
-        # the most accurate state the arithmetic allows
-        if fnorm <= self.floor and (fnorm > 0.1 * fprev or fnorm <= 1e-3 * self.floor):
-            return R.CONVERGED_FNORM_ABS
-        if it > 0 and fnorm <= rtol * self.force_scale:
+        # never above tolerance(), the |F| the rest of the solver holds a step to
+        if fnorm <= min((rtol if it > 0 else 0.1 * rtol) * self.force_scale, self.tolerance()):
             return R.CONVERGED_FNORM_RELATIVE
+        # below the roundoff floor, accept once Newton has stopped gaining (|F| no longer falls
+        # tenfold: an iterate that merely crossed the floor on its way down is not yet the most
+        # accurate state the arithmetic allows), or an order of magnitude below it: there
+        # Newton may only cycle (the perfect Michell ring on 16 elements: 1e-12 <-> 1e-10,
+        # floor 2e-11, while the relative tolerance asks for 5e-14)
+        if fnorm <= self.floor and (fnorm > 0.1 * fprev or fnorm <= 0.1 * self.floor):
+            return R.CONVERGED_FNORM_ABS
         if fnorm > self.divtol * self.f0:
             return R.DIVERGED_DTOL
         if fnorm < 0.5 * self.fbest:
@@ -604,7 +618,7 @@ class NewtonSolver:
 
     def tolerance(self):
         """The |F| every load step is held to: max(atol, rtol x force scale, roundoff floor)."""
-        atol, rtol, _, _ = self.snes.getTolerances()
+        rtol, atol, _, _ = self.snes.getTolerances()
         return max(atol, rtol * self.force_scale, self.floor)
 
     def _first_stiffness(self):

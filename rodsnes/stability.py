@@ -63,24 +63,61 @@ class Inertia:
         opts = PETSc.Options()
         if not opts.hasName("stability_mat_mumps_icntl_13"):
             opts.setValue("stability_mat_mumps_icntl_13", "1")
+        if p.contact is not None and not opts.hasName("stability_mat_mumps_icntl_14"):
+            # contact pairs add fill the analysis did not see: room for it (else INFOG(1) = -9)
+            opts.setValue("stability_mat_mumps_icntl_14", "100")
         pc.setFromOptions()
         self.pc, self.pairs = pc, pairs
         self.builds += 1
 
+    def assemble(self, pairs=None):
+        """The symmetric Hessian of the problem's current state into H (kept; a new matrix and
+        symbolic analysis when the contact pattern changed).  ``pairs``: the contact element
+        pairs to preallocate (default: a search within the preallocation margin).
+        Collective."""
+        p = self.problem
+        if pairs is None:
+            pairs = self._pattern()
+        if self.pairs is None or not np.array_equal(pairs, self.pairs):
+            self._build(pairs)
+        p.jacobian(None, p.state.X, self.H, self.H, symmetric=True)
+        self.diagonal = self.H.getDiagonal()
+        return self.H
+
+    def factor(self, shift=None):
+        """LDL^T of H + diag(shift) (shift a Vec; None: zero_shift(H) on the diagonal) by MUMPS;
+        returns the number of negative pivots (INFOG(12)), or -1 when the factorisation failed
+        (a zero pivot, MUMPS out of room).  The factor stays for solve().  Collective."""
+        H = self.H
+        d = self.diagonal.copy()
+        if shift is None:
+            d.shift(zero_shift(H))
+        else:
+            d.axpy(1.0, shift)
+        H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
+        d.destroy()
+        self.pc.setOperators(H)
+        self.counts += 1
+        try:
+            self.pc.setUp()
+        except PETSc.Error:
+            self.pc.reset()
+            self.pc.setOperators(H)
+            return -1
+        F = self.pc.getFactorMatrix()
+        if F.getMumpsInfog(1) < 0:
+            return -1
+        return int(F.getMumpsInfog(12))
+
+    def solve(self, b, x):
+        """x = (H + shift)^-1 b with the last factor.  Collective."""
+        self.pc.apply(b, x)
+
     def count(self):
         """Negative eigenvalues of the symmetric Hessian at the problem's current state.
         Collective."""
-        p = self.problem
-        pairs = self._pattern()
-        if self.pairs is None or not np.array_equal(pairs, self.pairs):
-            self._build(pairs)
-        H = self.H
-        p.jacobian(None, p.state.X, H, H, symmetric=True)
-        H.shift(zero_shift(H))
-        self.pc.setOperators(H)
-        self.pc.setUp()
-        self.counts += 1
-        return int(self.pc.getFactorMatrix().getMumpsInfog(12))
+        self.assemble()
+        return self.factor()
 
     def destroy(self):
         for obj in (self.pc, self.H):

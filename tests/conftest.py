@@ -39,11 +39,27 @@ def clear_options():
         opts.delValue(k)
 
 
+# options every run of the current test module gets unless it says otherwise (newton_path)
+DEFAULT_OVERRIDES = {}
+
+
+@pytest.fixture(scope="module")
+def newton_path():
+    """The test's runs take -load_path newton (the Newton path's own machinery: cut-back,
+    branch switching, relaxation, Levenberg-Marquardt, continuation) unless they say
+    otherwise.  Use with pytestmark = pytest.mark.usefixtures("newton_path")."""
+    DEFAULT_OVERRIDES["load_path"] = "newton"
+    yield
+    DEFAULT_OVERRIDES.pop("load_path", None)
+
+
 def set_options(case=None, **overrides):
     """Fill the options database from cases/<case>.opts and keyword overrides
     (rod_nelem=8; a value of True means a bare flag)."""
     clear_options()
     opts = PETSc.Options()
+    for k, v in DEFAULT_OVERRIDES.items():
+        overrides.setdefault(k, v)
     pairs = read_opts_file(os.path.join(ROOT, "cases", case + ".opts")) if case else []
     for k, v in pairs:
         opts.setValue(k, v if v is not None else "")

@@ -11,6 +11,9 @@ import pytest
 
 from conftest import run_case
 
+# the Newton path's own machinery (rodsnes/solver.py, relax.py, arclength.py)
+pytestmark = pytest.mark.usefixtures("newton_path")
+
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
                rod_nelem=8, rod_imperfection=1e-3, bc_start="clamped", bc_end="sliding",
                bc_end_turns=1.25, load_end_force="3,0,0", load_steps=10, load_min_step=1e-4)

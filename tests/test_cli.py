@@ -49,7 +49,7 @@ def test_converged_run_writes_summary_and_steps(tmp_path):
 
 def test_failed_load_path_keeps_the_last_converged_step(tmp_path):
     # two Newton iterations are not enough for lambda = 10 in one step, even after one cut-back
-    p = rodsnes("-options_file", "cases/mattiasson.opts", "-load_steps", "4", "-snes_max_it", "3",
+    p = rodsnes("-options_file", "cases/mattiasson.opts", "-load_steps", "4", "-load_path", "newton", "-snes_max_it", "3",
                 "-load_max_cutbacks", "1", tmp=tmp_path)
     assert p.returncode == 3
     s = json.loads((tmp_path / "summary.json").read_text())

@@ -51,6 +51,7 @@ def sandwich(p, g, shift=0.0):
     return waypoint_rod(W, p)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("p", [2, 3])
 def test_a_point_between_two_strands_is_pushed_by_both(p):
     """A squeezed between B and C: energy = two right-angle crossings (both strands slave in

@@ -6,6 +6,9 @@ import pytest
 from conftest import gathered_positions, run_case
 from rodsnes.scene import SceneError
 
+# the Newton path's own machinery (rodsnes/solver.py, relax.py, arclength.py)
+pytestmark = pytest.mark.usefixtures("newton_path")
+
 
 def test_levenberg_marquardt_takes_the_steps_newton_fails():
     """Mattiasson's cantilever in 10 steps with Newton held to 3 iterations: plain Newton fails

@@ -80,6 +80,7 @@ def test_stability_count_by_the_kept_ldlt_equals_a_fresh_factorisation():
     from rodsnes import stability
     for imperfection, want in ((0.0, 2), (1e-3, 0)):
         run = run_case("euler", stability=True, stability_switch=0, rod_imperfection=imperfection,
+                       load_path="newton",
                        load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4), load_steps=4)
         p = run.problem
         assert run.solver.results[-1].negative_eigenvalues == want
@@ -91,12 +92,14 @@ def test_stability_count_by_the_kept_ldlt_equals_a_fresh_factorisation():
 
 
 @pytest.mark.mpi
+@pytest.mark.slow
 def test_the_kept_ldlt_follows_a_new_contact_pattern():
     """With contact the Hessian's pattern follows the candidate pairs: the same state keeps
     the matrix; a state without contact (the rod put back straight) makes a new one; every
-    count equals the fresh factorisation's."""
+    count equals the fresh factorisation's.  (40 load steps reach the same equilibrium as 5 in
+    40 % of the time: fewer cut-backs and long Newton solves at the first touch.)"""
     from rodsnes import stability
-    run = run_case("rollup_contact", rod_nelem=16, load_steps=5, stability=True)
+    run = run_case("rollup_contact", rod_nelem=16, load_steps=40, stability=True)
     assert run.ok and run.problem.contact.summary()["active_points"] > 0
     p = run.problem
     builds = p.inertia.builds

@@ -6,6 +6,9 @@ import pytest
 from conftest import run_case
 from rodsnes import solver
 
+# the Newton path's load steps (the minimiser's: tests/test_minimize.py)
+pytestmark = pytest.mark.usefixtures("newton_path")
+
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
                rod_nelem=16, bc_start="clamped", bc_end="sliding", load_end_force="3,0,0")
 

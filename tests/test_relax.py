@@ -11,6 +11,9 @@ from scipy.special import ellipk
 
 from conftest import build_run, gathered_positions, run_case, set_options
 
+# the Newton path's own machinery (rodsnes/solver.py, relax.py, arclength.py)
+pytestmark = pytest.mark.usefixtures("newton_path")
+
 
 def _small_problem_layout(case="michell", **kw):
     """Mesh and a serial layout of a small scene (no solve)."""
@@ -263,6 +266,7 @@ def test_twisted_ring_beyond_michell_leaves_the_unstable_circle():
     assert run.history[-1].get("negative_eigenvalues") == 0
 
 
+@pytest.mark.slow
 def test_twisted_ring_beyond_michell_writhes_into_self_contact():
     """cases/michell_contact.opts (T = 2.5 > sqrt(3) turns, radius L/100, contact on): the load
     path leaves the circle near Michell's threshold, the ring writhes until its strands touch

@@ -10,6 +10,9 @@ from mpi4py import MPI
 
 from conftest import gathered_positions, run_case
 
+# the Newton path's load steps (the minimiser's: tests/test_minimize.py)
+pytestmark = pytest.mark.usefixtures("newton_path")
+
 
 @pytest.mark.mpi
 def test_restart_from_an_interrupted_run_matches_the_uninterrupted_one():

@@ -503,7 +503,7 @@ def test_help_text_lists_every_option_once():
     assert "  -contact <false>: " in text
     for title in scene.SECTIONS.values():
         assert title in text
-    assert len(scene.OPTIONS) == 65
+    assert len(scene.OPTIONS) == 67
 
 
 def test_option_table_is_consistent():

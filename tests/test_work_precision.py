@@ -106,6 +106,7 @@ def test_errors_vanish_on_the_reference_itself(rod):
             assert e["err_force"] == pytest.approx((a.hard().f - sol.f) / a.hard().f, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_rollup_contact_study_end_to_end(rod, tmp_path):
     """The tool's command line: one solver run (16 quadratic elements, mu = 10 mu0), its CSV row,
     the cached reference and the plot."""

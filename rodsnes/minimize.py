@@ -1,0 +1,592 @@
+"""Load steps as energy minimisations: inertia-controlled Newton on the total energy.
+
+For conservative loads (dead forces, gravity, prescribed end positions and rotations, an
+intrinsic twist ramp, contact) an equilibrium a user wants is a local minimum of the total
+energy E (elastic + loads + contact + supports).  Each load step minimises it, in the
+exponential chart of the current state (x = (r, theta), the update (r + dr, exp(dtheta^x) R)):
+
+1. g = dE/dx, the residual (RodProblem.residual: Dirichlet rows hold x - target = 0 once the
+   load is set), and H = d2E/dx2, the symmetric chart Hessian (RodProblem.jacobian with
+   symmetric=True), assembled into an SBAIJ matrix kept with its MUMPS analysis
+   (stability.Inertia).
+2. LDL^T of H + sigma M, M the lumped metric (nodal length m_i for positions, m_i l^2 for
+   rotations, l the element length), sigma = 0 first.  Its inertia comes with the
+   factorisation (MUMPS INFOG(12), the negative pivots).  While it has negative pivots sigma is
+   raised (from half the last shift that worked, or 1e-8 |H| / |M|, times 4 per try), as
+   MeshFEM's Newton optimiser does, so the step d = -(H + sigma M)^-1 g is a descent direction.
+3. At a saddle (negative pivots and a step too short to leave it) the lowest mode of
+   H v = lambda M v, from inverse iteration on the same factor, is added, signed downhill.
+4. Backtracking line search on E (Armijo, quadratic interpolation), within move limits: no
+   node near a contact moves more than half the contact radius, no node anywhere more than
+   half the clearance between strands that have come back toward each other
+   (ContactTerm.clearance), no rotation more than MAX_ROTATION, and the deepest penetration
+   grows at most to twice itself or 2 % of the diameter.  So no strand passes through
+   another and no rotation wraps: the link is kept.  A step whose energy change is below the
+   energy's round-off is accepted when it lowers |g|.
+5. Converged when |g| <= tolerance (relative to the force scale, or the round-off floor of
+   the residual) AND H itself (sigma = 0, the zero_shift of exact zero modes aside) factors
+   with no negative pivot: every converged step is a stable equilibrium, its inertia known
+   from the factorisation the iteration makes anyway.  A near-zero positive eigenvalue (a ply
+   sliding, a ring turning) is not an instability: convergence is judged on |g| only.
+
+LoadPath steps the load from lam0 to the stop: each increment starts from the last
+converged state, with the prescribed end turns spread along the rod as material twist
+(twist predictor: a rotation increment of the end arrives at every node in proportion to its
+arclength, so no element sees a relative rotation near half a turn and a step of many turns
+stays on the right sheet of SO(3)); the increment grows when a step took few iterations and
+shrinks when it took many, and is halved on genuine failure (iteration limit, line search
+failure, a link that differs from the imposed turns).
+"""
+import time
+
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from . import so3
+from .partition import NDOF
+from .profiling import logged, timed
+from .stability import Inertia
+
+# the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
+# angle, but a step that turns a node by more than this is far outside its quadratic model
+MAX_ROTATION = 1.0
+# the largest prescribed end turn per load step once the twist predictor spreads it
+MAX_TURN_STEP = 1.0
+ARMIJO = 1e-4
+# full Newton steps the watchdog lets the energy rise over before it goes back and searches
+WATCHDOG_STEPS = 4
+FREE_STEPS = True
+# Newton iterations a load step is aimed at: longer steps cost more iterations each but fewer
+# per unit of load (the plectoneme: 8 its for 0.01 turn, 33 for 0.1, 75 for 0.5)
+TARGET_ITS = 20
+PREDICTOR = True
+LINE_SEARCH_TRIES = 30
+
+
+class MinimizeResult:
+    """One load step's minimisation: load, converged, iterations, reason, |g| history, seconds,
+    negative eigenvalues (of H at the last iterate), shifts (factorisations with sigma > 0),
+    line-search cuts, saddle escapes."""
+
+    def __init__(self, lam, converged, its, reason, history, seconds, nneg, shifts, cuts,
+                 escapes, factorizations):
+        self.lam, self.converged, self.its, self.reason = lam, converged, its, reason
+        self.history = np.asarray(history)
+        self.fnorm = float(history[-1]) if len(history) else float("nan")
+        self.seconds = seconds
+        self.negative_eigenvalues = nneg
+        self.shifts, self.line_search_cuts, self.escapes = shifts, cuts, escapes
+        self.factorizations = factorizations
+
+
+def residual_floor(problem):
+    """Round-off floor of the residual: strains of size ~1 differentiated over a node spacing,
+    times the largest stiffness, summed over the nodes (a residual at this level is as
+    converged as the arithmetic allows)."""
+    rod, m = problem.scene.rod, problem.mesh
+    stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
+    return 3 * np.finfo(float).eps * stiff * m.nelem * m.order * np.sqrt(m.n_nodes)
+
+
+class EnergyMinimizer:
+    """Inertia-controlled Newton on the total energy at one load factor (module docstring)."""
+
+    def __init__(self, problem, force_scale, rtol=1e-10, max_it=200, quiet=True):
+        self.problem = problem
+        self.comm = problem.layout.comm.tompi4py()
+        if problem.inertia is None:
+            problem.inertia = Inertia(problem)
+        self.factor = problem.inertia
+        self.force_scale = force_scale
+        self.tol = rtol * force_scale
+        self.floor = residual_floor(problem)
+        self.max_it = max_it
+        self.quiet = quiet
+        m = problem.mesh
+        self.energy_scale = force_scale * m.length
+        self.roundoff = 1e-12 * np.sqrt(m.nelem)       # relative round-off of an energy sum
+        self.metric = self._metric()
+        self.sigma_last = 0.0
+        self.total_its = 0
+        self.factorizations = 0
+        self._mode = None
+        self.last = None
+        self.ksp = None
+
+    # -- pieces -----------------------------------------------------------------------
+    def _metric(self):
+        """Lumped metric M (a Vec): m_i for position rows, m_i h^2 for rotation rows (m_i =
+        int N_i ds, h the element length), 1 on the Dirichlet rows."""
+        from .relax import lumped_weights
+        p = self.problem
+        m = lumped_weights(p.mesh, p.layout)
+        h = p.mesh.length / p.mesh.nelem
+        M = p.layout.create_vec()
+        with M as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] = m[:, None]
+            a[:, 3:6] = m[:, None] * h * h
+            a.reshape(-1)[p.constraints.rows_local] = 1.0
+        return M
+
+    def _same(self, *values):
+        """Rank 0's values on every rank: the decisions must agree bit for bit."""
+        return self.comm.bcast(values if len(values) > 1 else values[0], root=0)
+
+    @logged("MinGradient")
+    def gradient(self):
+        p = self.problem
+        p.residual(None, p.state.X, p.F)
+        return self._same(p.F.norm())
+
+    def energy_at(self, X):
+        """(total energy, deepest penetration or None) at the chart point X.  Collective."""
+        p = self.problem
+        r, q = p.state.local_config(X)
+        Ec, depth = 0.0, None
+        if p.contact is not None:
+            out = p.contact.evaluate(r, tangent=False)
+            Ec = out["energy"]
+            depth = self.comm.allreduce(p.contact.deepest_local(out), op=MPI.MAX)
+        E = self.comm.allreduce(p._energy_local(r, q, Ec))
+        return self._same(E, depth)
+
+    @logged("MinHessian")
+    def _shifted_factor(self, nneg):
+        """Factor H + sigma M with the smallest sigma of the sequence that has no negative
+        pivot; returns sigma (inf when none up to 1e8 |H| / |M| does)."""
+        if nneg == 0:
+            return 0.0
+        H = self.factor.H
+        scale = self._same(self.factor.diagonal.norm(PETSc.NormType.INFINITY)
+                           / self.metric.norm(PETSc.NormType.INFINITY))
+        sigma = max(0.5 * self.sigma_last, 1e-8 * scale)
+        shift = self.metric.duplicate()
+        while sigma < 1e8 * scale:
+            self.metric.copy(shift)
+            shift.scale(sigma)
+            n = self._same(self.factor.factor(shift))
+            self.factorizations += 1
+            if n == 0:
+                shift.destroy()
+                self.sigma_last = sigma
+                return sigma
+            sigma *= 4.0
+        shift.destroy()
+        del H
+        return np.inf
+
+    def _lowest_mode(self, its=6):
+        """Lowest mode of H v = lambda M v by inverse iteration on the current factor of
+        H + sigma M (rows of Dirichlet dofs zero).  Collective."""
+        p = self.problem
+        v = p.F.duplicate()
+        if self._mode is not None and self._mode.getSize() == v.getSize():
+            self._mode.copy(v)
+        else:
+            lo, hi = v.getOwnershipRange()
+            idx = np.arange(lo, hi, dtype=float)
+            v.setArray(np.sin(12.9898 * idx + 0.5) * 43758.5453 % 1.0 - 0.5)
+        w = v.duplicate()
+        rows = p.constraints.rows_local
+        for _ in range(its):
+            w.pointwiseMult(self.metric, v)
+            with w as a:
+                a[rows] = 0.0
+            self.factor.solve(w, v)
+            with v as a:
+                a[rows] = 0.0
+            v.scale(1.0 / v.norm())
+        w.destroy()
+        if self._mode is not None:
+            self._mode.destroy()
+        self._mode = v.copy()
+        return v
+
+    def _move(self, d, rows=None):
+        """(largest translation, largest rotation) of the nodal step d (owned nodes ``rows``:
+        all by default), over all ranks."""
+        a = d.getArray(readonly=True).reshape(-1, NDOF)
+        if rows is not None:
+            a = a[rows]
+        t = float(np.sqrt((a[:, 0:3] ** 2).sum(axis=1)).max()) if len(a) else 0.0
+        r = float(np.sqrt((a[:, 3:6] ** 2).sum(axis=1)).max()) if len(a) else 0.0
+        return self._same(self.comm.allreduce(t, op=MPI.MAX)), \
+            self._same(self.comm.allreduce(r, op=MPI.MAX))
+
+    def _longest_step(self, d):
+        """The largest multiple (<= 1) of d within the move limits (module docstring, 4.)."""
+        p = self.problem
+        t, rot = self._move(d)
+        alpha = 1.0
+        if rot > MAX_ROTATION:
+            alpha = MAX_ROTATION / rot
+        c = p.contact
+        if c is not None:
+            r, _ = p.state.local_config()
+            c.evaluate(r)
+            t_near, _ = self._move(d, c.near_local)
+            if t_near * alpha > c.step_limit:
+                alpha = c.step_limit / t_near
+            room = max(0.5 * c.clearance(r), c.step_limit)
+            if t * alpha > room:
+                alpha = room / t
+        return alpha
+
+    # -- one load step ----------------------------------------------------------------
+    @logged("MinStep")
+    def solve_at(self, lam):
+        """Minimise the energy at load factor lam from the current state (the Dirichlet values
+        set first).  Returns a MinimizeResult; the state is the last iterate."""
+        p = self.problem
+        t0 = time.perf_counter()
+        p.set_load(lam)
+        X, g = p.state.X, p.F
+        d = X.duplicate()
+        Xt = X.duplicate()
+        hist = []
+        its = shifts = cuts = escapes = free_steps = 0
+        nneg, reason, prev = -1, "iteration limit", np.inf
+        watch = None                # the watchdog's reference point (module docstring, 4.)
+        while True:
+            p.state.recentre()
+            if p.contact is not None:
+                p.ensure_pattern()
+            gnorm = self.gradient()
+            hist.append(gnorm)
+            if not np.isfinite(gnorm):
+                reason = "not finite"
+                break
+            small = gnorm <= self.tol or (gnorm <= self.floor and gnorm > 0.1 * prev)
+            newton = not small and self._newton_step(g, d)
+            if not newton:
+                with timed("MinHessian"):
+                    self.factor.assemble(p._pattern_pairs if p.contact is not None else None)
+                    nneg = self._same(self.factor.factor())
+                self.factorizations += 1
+                if small and nneg == 0:
+                    reason = "converged"
+                    break
+            if its >= self.max_it:
+                break
+            prev = gnorm
+            if not newton:
+                sigma = self._shifted_factor(nneg) if nneg != 0 else 0.0
+                if not np.isfinite(sigma):
+                    reason = "no positive definite shift"
+                    break
+                shifts += sigma > 0
+                self.factor.solve(g, d)
+                d.scale(-1.0)
+                if nneg != 0:
+                    d, escaped = self._escape(d, g)
+                    escapes += escaped
+            slope = self._same(g.dot(d))
+            alpha = self._longest_step(d)
+            E0, depth0 = self.energy_at(X)
+            if watch is not None and E0 <= watch["E"] + ARMIJO * watch["alpha"] * watch["slope"]:
+                watch = None                    # the free steps have paid off
+            if watch is not None and watch["steps"] >= WATCHDOG_STEPS:
+                p.state.restore(watch["snap"])  # they have not: back, and search the line
+                watch["d"].copy(d)
+                X.copy(Xt)
+                slope, alpha, E0, depth0 = watch["slope"], watch["alpha"], watch["E"], watch["depth"]
+                watch["d"].destroy()
+                watch, free = None, False
+            else:
+                free = FREE_STEPS
+            ok, alpha, tries = self._line_search(X, Xt, d, slope, alpha, gnorm, E0, depth0,
+                                                 free=free)
+            cuts += tries
+            if ok == "free":                    # a full step that has not lowered E (yet)
+                if watch is None:
+                    watch = {"snap": p.state.snapshot(), "d": d.copy(), "slope": slope,
+                             "alpha": alpha, "E": E0, "depth": depth0, "steps": 0}
+                watch["steps"] += 1
+                free_steps += 1
+            elif not ok:
+                reason = "line search"
+                break
+            X.axpy(alpha, d)
+            its += 1
+        if watch is not None:
+            watch["d"].destroy()
+        d.destroy()
+        Xt.destroy()
+        self.total_its += its
+        res = MinimizeResult(lam, reason == "converged", its, reason, hist,
+                             time.perf_counter() - t0, nneg, shifts, cuts, escapes,
+                             self.factorizations)
+        self.last = res
+        return res
+
+    @logged("MinNewton")
+    def _newton_step(self, g, d):
+        """d = -K^-1 g with the consistent tangent K (LU); True when d is a descent direction
+        of the energy (g . d < 0), else the step comes from the symmetric Hessian."""
+        p = self.problem
+        p.jacobian(None, p.state.X, p.J, p.J)
+        ksp = self.ksp
+        if ksp is None:
+            # the Newton path's linear solver: preonly + LU by MUMPS unless -ksp_type, -pc_type,
+            # -pc_factor_mat_solver_type ... say otherwise
+            ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
+            ksp.setType("preonly")
+            pc = ksp.getPC()
+            pc.setType("lu")
+            pc.setFactorSolverType("mumps")
+            opts = PETSc.Options()
+            if p.contact is not None and not opts.hasName("mat_mumps_icntl_14"):
+                # contact pairs add fill the analysis did not see: room for it (INFOG(1) = -9)
+                opts.setValue("mat_mumps_icntl_14", "100")
+            ksp.setFromOptions()
+        ksp.setOperators(p.J)
+        self.factorizations += 1
+        try:
+            ksp.solve(g, d)
+        except PETSc.Error:
+            return False
+        if ksp.getConvergedReason() < 0:
+            return False
+        d.scale(-1.0)
+        slope = self._same(g.dot(d))
+        return bool(np.isfinite(slope) and slope < 0.0)
+
+    def _escape(self, d, g):
+        """At a saddle: add the lowest mode, signed downhill and scaled to move a node by
+        1 % of the rod length (or half the contact radius), when the shifted Newton step moves
+        no node by a tenth of that.  Returns (step, 1 if added)."""
+        p = self.problem
+        reach = 0.01 * p.mesh.length
+        if p.contact is not None:
+            reach = min(reach, p.contact.step_limit)
+        t, _ = self._move(d)
+        if t >= 0.1 * reach:
+            return d, 0
+        v = self._lowest_mode()
+        tv, _ = self._move(v)
+        if tv == 0.0:
+            return d, 0
+        sign = -1.0 if self._same(g.dot(v)) > 0 else 1.0
+        d.axpy(sign * reach / tv, v)
+        return d, 1
+
+    @logged("MinLineSearch")
+    def _line_search(self, X, Xt, d, slope, alpha, gnorm, E0, depth0, free=False):
+        """Backtracking on the energy from X along d (module docstring, 4.); returns
+        (accepted, alpha, tries), accepted = "free" for a full step taken on the watchdog's
+        credit (``free``: allowed)."""
+        p = self.problem
+        allow = None
+        if depth0 is not None:
+            allow = max(2.0 * depth0, 0.02 * 2.0 * p.contact.eps)
+        slack = self.roundoff * (abs(E0) + self.energy_scale)
+        for k in range(LINE_SEARCH_TRIES):
+            X.copy(Xt)
+            Xt.axpy(alpha, d)
+            E, depth = self.energy_at(Xt)
+            if not np.isfinite(E) or (allow is not None and depth > allow):
+                alpha *= 0.5
+                free = False
+                continue
+            if E <= E0 + ARMIJO * alpha * min(slope, 0.0):
+                return True, alpha, k
+            if free:
+                return "free", alpha, k
+            if E <= E0 + slack:
+                # a change at the energy's round-off: accept when the gradient falls
+                p.residual(None, Xt, p.F)
+                gt = self._same(p.F.norm())
+                p.residual(None, X, p.F)
+                if gt < gnorm:
+                    return True, alpha, k
+            if slope < 0.0:       # minimiser of the quadratic through E0, slope, E(alpha)
+                aq = -slope * alpha ** 2 / (2.0 * (E - E0 - slope * alpha))
+                alpha = min(max(aq, 0.1 * alpha), 0.5 * alpha)
+            else:
+                alpha *= 0.5
+        return False, alpha, LINE_SEARCH_TRIES
+
+
+class LoadPath:
+    """Load stepping by minimisation (module docstring): the same contract as
+    solver.NewtonSolver.run."""
+
+    def __init__(self, problem, force_scale, rtol=1e-10, max_it=200, quiet=True,
+                 max_increment=None):
+        self.problem = problem
+        self.minimizer = EnergyMinimizer(problem, force_scale, rtol=rtol, max_it=max_it,
+                                         quiet=quiet)
+        self.quiet = quiet
+        c = problem.constraints
+        self.turn_cap = c.max_load_increment(MAX_TURN_STEP)
+        self.max_increment = max_increment
+        self.fail_reason = None
+        self.results = []
+        self.link0 = None
+        self.lam_link0 = 0.0
+        # what Run reads of a path (the Newton path's repair machinery has no place here)
+        self.switch = self.switch_restart = self.arclength = False
+        self.relaxation_kept = self.on_relaxation = None
+        self.predictor_retries = self.stagnations = self.damped_solves = 0
+        self.snes = None
+        self.floor = self.minimizer.floor
+
+    def tolerance(self):
+        """The gradient norm every step is held to: max(rtol x force scale, round-off floor)."""
+        return max(self.minimizer.tol, self.floor)
+
+    def solve_at(self, lam):
+        """Minimise at load lam from the current state (one step, no predictor)."""
+        return self.minimizer.solve_at(lam)
+
+    @property
+    def total_its(self):
+        return self.minimizer.total_its
+
+    def _say(self, text):
+        if not self.quiet and self.problem.layout.comm.getRank() == 0:
+            print(text, flush=True)
+
+    def twist_predictor(self, dlam):
+        """Spread the end rotation's increment 2 pi T dlam (-bc_end_turns T) along the rod as
+        material twist: R_i <- R_i exp(phi_i e3^x), phi_i = 2 pi T dlam s_i / L."""
+        p = self.problem
+        T = p.constraints.end_turns
+        if not T or p.mesh.closed:
+            return
+        s = p.mesh.s_nodes[p.layout.local_nodes] / p.mesh.length
+        phi = 2.0 * np.pi * T * dlam * s
+        e3 = np.zeros((len(s), 3))
+        e3[:, 2] = phi
+        q = p.state.q_ref
+        q[:] = so3.qmul(q, so3.qexp(e3))
+
+    def keep_promise(self, res, max_raises=4):
+        """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
+        promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
+        mu <- 1.25 mu pen / p* and minimise again at the same load (mu never falls along a
+        path).  res takes the iterations; a re-solve that fails fails the step.  Collective."""
+        p = self.problem
+        ct = p.contact
+        if ct is None or not ct.adapt:
+            return
+        for _ in range(max_raises):
+            r, _ = p.state.local_config()
+            pen = ct.deepest(r) / (2.0 * ct.eps)
+            if pen <= ct.penetration:
+                return
+            mu0 = ct.mu
+            ct.set_penalty(1.25 * mu0 * pen / ct.penetration)
+            again = self.minimizer.solve_at(res.lam)
+            res.its += again.its
+            res.seconds += again.seconds
+            res.history = np.concatenate([res.history, again.history])
+            res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
+            ct.penalty_raises += 1
+            self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter > "
+                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> "
+                      f"{ct.mu:.4g}, minimised again in {again.its} its")
+            if not again.converged:
+                res.converged, res.reason = False, f"after a penalty raise: {again.reason}"
+                ct.set_penalty(mu0)
+                return
+
+    def predict(self, prev, lam, dl):
+        """The start of the step lam -> lam + dl: the secant through the last two converged
+        states (positions and rotations, problem.RodState.predict) when there is a step before
+        and the predicted state penetrates no deeper than the line search allows, else the last
+        state with the end turns spread as twist (twist_predictor).  Collective."""
+        p = self.problem
+        if prev is not None and PREDICTOR:
+            m = self.minimizer
+            depth0 = m.energy_at(p.state.X)[1] if p.contact is not None else None
+            snap = p.state.snapshot()
+            p.state.predict(prev[0], dl / (lam - prev[1]))
+            p.state.recentre()
+            if p.contact is None:
+                return
+            r, _ = p.state.local_config()
+            out = p.contact.evaluate(r)
+            depth = m._same(m.comm.allreduce(p.contact.deepest_local(out), op=MPI.MAX))
+            if depth <= max(2.0 * depth0, 0.02 * 2.0 * p.contact.eps):
+                return
+            p.state.restore(snap)
+        self.twist_predictor(dl)
+
+    def link_error(self, lam):
+        """|link - the link the load imposes| (the link at the first load, plus the end turns
+        since), or None where the rod has no link (topology) or is too long to count it."""
+        p = self.problem
+        if p.mesh.n_nodes > 20000:
+            return None
+        topo = p.topology()
+        if topo is None or not np.isfinite(topo["link"]):
+            return None
+        if self.link0 is None:
+            self.link0, self.lam_link0 = topo["link"], lam
+            return 0.0
+        want = self.link0 + p.constraints.end_turns * (lam - self.lam_link0)
+        return abs(topo["link"] - want)
+
+    def link_kept(self, err):
+        """The link is what the load imposes (to 0.01): with contact exactly, without contact up
+        to an even number (a phantom rod may pass through itself, each crossing changes the
+        link by 2; an odd change is a rotation taken the short way round)."""
+        if self.problem.contact is not None:
+            return err <= 1e-2
+        return abs(err - 2.0 * np.round(err / 2.0)) <= 1e-2
+
+    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, dlam0=None,
+            prev0=None, stop=1.0, **ignored):
+        p = self.problem
+        st = p.state
+        nominal = 1.0 / steps
+        dlam = min(dlam0 or nominal, self.turn_cap)
+        largest = min(self.max_increment or 1.0, self.turn_cap)
+        lam = lam0
+        p.set_load(lam)
+        self.link_error(lam)                 # the link at the start
+        # a ring of uniform stress-free strains may slide along itself: hold that symmetry
+        # (it carries no force; problem.hold_sliding) so that no valley of equal energy is left
+        p.hold_sliding()
+        cutbacks = 0
+        prev = prev0                         # (snapshot, load) of the step before
+        while lam < stop - 1e-14:
+            dl = min(dlam, stop - lam)
+            snap = st.snapshot()
+            self.predict(prev, lam, dl)
+            res = self.minimizer.solve_at(lam + dl)
+            if res.converged:
+                self.keep_promise(res)
+            err = self.link_error(lam + dl) if res.converged else None
+            if res.converged and err is not None and not self.link_kept(err):
+                res.converged, res.reason = False, f"link off by {err:.3g}"
+            if res.converged:
+                prev = (snap, lam)
+                lam += dl
+                cutbacks = 0
+                res.link_error = err
+                # the next increment from the work this one took (Crisfield's rule: a step
+                # of I iterations is scaled by sqrt(I_target / I), between x1/2 and x2)
+                work = max(res.its + res.line_search_cuts / 4.0, 1.0)
+                dlam = min(dl * min(max(np.sqrt(TARGET_ITS / work), 0.5), 2.0), largest)
+                res.next_increment = dlam
+                self.results.append(res)
+                if on_step is not None:
+                    on_step(res)
+                continue
+            st.restore(snap)
+            prev = None
+            p.set_load(lam)
+            if on_fail is not None:
+                on_fail(res, dl)
+            cutbacks += 1
+            dlam = 0.5 * dl
+            if cutbacks > max_cutbacks or dlam < min_step:
+                self.fail_reason = (f"load path stopped at load {lam:.6f}: the minimisation at "
+                                    f"{lam + dl:.6f} failed ({res.reason}) after {cutbacks - 1} "
+                                    f"cut-backs; the last converged step is in result.h5")
+                return self.results, False
+        return self.results, True

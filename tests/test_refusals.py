@@ -1,0 +1,429 @@
+"""Every input gives the right result or a clear refusal (issue 29): table-driven.
+
+A refusal is one line per problem on stderr, ``rodsnes: error: ...``, naming the option and
+the fix, exit code 2, no traceback; an option that does nothing is a warning line,
+``rodsnes: warning: ...``, and the run goes on; a run stopped by SIGINT/SIGTERM exits 128 +
+the signal with summary.json marked interrupted.  Most runs are in-process (cli.main, PETSc
+already running: the command line's options go into the cleared database); the start-up and
+the signals are checked in subprocesses.
+"""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from conftest import ROOT, clear_options
+from rodsnes import cli, output
+
+CASES = os.path.join(ROOT, "cases")
+MATT = ("-options_file", os.path.join(CASES, "mattiasson.opts"), "-quiet")
+ROLLUP = ("-options_file", os.path.join(CASES, "rollup.opts"), "-quiet")
+ROLLUP_CONTACT = ("-options_file", os.path.join(CASES, "rollup_contact.opts"), "-quiet")
+MICHELL = ("-options_file", os.path.join(CASES, "michell.opts"), "-quiet")
+EULER = ("-options_file", os.path.join(CASES, "euler.opts"), "-quiet")
+TWO_TURNS = ("-options_file", os.path.join(CASES, "rollup_two_turns.opts"), "-quiet")
+# a cantilever whose stiffnesses come from E and the radius (Mattiasson's lambda = 10)
+CANTILEVER = ("-rod_length", "1", "-rod_radius", "0.01", "-rod_youngs", "1e6", "-rod_nelem", "8",
+              "-load_end_force", "0,-0.0785398163397448,0", "-load_steps", "5", "-quiet")
+
+
+def rodsnes(capsys, *args, out):
+    """cli.main in-process on a cleared options database; (exit code, stdout, stderr)."""
+    clear_options()
+    try:
+        rc = cli.main(["rodsnes", *map(str, args), "-output_dir", str(out)])
+    finally:
+        clear_options()
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def refused(capsys, tmp_path, args, expects, lines=1):
+    rc, out, err = rodsnes(capsys, *args, out=tmp_path / "out")
+    assert rc == 2, err
+    errors = [l for l in err.splitlines() if l.strip()]
+    assert errors and all(l.startswith("rodsnes: error: ") for l in errors), err
+    assert len(errors) == lines, err
+    for e in expects:
+        assert e in err, err
+    assert "Traceback" not in err and "PETSC ERROR" not in err
+    assert not (tmp_path / "out" / "result.h5").exists()
+    return err
+
+
+def summary(d):
+    return json.loads((d / "summary.json").read_text())
+
+
+# ------------------------------------------------------------------------ refusals, in-process
+REFUSALS = [
+    # contact switched off (or always on) by its own radius or exclusion
+    ("contact_radius_open", MATT + ("-contact", "-contact_radius", "0.4"),
+     ["-contact_radius = 0.4", "pi x radius = 1.257 is not shorter than the rod (1)",
+      "no two points of the rod can ever touch", "below 0.3183"]),
+    ("contact_radius_ring", MICHELL + ("-contact", "-contact_radius", "0.2",
+                                       "-contact_curvature", "0"),
+     ["-contact_radius = 0.2", "not shorter than half the ring (0.5)", "below 0.1592"]),
+    ("contact_exclusion_long", MATT + ("-contact", "-rod_nelem", "16", "-contact_radius", "0.02",
+                                       "-contact_exclusion", "2"),
+     ["-contact_exclusion = 2: not shorter than the rod (1)", "drop -contact"]),
+    ("contact_exclusion_short", MATT + ("-contact", "-rod_nelem", "16", "-contact_radius", "0.02",
+                                        "-contact_exclusion", "0.001"),
+     ["-contact_exclusion = 0.001 with contact radius 0.02", "always closer",
+      "use at least 0.04"]),
+    ("contact_circle_thicker_than_bend", MICHELL + ("-contact", "-contact_radius", "0.2"),
+     ["-rod_shape circle of radius 0.159155: the reference centreline bends to curvature"]),
+    # meshes that cannot represent the scene
+    ("ring_of_one", MICHELL + ("-rod_nelem", "1"),
+     ["-rod_nelem = 1: the frames of the closed ring turn by 360 degrees across an element",
+      "use -rod_nelem 3 or more"]),
+    ("ring_of_two", MICHELL + ("-rod_nelem", "2"),
+     ["turn by 180 degrees across an element", "use -rod_nelem 3 or more"]),
+    ("ring_of_two_quartic", MICHELL + ("-rod_nelem", "2", "-rod_order", "4"),
+     ["use -rod_nelem 3 or more"]),
+    ("twisted_rod_two_elements", MATT + ("-rod_nelem", "2", "-rod_twist_turns", "1"),
+     ["straight rod with -rod_twist_turns 1 turn by 180 degrees", "use -rod_nelem 3 or more"]),
+    ("rollup_one_element", ROLLUP + ("-rod_nelem", "1"),
+     ["-load_end_moment = 0,0,62.8319 turns the frames by at least 360 degrees per element",
+      "use -rod_nelem 3 or more"]),
+    ("end_turns_two_elements", MATT + ("-rod_nelem", "2", "-bc_end", "clamped",
+                                       "-load_end_force", "0,0,0", "-bc_end_turns", "1"),
+     ["-bc_end_turns = 1 turns the frames by at least 180 degrees", "use -rod_nelem 3"]),
+    ("contact_coarse", ROLLUP_CONTACT + ("-rod_nelem", "8"),
+     ["-rod_nelem = 8 with contact radius 0.1: elements of length 1.25 (12.5 contact radii)",
+      "use -rod_nelem 13 or more"]),
+    # failures that did not name their cause
+    ("pinned_start_end_moment", MATT + ("-bc_start", "pinned", "-load_end_force", "0,0,0",
+                                        "-load_end_moment", "0,0,1"),
+     ["-load_end_moment = 0,0,1 with -bc_start pinned -bc_end free", "a mechanism",
+      "nothing balances the end moment", "-bc_start clamped"]),
+    ("pinned_start_force", MATT + ("-bc_start", "pinned"),
+     ["-load_end_force = 0,-10,0 with -bc_start pinned -bc_end free", "a mechanism"]),
+    ("pinned_end_gravity", MATT + ("-bc_start", "free", "-bc_end", "pinned", "-load_end_force",
+                                   "0,0,0", "-load_gravity", "0,-1,0"),
+     ["-load_gravity = 0,-1,0 with -bc_start free -bc_end pinned", "-bc_end clamped"]),
+    ("imperfection_ten_lengths", EULER + ("-rod_imperfection", "10"),
+     ["-rod_imperfection = 10 with -rod_length = 1", "10.1 times as long as the rod",
+      "use |a| below 0.417"]),
+    ("radius_underflow", CANTILEVER + ("-rod_radius", "1e-90"),
+     ["-rod_radius = 1e-90 with -rod_youngs = 1e+06: in double precision the stiffnesses "
+      "EI1 = E pi r^4/4, EI2 = E pi r^4/4, GJ = G pi r^4/2 underflow to 0", "no usable stiffness",
+      "give -rod_EA, -rod_GA, -rod_EI, -rod_GJ directly"]),
+    ("radius_subnormal", CANTILEVER + ("-rod_radius", "1e-80"),
+     ["-rod_radius = 1e-80", "are subnormal (below 2.23e-308)"]),
+    ("stiffness_subnormal", MATT + ("-rod_EI", "1e-320"),
+     ["-rod_EI = 1e-320: in double precision the stiffnesses EI1, EI2 are subnormal"]),
+    ("forces_too_small_to_square", MATT + ("-rod_EA", "1e-194", "-rod_GA", "1e-194", "-rod_EI",
+                                          "1e-200", "-rod_GJ", "1e-200", "-load_end_force",
+                                          "0,-1e-199,0"),
+     ["the forces of the problem (EI/L^2 + loads = 1.1e-199", "outside 1e-140 .. 1e+140"]),
+    ("forces_too_large_to_square", CANTILEVER + ("-rod_youngs", "1e300", "-rod_radius", "0.4"),
+     ["the forces of the problem (EI/L^2 + loads = 2.01e+298"]),
+    ("too_slender", CANTILEVER + ("-rod_radius", "1e-7", "-load_end_force", "0,-7.85e-22,0"),
+     ["-rod_radius = 1e-07", "the residual's roundoff", "cannot resolve the equilibrium"]),
+    ("nelem_1e9", MATT + ("-rod_nelem", "1e9"),
+     ["-rod_nelem = 1000000000: 3e+09 nodes need about 30 TB of memory",
+      "use -rod_nelem"]),
+    # PETSc options that used to end in a raw PETSc error block or a traceback
+    ("ksp_type", MATT + ("-ksp_type", "nonsense"),
+     ["-ksp_type nonsense: not a PETSc Krylov method (KSP)", "preonly"]),
+    ("ksp_type_close", MATT + ("-ksp_type", "gmrez"), ["did you mean gmres"]),
+    ("snes_type", MATT + ("-snes_type", "bogus"),
+     ["-snes_type bogus: not a PETSc nonlinear solver (SNES)", "newtonls"]),
+    ("pc_type", MATT + ("-pc_type", "lux"), ["-pc_type lux", "did you mean lu"]),
+    ("sub_pc_type", MATT + ("-sub_pc_type", "iluu"), ["-sub_pc_type iluu", "did you mean ilu"]),
+    ("linesearch", MATT + ("-snes_linesearch_type", "bts"),
+     ["-snes_linesearch_type bts: not a PETSc SNES line search", "did you mean bt"]),
+    ("snes_rtol", MATT + ("-snes_rtol", "abc"),
+     ["-snes_rtol abc: not a number", "-snes_rtol 1e-8"]),
+    ("ksp_max_it", MATT + ("-ksp_max_it", "many"), ["-ksp_max_it many: not a number"]),
+    ("mumps_icntl", MATT + ("-mat_mumps_icntl_14", "abc"), ["-mat_mumps_icntl_14 abc: not a number"]),
+    ("snes_max_it_real", MATT + ("-load_path", "newton", "-snes_max_it", "1.5"),
+     ["-snes_max_it 1.5: not an integer"]),
+    ("snes_bool", MATT + ("-load_path", "newton", "-snes_ksp_ew", "maybe"),
+     ["-snes_ksp_ew maybe: not true or false"]),
+    ("solver_package_unknown", MATT + ("-load_path", "newton", "-pc_factor_mat_solver_type",
+                                       "nosuch"),
+     ["-pc_factor_mat_solver_type nosuch: not a PETSc LU/Cholesky package"]),
+    ("solver_package_unfit", MATT + ("-load_path", "newton", "-pc_factor_mat_solver_type",
+                                     "superlu"),
+     ["-pc_factor_mat_solver_type superlu: superlu cannot factor rodsnes' Jacobian",
+      "use mumps"]),
+    ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
+]
+
+
+@pytest.mark.parametrize("args, expects", [r[1:] for r in REFUSALS], ids=[r[0] for r in REFUSALS])
+def test_refused_before_the_solve(capsys, tmp_path, args, expects):
+    refused(capsys, tmp_path, args, expects)
+
+
+def test_independent_problems_are_all_listed(capsys, tmp_path):
+    refused(capsys, tmp_path, MATT + ("-contact", "-contact_exclusion", "2"),
+            ["-contact_exclusion = 2", "-rod_nelem = 8 with contact radius 0.01"], lines=2)
+
+
+def test_solvable_neighbours_of_the_refusals_are_accepted():
+    """The smallest meshes and largest values the refusals name are accepted."""
+    from conftest import set_options
+    from rodsnes.scene import check_solvable, read_scene
+    for case, kw in [("michell", dict(rod_nelem=3)), ("michell", dict(rod_nelem=3, rod_order=1)),
+                     ("rollup", dict(rod_nelem=3)), ("rollup_contact", dict(rod_nelem=13)),
+                     ("euler", dict(rod_imperfection=0.4)), ("plectoneme", {}),
+                     ("michell_contact", {}), ("bench_coil", {}), ("helix", {}),
+                     ("mattiasson", dict(bc_start="pinned", bc_end="pinned",
+                                         load_end_force="0,0,0", load_gravity="0,-1,0")),
+                     ("mattiasson", dict(contact=True, rod_nelem=13, contact_radius=0.3))]:
+        check_solvable(read_scene(["rodsnes"], set_options(case, **kw)))
+
+
+# ------------------------------------------------------------------------ options files
+def test_options_files(capsys, tmp_path):
+    bad = {"garbage.opts": ("-rod_length 1\ngarbage line\n",
+                            "line 2 'garbage line': 'garbage' is not an option"),
+           "two.opts": ("-rod_length 1 -rod_radius 0.01\n", "two options on one line"),
+           "extra.opts": ("-load_end_force 0, -10, 0\n", "has more than one value"),
+           "dash.opts": ("-\n", "'-' is not an option")}
+    for name, (text, expect) in bad.items():
+        (tmp_path / name).write_text(text)
+        refused(capsys, tmp_path, ("-options_file", tmp_path / name),
+                [f"-options_file {tmp_path / name}: {expect}" if "line 2" in expect else expect,
+                 "'#' starts a comment"])
+    refused(capsys, tmp_path, ("-options_file", tmp_path / "missing.opts"),
+            [f"-options_file {tmp_path / 'missing.opts'}: no such file"])
+    refused(capsys, tmp_path, ("-options_file", tmp_path), ["is a directory"])
+    refused(capsys, tmp_path, MATT + ("-options_file",), ["-options_file needs a file name"])
+    # negative values, comments and blank lines are fine: the scene then judges the value
+    (tmp_path / "neg.opts").write_text("# comment\n\n-rod_length -1   # negative\n")
+    refused(capsys, tmp_path, ("-options_file", tmp_path / "neg.opts"),
+            ["-rod_length = -1: must be > 0"])
+
+
+# ------------------------------------------------------------------------ output directory
+def test_output_directory_that_cannot_take_the_results(capsys, tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for out, expect in [(afile, "is a file, not a directory"),
+                        (afile / "sub", f"lies under {afile}, which is a file"),
+                        ("/proc/rodsnes_out", "cannot be written")]:
+        clear_options()
+        rc = cli.main(["rodsnes", *MATT, "-output_dir", str(out)])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"rodsnes: error: -output_dir {out}: {expect}" in err, err
+        assert len(err.strip().splitlines()) == 1
+
+
+# ------------------------------------------------------------------------ silent wrong answers
+def _tip(d):
+    return np.array(summary(d)["tip_position"])
+
+
+@pytest.mark.parametrize("path", ["newton", "auto"])
+def test_a_rescaled_problem_gives_the_same_dimensionless_tip(capsys, tmp_path, path):
+    """Mattiasson's cantilever and its twin with every stiffness and the load x 1e-12 (and
+    x 1e12): the same tip to 1e-8 (before: the tiny twin was accepted at iteration 0, unloaded,
+    because |F| was below an absolute tolerance)."""
+    rc, _, err = rodsnes(capsys, *MATT, "-load_path", path, out=tmp_path / "ref")
+    assert rc == 0, err
+    ref = _tip(tmp_path / "ref")
+    assert abs(ref[1] + 0.8106) < 1e-3              # the elastica: v/L = 0.810609
+    for s in (1e-12, 1e12):
+        d = tmp_path / f"s{s:g}"
+        rc, _, err = rodsnes(capsys, *MATT, "-load_path", path, "-rod_EA", 1e6 * s,
+                             "-rod_GA", 1e6 * s, "-rod_EI", s, "-rod_GJ", s,
+                             "-load_end_force", f"0,{-10 * s!r},0", out=d)
+        assert rc == 0, err
+        assert np.abs(_tip(d) - ref).max() < 1e-8
+        assert summary(d)["newton_iterations"] > 5
+
+
+def test_a_rescaled_youngs_modulus_gives_the_same_tip(capsys, tmp_path):
+    """The same through -rod_youngs (stiffnesses from E and the radius): E and the load x 1e-12."""
+    rc, _, err = rodsnes(capsys, *CANTILEVER, "-load_path", "newton", out=tmp_path / "a")
+    assert rc == 0 and "warning" not in err, err
+    rc, _, err = rodsnes(capsys, *CANTILEVER, "-load_path", "newton", "-rod_youngs", "1e-6",
+                         "-load_end_force", f"0,{-0.0785398163397448e-12!r},0",
+                         out=tmp_path / "b")
+    assert rc == 0, err
+    assert np.abs(_tip(tmp_path / "a") - _tip(tmp_path / "b")).max() < 1e-8
+    assert abs(_tip(tmp_path / "a")[1] + 0.8106) < 1e-3
+
+
+# ------------------------------------------------------------------------ restart
+@pytest.fixture
+def first_run(capsys, tmp_path):
+    d = tmp_path / "first"
+    rc, _, err = rodsnes(capsys, *MATT, "-load_steps", "4", "-load_stop", "0.5", out=d)
+    assert rc == 0, err
+    return d
+
+
+RESTART_MISMATCHES = [
+    (("-rod_length", "2"), "length 1 there, 2 here (-rod_length)"),
+    (("-rod_radius", "0.02"), "radius 0.01 there, 0.02 here (-rod_radius)"),
+    (("-rod_EI", "2"), "EI1 1 there, 2 here (-rod_EI/-rod_youngs)"),
+    (("-load_end_force", "0,-5,0"), "end_force 0,-10,0 there, 0,-5,0 here (-load_end_force)"),
+    (("-rod_imperfection", "0.001"), "imperfection 0 there, 0.001 here"),
+    (("-rod_nelem", "16"), "nelem 8 there, 16 here (-rod_nelem)"),
+]
+
+
+@pytest.mark.parametrize("change, expect", RESTART_MISMATCHES,
+                         ids=[c[0][0] for c in RESTART_MISMATCHES])
+def test_a_restart_from_another_scene_is_refused(capsys, tmp_path, first_run, change, expect):
+    refused(capsys, tmp_path, MATT + ("-load_steps", "4", "-restart", first_run) + change,
+            [f"-restart {first_run}: it holds a run of another scene", expect,
+             "drop -restart to start afresh"])
+
+
+def test_a_restart_of_another_case_with_the_same_nodes_is_refused(capsys, tmp_path):
+    """Euler's column and the two-turn roll-up: both L = 1, radius 0.01, 16 cubic elements."""
+    d = tmp_path / "euler"
+    rc, _, err = rodsnes(capsys, *EULER, "-load_steps", "2", "-load_stop", "0.5", out=d)
+    assert rc == 0, err
+    err = refused(capsys, tmp_path, TWO_TURNS + ("-restart", d), ["EI1 1 there, 2 here"])
+    assert "end_moment 0,0,0 there" in err
+    # a file from before the scene record: the case name must agree
+    with h5py.File(d / "result.h5", "r+") as f:
+        del f.attrs["scene"]
+    refused(capsys, tmp_path, TWO_TURNS + ("-restart", d),
+            ["case euler there, rollup_two_turns here"])
+
+
+def test_a_restart_with_other_solver_settings_goes_on(capsys, tmp_path, first_run):
+    rc, _, err = rodsnes(capsys, *MATT, "-load_steps", "4", "-restart", first_run,
+                         "-snes_rtol", "1e-9", "-load_path", "newton", out=tmp_path / "next")
+    assert rc == 0, err
+    s = summary(tmp_path / "next")
+    assert s["converged"] and s["load"] == 1.0
+
+
+def test_restart_directories_without_a_readable_run(capsys, tmp_path, first_run):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    refused(capsys, tmp_path, MATT + ("-restart", empty),
+            [f"-restart {empty}: holds no result.h5"])
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    refused(capsys, tmp_path, MATT + ("-restart", afile), [f"-restart {afile}: not a directory"])
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    data = (first_run / "result.h5").read_bytes()
+    (cut / "result.h5").write_bytes(data[: len(data) // 2])
+    t0 = time.perf_counter()
+    refused(capsys, tmp_path, MATT + ("-restart", cut),
+            [f"-restart {cut}: {cut / 'result.h5'} cannot be read", "truncated file",
+             "cut short or damaged"])
+    assert time.perf_counter() - t0 < 3.0            # no waiting for a writer that is not there
+    nostep = tmp_path / "nostep"
+    output.ResultWriter(nostep, None, 25, {"case_name": "mattiasson", "closed": False,
+                                           "length": 1.0, "radius": 0.01, "nelem": 8,
+                                           "order": 3}).close()
+    refused(capsys, tmp_path, MATT + ("-restart", nostep), ["no complete step in the file"])
+
+
+# ------------------------------------------------------------------------ options that do nothing
+WARNINGS = [
+    ("arc_radius_on_straight", MATT + ("-rod_arc_radius", "0.5"),
+     "-rod_arc_radius = 0.5 does nothing: it shapes an arc or a circle (-rod_shape arc), and "
+     "this rod is straight; drop it"),
+    ("helix_pitch_on_straight", MATT + ("-rod_helix_pitch", "0.1"),
+     "-rod_helix_pitch = 0.1 does nothing: it shapes a helix"),
+    ("penalty_without_contact", MATT + ("-contact_penalty", "1e4"),
+     "-contact_penalty = 1e4 does nothing: self-contact is off (add -contact)"),
+    ("youngs_with_direct_stiffness", MATT + ("-rod_youngs", "2e6"),
+     "-rod_youngs = 2e6 does nothing: every stiffness it would enter is given directly"),
+    ("stability_option_without_stability", MATT + ("-stability_perturbation", "0.1"),
+     "-stability_perturbation = 0.1 does nothing: it acts with -stability only"),
+    ("arclength_option", MATT + ("-load_arclength_its", "5"),
+     "-load_arclength_its = 5 does nothing: it acts with -load_arclength only"),
+    ("follower_without_force", ROLLUP + ("-load_end_force_follower",),
+     "-load_end_force_follower does nothing: there is no end force"),
+    ("gauge_on_open_rod", MATT + ("-rod_closed_gauge", "0"),
+     "-rod_closed_gauge = 0 does nothing: it holds a closed ring"),
+    ("misspelt_petsc_option", MATT + ("-snes_monitr",),
+     "option -snes_monitr was not used: did you mean -snes_monitor?"),
+    ("misspelt_ksp_option", MATT + ("-load_path", "newton", "-ksp_rtoll", "1e-8"),
+     "option -ksp_rtoll 1e-8 was not used: did you mean -ksp_rtol?"),
+    ("newton_option_on_the_minimising_path", MATT + ("-load_path", "minimize",
+                                                     "-snes_linesearch_type", "bt"),
+     "option -snes_linesearch_type bt was not used (nothing in this run reads it"),
+    ("minimiser_option_on_the_newton_path", MATT + ("-load_path", "newton", "-load_max_it", "50"),
+     "-load_max_it = 50 does nothing: it acts on -load_path minimize only"),
+    ("view_read_after_the_solve", MATT + ("-load_path", "minimize", "-snes_view"),
+     "option -snes_view was not used"),
+]
+
+
+@pytest.mark.parametrize("args, expect", [w[1:] for w in WARNINGS], ids=[w[0] for w in WARNINGS])
+def test_an_option_that_does_nothing_is_reported(capsys, tmp_path, args, expect):
+    rc, out, err = rodsnes(capsys, *args, "-load_stop", "0.2", "-load_steps", "5",
+                           out=tmp_path / "out")
+    assert rc == 0, err
+    warnings = [l for l in err.splitlines() if l.strip()]
+    assert len(warnings) == 1 and warnings[0].startswith("rodsnes: warning: "), err
+    assert expect in err, err
+
+
+def test_options_that_act_are_not_reported(capsys, tmp_path):
+    rc, _, err = rodsnes(capsys, *MATT, "-load_path", "newton", "-snes_view", "-ksp_view",
+                         "-snes_converged_reason", "-snes_rtol", "1e-9", "-load_stop", "0.2",
+                         out=tmp_path / "out")
+    assert rc == 0 and "warning" not in err, err
+    rc, _, err = rodsnes(capsys, *MICHELL, "-load_stop", "0.04", out=tmp_path / "ring")
+    assert rc == 0 and "warning" not in err, err          # -bc_start free on a ring is what it is
+
+
+# ------------------------------------------------------------------------ subprocesses
+def _command(*args):
+    env = dict(os.environ)
+    for k in list(env):          # a serial subprocess must not inherit mpirun's rank variables
+        if k.startswith(("OMPI_COMM_WORLD", "PMIX_", "PMI_")):
+            del env[k]
+    return dict(args=[sys.executable, "-m", "rodsnes", *map(str, args)], cwd=ROOT, env=env,
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_the_command_refuses_in_one_line_from_start_up_to_set_up(tmp_path):
+    """As a user meets it: PETSc never prints its error block, Python never a traceback."""
+    (tmp_path / "bad.opts").write_text("-rod_length 1\ngarbage\n")
+    for args, expect in [(("-options_file", tmp_path / "bad.opts"), "line 2 'garbage'"),
+                         (MATT + ("-snes_type", "bogus"), "-snes_type bogus"),
+                         (MATT + ("-load_path", "newton", "-pc_factor_mat_solver_type",
+                                  "superlu"), "superlu cannot factor")]:
+        p = subprocess.run(**_command(*args, "-output_dir", tmp_path / "out"), timeout=120)
+        assert p.returncode == 2, p.stderr
+        assert p.stderr.startswith("rodsnes: error: ") and expect in p.stderr, p.stderr
+        assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_an_interrupted_run_says_so(tmp_path, sig):
+    d = tmp_path / "run"
+    proc = subprocess.Popen(**_command(*MATT, "-load_path", "newton", "-load_steps", "20000",
+                                       "-output_dir", d))
+    try:
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end:
+            if (d / "summary.json").exists() and summary(d)["load_steps"] >= 3:
+                break
+            time.sleep(0.1)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err and f"rodsnes: error: interrupted by {sig.name}" in err
+    s = summary(d)
+    assert s["interrupted"] is True and s["signal"] == sig.name and s["converged"] is False
+    last = output.read_step(str(d), -1)                  # the steps written stay readable
+    assert s["last_step"] == last["step"] >= 3
+    assert f"({last['step']}, load {last['attrs']['load']:.6f})" in s["failure"]
+    assert f"-restart {d}" in s["failure"]
