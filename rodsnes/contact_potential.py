@@ -1,7 +1,7 @@
 """Self-contact as a penalty pair potential between centreline points (pure numpy; no MPI, no
 PETSc): the -contact_model potential alternative to the closest-point model of contact.py.
 
-    E_c = (k/2) int_0^L ds int_{I(s)} <2 eps - |r(s) - r(sigma)|>^2 dsigma               (1)
+    E_c = k int_0^L ds int_{I(s)} psi(a) dsigma,   a = <2 eps - |r(s) - r(sigma)|>        (1)
 
 I(s) is the exclusion set of contact.py (|s - sigma| >= delta, periodic on a ring).  Every
 couple of centreline points closer than 2 eps repels; there is no closest point.  Why: the
@@ -14,27 +14,54 @@ centreline, however small, makes a second minimum; ties between the two move the
 one set of nodes to another.  A tight two-ply (the plectoneme) is exactly there: its strands
 wind round each other at a pitch angle near 45 degrees, where rho = 2 sin^2(alpha) -> 1
 (measured rho = 0.94 - 0.96 along the ply from 9.1 to 9.7 turns, up to 1.9 where the ply meets
-its end loop).  (1) has no minimum to pick: it is C^1 in the nodes (C^2 except where a point
-couple enters or leaves the 2 eps ball), whatever the geometry.
+its end loop).  (1) has no minimum to pick: it is C^2 in the nodes, whatever the geometry
+(Onset law).
+
+Onset law.  psi is the penalty's quadratic a^2/2 with a cubic onset layer 0 < a < a_s:
+
+    psi(a) = a^3 / (6 a_s)                        a <= a_s
+             a^2/2 - a_s a/2 + a_s^2/6            a >= a_s,    psi'' = min(a / a_s, 1)    (3)
+
+so psi, psi' and psi'' are 0 at a = 0 and continuous at a_s, and the Hessian of (1) is
+continuous as point couples enter and leave the 2 eps ball.  a_s = ONSET x d* with ONSET = 1
+(d* the promised penetration, below): a couple at the promised depth is at the end of the
+layer, the contact's working range is cubic and deeper penetration grows no stiffer than the
+quadratic law.  ONSET = 0 (or ``PotentialKernel(onset=0)``) is the quadratic law
+psi = a^2/2, which is only C^1 in the nodes: each couple entering the ball adds k W nu nu^T to
+the Hessian at once (tests/test_contact_potential.py: the normal stiffness of an element
+jumps by a quarter of its value), and its quadrature integrand has kinks at the ball's edge.
+Why the onset: the quadratic law's quadrature ripples the energy as strands slide along each
+other 17 times more (1.1e-3 of the energy at the default nqp against 6.6e-5) and misses the
+force of parallel strands by 4e-3 against 1e-3; on the plectoneme, from the 7.242-turn state
+to 7.3 turns, the quadratic law's load path stalled at 7.2894 turns (every increment down to
+1e-6 failed at the iteration limit: the arm of the plectoneme swung 8 cm for a load increment
+of 2.7e-6, while the lowest eigenvalue of the last converged state was still 9.5e-3, a branch
+ended at a kink), the onset law's got there in 37 steps (1142 iterations against 4264 and a
+failure).  It does not shorten the Newton iterations of a load step where the plectoneme's
+arm swings round the end-to-end axis (a near-zero mode: 10 - 200 iterations either way): along
+Newton's direction the energy there is a smooth quartic in the step, E0 + g.d (a - a^2/2) +
+c4 a^4 with c4 ~ 10 |g.d|, the straight step's chord of a rotation.
 
 Penalty law.  For two straight parallel strands at distance g = 2 eps - d (d > 0 penetration),
-the inner integral of (1) is Phi(d) = (k/2) int <2 eps - sqrt(g^2 + t^2)>^2 dt ~ (k/2) (32/15)
-sqrt(eps) d^(5/2), so a slave point carries the line force
+the inner integral of (1) is Phi(d) = k int psi(<2 eps - sqrt(g^2 + t^2)>) dt, so a slave
+point carries the line force
 
-    f(d) = Phi'(d) = k int_{|t| < t0} (2 eps - r) g / r dt,   r = sqrt(g^2 + t^2),
+    f(d) = Phi'(d) = k int_{|t| < t0} psi'(2 eps - r) g / r dt,   r = sqrt(g^2 + t^2),
     t0 = sqrt(4 eps^2 - g^2)                                                          (2)
 
-(~ (8/3) k sqrt(eps) d^(3/2)).  k is set from the closest-point penalty mu (-contact_penalty,
-or its default) so that both models give the same force at the promised penetration
+(~ (16/15) k sqrt(eps) d^(5/2) / a_s within the layer, (8/3) k sqrt(eps) d^(3/2) with the
+quadratic law).  k is set from the closest-point penalty mu (-contact_penalty, or its default)
+so that both models give the same force at the promised penetration
 d* = -contact_penetration x 2 eps: k = mu d* / f_1(d*) (``pair_stiffness``, f_1: (2) with
-k = 1).  Below d* the potential is softer than mu d, above it stiffer (f ~ d^1.5); the
+k = 1).  Below d* the potential is softer than mu d, above it stiffer; the
 -contact_penalty_adapt raises of mu act on k in proportion.
 
 End caps.  A slave point beside an open rod's end sees only the half line of material that
 is there, so (1) gives it half the force a point beside a strand's middle gets (the closest-point
 law, whose closest point sits on the end, gives the full mu d: the end is a ball).  Each open
-end therefore carries a point couple of length weight c = mu / (2 k): beside the end at d* the
-half line gives mu d* / 2 and the cap k c d* = mu d* / 2, together the middle's mu d* (the
+end therefore carries a point couple of length weight c = mu d* / (2 k psi'(d*)) (mu / (2 k)
+with the quadratic law): beside the end at d* the half line gives mu d* / 2 and the cap
+k c psi'(d*) = mu d* / 2, together the middle's mu d* (the
 force on the slave point; the end itself, as slave, sees a whole strand, as with the
 closest-point law, so the total over the two strands is in the same proportion as there).  On the
 plectoneme the tail presses on the clamped start: without the caps, switching to this law at
@@ -43,15 +70,15 @@ plectoneme the tail presses on the clamped start: without the caps, switching to
 Discretisation.  Gauss-Legendre points (nqp per element, both integrals) on every candidate
 element pair (e, m) of ``contact.candidate_pairs``:
 
-    E_c = sum_(e,m) sum_(q,j) W_qj (k/2) a_qj^2,   W_qj = w_q w_j J^2, J = h/2,
+    E_c = sum_(e,m) sum_(q,j) W_qj k psi(a_qj),   W_qj = w_q w_j J^2, J = h/2,
     (plus, at an open rod's end, the end point as a master point of weight w_q J c)
     a_qj = <2 eps - |D_qj|>,   D_qj = r_e(xi_q) - r_m(xi_j),   0 where dist(s_q, sigma_j) < delta.
 
 The exclusion is a mask on fixed arclength points, so it never moves.  With nu = D/|D| and
 Ntil = [N(xi_q), -N(xi_j)] over the 2(p+1) nodes of [e, m]:
 
-    dE/dx_A   = - sum W k a Ntil_A nu
-    d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (1 + a/|D|) nu nu^T - (a/|D|) I ]     (a > 0)
+    dE/dx_A   = - sum W k psi'(a) Ntil_A nu
+    d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (psi'' + psi'/|D|) nu nu^T - (psi'/|D|) I ]  (a > 0)
 
 nqp resolves the contact support: one slave point at d* touches a master stretch of length
 2 t0(d*) (0.014 for the plectoneme, 0.85 of an element), and nqp puts 12 points on it
@@ -59,7 +86,7 @@ nqp resolves the contact support: one slave point at d* touches a master stretch
 48 points per element is refused, scene.py: a contact zone smaller than the quadrature's
 spacing is seen by a few couples that enter and leave one at a time, and Newton cycles).  The quadrature error then
 ripples the energy as strands slide along each other (tests/test_contact_potential.py measures
-it); it falls with nqp and h.
+it); it falls with nqp and h, and is smaller with the onset layer (Onset law).
 
 Reported (same keys as ContactKernel.evaluate): the gap d = 2 eps - min |D| at the nqc Gauss
 points of the slave elements, by the closest-point projection of contact.py (a diagnostic here:
@@ -86,12 +113,47 @@ from .profiling import logged
 from . import fe
 from .contact import ContactKernel, _lookup, capsules_within, element_capsules
 
-__all__ = ["DENSITY", "MAX_POINTS", "pair_stiffness", "support_length", "points_per_element",
+__all__ = ["ONSET", "DENSITY", "MAX_POINTS", "law_energy", "law_force", "law_stiffness",
+           "onset_layer", "pair_stiffness", "support_length", "points_per_element",
            "PotentialKernel"]
 
 
-def line_force_per_stiffness(eps, d, n=96):
-    """f_1(d): the line force (2) on a point at distance 2 eps - d from a straight line, k = 1."""
+ONSET = 1.0             # onset layer a_s / d* of the law (0: the quadratic, C^1 law)
+
+
+def law_energy(a, a_s):
+    """psi(a) of (1) per unit k (Onset law): a^2/2 when a_s = 0; a^3 / (6 a_s) below a_s,
+    a^2/2 - a_s a/2 + a_s^2/6 above."""
+    a = np.asarray(a, dtype=float)
+    if a_s <= 0.0:
+        return 0.5 * a * a
+    return np.where(a < a_s, a * a * a / (6.0 * a_s), a * (0.5 * a - 0.5 * a_s) + a_s * a_s / 6.0)
+
+
+def law_force(a, a_s):
+    """psi'(a): a when a_s = 0; a^2 / (2 a_s) below a_s, a - a_s/2 above."""
+    a = np.asarray(a, dtype=float)
+    if a_s <= 0.0:
+        return a
+    return np.where(a < a_s, a * a / (2.0 * a_s), a - 0.5 * a_s)
+
+
+def law_stiffness(a, a_s):
+    """psi''(a) for a > 0: 1 when a_s = 0; a / a_s below a_s, 1 above."""
+    a = np.asarray(a, dtype=float)
+    if a_s <= 0.0:
+        return np.ones_like(a)
+    return np.minimum(a / a_s, 1.0)
+
+
+def onset_layer(eps, penetration, onset=None):
+    """a_s = onset x d*, d* = penetration x 2 eps (``ONSET`` by default)."""
+    return (ONSET if onset is None else float(onset)) * float(penetration) * 2.0 * float(eps)
+
+
+def line_force_per_stiffness(eps, d, a_s=0.0, n=96):
+    """f_1(d): the line force (2) on a point at distance 2 eps - d from a straight line, k = 1,
+    with the onset layer a_s."""
     g = 2.0 * eps - d
     if d <= 0.0:
         return 0.0
@@ -101,13 +163,14 @@ def line_force_per_stiffness(eps, d, n=96):
     t = t0 * np.sin(0.5 * np.pi * th)
     dt = t0 * 0.5 * np.pi * np.cos(0.5 * np.pi * th)
     r = np.hypot(g, t)
-    return float(np.sum(w * dt * np.maximum(2.0 * eps - r, 0.0) * g / r))
+    return float(np.sum(w * dt * law_force(np.maximum(2.0 * eps - r, 0.0), a_s) * g / r))
 
 
-def pair_stiffness(mu, eps, penetration):
+def pair_stiffness(mu, eps, penetration, onset=None):
     """k of (1) with the force mu d* of the closest-point model at d* = penetration x 2 eps."""
     d = float(penetration) * 2.0 * float(eps)
-    return float(mu) * d / line_force_per_stiffness(float(eps), d)
+    a_s = onset_layer(eps, penetration, onset)
+    return float(mu) * d / line_force_per_stiffness(float(eps), d, a_s)
 
 
 def support_length(eps, penetration):
@@ -140,14 +203,16 @@ class PotentialKernel:
     """The pair potential (1) over a set of own (slave) elements; the interface of
     contact.ContactKernel (evaluate, slave_arclength, mu, eps, delta, h, nqc, wq, Nq)."""
 
-    def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None):
+    def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None,
+                 onset=None):
         self.gauge = ContactKernel(order, nqc, eps, mu, delta, L, nelem, closed, segments=False)
         g = self.gauge
         self.p, self.nqc, self.eps, self.delta = g.p, g.nqc, g.eps, g.delta
         self.L, self.nelem, self.closed, self.h = g.L, g.nelem, g.closed, g.h
         self.xq, self.wq, self.Nq = g.xq, g.wq, g.Nq
         self.penetration = float(penetration)
-        self.k_per_mu = pair_stiffness(1.0, self.eps, self.penetration)
+        self.a_s = onset_layer(self.eps, self.penetration, onset)
+        self.k_per_mu = pair_stiffness(1.0, self.eps, self.penetration, onset)
         self._mu = float(mu)
         if nqp is None:
             nqp = max(self.nqc, points_per_element(self.h, self.eps, self.penetration))
@@ -157,7 +222,8 @@ class PotentialKernel:
         # master points: the Gauss points and the two element ends (the rod's end caps)
         self.xm = np.concatenate([self.xp, [-1.0, 1.0]])
         self.Nm = fe.lagrange(self.p, self.xm)[0]
-        self.cap = 0.5 / self.k_per_mu
+        d = self.penetration * 2.0 * self.eps
+        self.cap = 0.5 * d / (self.k_per_mu * float(law_force(d, self.a_s)))
         # shape-function products of the tangent's blocks (add_tangent)
         self._NpT = np.ascontiguousarray(self.Np.T)                     # (p+1, nqp)
         self._NmT = np.ascontiguousarray(self.Nm.T)                     # (p+1, nqp + 2)
@@ -283,13 +349,13 @@ class PotentialKernel:
         """Energy, residual rows (one per element pair with a couple in contact) and depth of
         (1) from the couples of ``_near_couples``:
 
-            dE/dx_A = - sum W k a Ntil_A nu,   Ntil = [N(xi_q), -N(xi_j)]."""
+            dE/dx_A = - sum W k psi'(a) Ntil_A nu,   Ntil = [N(xi_q), -N(xi_j)]."""
         n1 = self.p + 1
         c = out["_near"]
         k = self.k
         a, W = c["a"], c["W"]
         out["depth"] = c["depth"]
-        out["energy"] = 0.5 * k * float(np.sum(W * a * a))
+        out["energy"] = k * float(np.sum(W * law_energy(a, self.a_s)))
         act = np.flatnonzero((W * a > 0.0).any(axis=(1, 2)))
         c["act"] = act
         if not len(act):
@@ -300,8 +366,8 @@ class PotentialKernel:
         out.update(qp=np.full(nact, -1, dtype=np.int64), xi=np.full(nact, np.nan),
                    xi_slave=np.full(nact, np.nan), normal=np.full((nact, 3), np.nan),
                    interior=np.zeros(nact, dtype=bool))
-        # dE/dD = -k W a nu per couple, summed over the masters (slave rows) and the slaves
-        G = (-k * W * a / np.where(r > 0.0, r, 1.0))[..., None] * D
+        # dE/dD = -k W psi'(a) nu per couple, summed over the masters (slave rows) and the slaves
+        G = (-k * W * law_force(a, self.a_s) / np.where(r > 0.0, r, 1.0))[..., None] * D
         vec = np.empty((nact, 2 * n1, 3))
         vec[:, :n1] = self._NpT @ G.sum(axis=2)
         vec[:, n1:] = -(self._NmT @ G.sum(axis=1))
@@ -312,7 +378,7 @@ class PotentialKernel:
         """The tangent blocks of an evaluation (in place; nothing to do if it has them), from
         the couples its residual kept:
 
-            d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (1 + a/|D|) nu nu^T - (a/|D|) I ]   (a > 0)
+            d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (psi'' + psi'/|D|) nu nu^T - (psi'/|D|) I ]
 
         over [slave element, master element] of every active pair: the slave-slave block sums
         the couples' Hessians H_qj over the masters j first, the master-master block over the
@@ -332,9 +398,9 @@ class PotentialKernel:
         nqp, nm = a.shape[1], a.shape[2]
         rs = np.where(r > 0.0, r, 1.0)
         on = np.where(a > 0.0, self.k * W, 0.0)
-        cr = a / rs
-        # H = on (1 + a/|D|) nu nu^T - on (a/|D|) I (nu nu^T = D D^T / |D|^2), its 6 entries
-        U = (on * (1.0 + cr) / rs ** 2)[..., None] * D
+        cr = law_force(a, self.a_s) / rs
+        # H = on (psi'' + psi'/|D|) nu nu^T - on (psi'/|D|) I (nu nu^T = D D^T / |D|^2): 6 entries
+        U = (on * (law_stiffness(a, self.a_s) + cr) / rs ** 2)[..., None] * D
         H = np.empty(a.shape + (6,))
         for n, (i, j) in enumerate(_SYM6):
             np.multiply(U[..., i], D[..., j], out=H[..., n])
@@ -356,8 +422,8 @@ class PotentialKernel:
     def add_report(self, out):
         """The report of an evaluation (in place; nothing to do if it has it): the gap and
         sbar at the nqc Gauss points by the closest-point projection of contact.py, the line
-        force density |f(s)| there, f(s) = k sum_j w_j a nu over the master points of the near
-        pairs, total_force (nqp rule), complementarity (nqc rule), zones, and d_active: the
+        force density |f(s)| there, f(s) = k sum_j w_j psi'(a) nu over the master points of the
+        near pairs, total_force (nqp rule), complementarity (nqc rule), zones, and d_active: the
         gap > 0 at the report points and the depth > 0 at the nqp points."""
         if out["reported"]:
             return out
@@ -377,14 +443,16 @@ class PotentialKernel:
         a, r, nu = self._couples(xs, c["xm"], self._admissible(c["e"], c["m"], self.xq, self.xm))
         wm = self.master_weights(c["m"])
         f = np.zeros((no, nqc, 3))
-        np.add.at(f, c["oi"], k * (np.matmul((wm[:, None, :] * a)[:, :, None, :], nu)[:, :, 0]))
+        fa = wm[:, None, :] * law_force(a, self.a_s)
+        np.add.at(f, c["oi"], k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
         out["force"] = np.linalg.norm(f, axis=2)
         out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
         # total force by the nqp rule, and the depth at the nqp points, over the touching pairs
         t = c["touch"]
         fp = np.zeros((no, self.nqp, 3))
         if len(t):
-            coef = c["wm"][:, None, :] * c["a"] / np.where(c["r"] > 0.0, c["r"], 1.0)
+            coef = c["wm"][:, None, :] * law_force(c["a"], self.a_s) \
+                / np.where(c["r"] > 0.0, c["r"], 1.0)
             np.add.at(fp, c["oi"][t], k * np.matmul(coef[:, :, None, :], c["D"])[:, :, 0])
         out["total_force"] = float(np.sum(self.wp * J * np.linalg.norm(fp, axis=2)))
         deep = c["a"].max(axis=2)
