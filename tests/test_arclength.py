@@ -12,7 +12,7 @@ import pytest
 from conftest import run_case
 
 # the Newton path's own machinery (rodsnes/solver.py, relax.py, arclength.py)
-pytestmark = pytest.mark.usefixtures("newton_path")
+pytestmark = [pytest.mark.usefixtures("newton_path"), pytest.mark.slow]
 
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
                rod_nelem=8, rod_imperfection=1e-3, bc_start="clamped", bc_end="sliding",

@@ -206,6 +206,7 @@ def test_newton_step_may_not_raise_the_energy():
     ksp.destroy()
 
 
+@pytest.mark.slow
 def test_newton_step_may_not_deepen_the_penetration_beyond_the_limit():
     """Line-search pre-check (RodProblem.precheck): a step that would push the free end into the
     clamped end far beyond the current penetration is halved until the deepest penetration at

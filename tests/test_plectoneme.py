@@ -64,6 +64,7 @@ def test_the_plectoneme_checkpoints_are_kept():
     assert len(_checkpoints()) >= 1
 
 
+@pytest.mark.slow
 @pytest.mark.mpi
 @pytest.mark.parametrize("name", _checkpoints() if os.path.isdir(CHECKPOINTS) else [])
 def test_a_plectoneme_checkpoint_is_an_equilibrium_of_the_current_code(name, tmp_path, monkeypatch):

@@ -175,6 +175,7 @@ TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.
                bc_end_turns=1.25, load_end_force="3,0,0", load_steps=10, load_min_step=1e-4)
 
 
+@pytest.mark.slow
 def test_twisted_clamped_rod_jumps_into_a_loop_at_the_fold():
     """Clamped rod, small end tension, end turned 1.25 times (sliding end), no contact: the
     twisted, nearly straight rod's path folds at ~1.24 turns (imperfection 1e-3 L): no
@@ -205,6 +206,7 @@ def test_twisted_clamped_rod_jumps_into_a_loop_at_the_fold():
     assert np.hypot(X[:, 1], X[:, 2]).max() > 0.2                   # a loop, not a straight rod
 
 
+@pytest.mark.slow
 def test_a_jump_with_overshoot_relaxes_beyond_the_fold():
     """-stability_jump_overshoot 0.005: the same fold (at load 0.990), but the jump relaxes at
     the last converged load + 0.005 (not at the shortest step tried, 1e-4 beyond it), onto the
@@ -245,6 +247,7 @@ def test_branch_switching_is_refused_for_non_conservative_loads(capsys):
     assert solver.switches == []
 
 
+@pytest.mark.slow
 def test_twisted_ring_beyond_michell_leaves_the_unstable_circle():
     """T = 2.5 > sqrt(3) turns (nu = 0): plain load stepping stays on the unstable circle;
     with -stability the ring leaves it (branch switch), writhes during the relaxation and,

@@ -106,6 +106,7 @@ def test_helix_still_size_and_content(tmp_path):
     _nontrivial(img)
 
 
+@pytest.mark.slow
 def test_ring_views_fields_separate(tmp_path):
     write_ring(tmp_path)
     out = tmp_path / "pics"
