@@ -9,18 +9,24 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
    load is set), and H = d2E/dx2, the symmetric chart Hessian (RodProblem.jacobian with
    symmetric=True), assembled into an SBAIJ matrix kept with its MUMPS analysis
    (stability.Inertia).
-2. LDL^T of H + sigma M, M the lumped metric (nodal length m_i for positions, m_i l^2 for
+2. The direction: Newton's d = -K^-1 g with the consistent tangent K (LU), kept when it
+   descends (g . d < 0); away from equilibrium K and H differ by O(|g|) and Newton with K
+   converges far better (Mattiasson's whole load: 9 iterations against 112).  Otherwise
+   LDL^T of H + sigma M, M the lumped metric (nodal length m_i for positions, m_i l^2 for
    rotations, l the element length), sigma = 0 first.  Its inertia comes with the
    factorisation (MUMPS INFOG(12), the negative pivots).  While it has negative pivots sigma is
-   raised (from half the last shift that worked, or 1e-8 |H| / |M|, times 4 per try), as
-   MeshFEM's Newton optimiser does, so the step d = -(H + sigma M)^-1 g is a descent direction.
+   raised (from half the last shift that worked in this load step, or 1e-8 |H| / |M|, times 4
+   per try), as MeshFEM's Newton optimiser does, so d = -(H + sigma M)^-1 g descends.
 3. At a saddle (negative pivots and a step too short to leave it) the lowest mode of
    H v = lambda M v, from inverse iteration on the same factor, is added, signed downhill.
 4. Backtracking line search on E (Armijo, quadratic interpolation), within move limits: no
    node near a contact moves more than half the contact radius, no node anywhere more than
    half the clearance between strands that have come back toward each other
    (ContactTerm.clearance), no rotation more than MAX_ROTATION, and the deepest penetration
-   grows at most to twice itself or 2 % of the diameter.  So no strand passes through
+   grows at most to twice itself or 2 % of the diameter.  A watchdog lets the energy rise
+   over WATCHDOG_STEPS full Newton steps (a linearised step that turns a stiff rod stretches
+   it); if they have not paid off, the search goes back and backtracks, and the load step
+   takes no more free steps.  So no strand passes through
    another and no rotation wraps: the link is kept.  A step whose energy change is below the
    energy's round-off is accepted when it lowers |g|.
 5. Converged when |g| <= tolerance (relative to the force scale, or the round-off floor of
@@ -243,6 +249,12 @@ class EnergyMinimizer:
         t0 = time.perf_counter()
         p.set_load(lam)
         X, g = p.state.X, p.F
+        # a shift remembered from an earlier load step over-damps this one: a rotational
+        # negative pivot (rotation rows of M are m h^2) needs sigma ~ the diagonal, which then
+        # held the translations back step after step (the plectoneme crawled at 7.23 turns;
+        # reset, it went on to 8 turns)
+        self.sigma_last = 0.0
+        free_ok = FREE_STEPS           # free steps, until the watchdog has once gone back
         d = X.duplicate()
         Xt = X.duplicate()
         hist = []
@@ -294,8 +306,9 @@ class EnergyMinimizer:
                 slope, alpha, E0, depth0 = watch["slope"], watch["alpha"], watch["E"], watch["depth"]
                 watch["d"].destroy()
                 watch, free = None, False
+                free_ok = False                 # the same free step would come again
             else:
-                free = FREE_STEPS
+                free = free_ok
             ok, alpha, tries = self._line_search(X, Xt, d, slope, alpha, gnorm, E0, depth0,
                                                  free=free)
             cuts += tries

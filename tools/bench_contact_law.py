@@ -23,7 +23,6 @@ import time
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "tests"))
 EPS, MU = 0.025, 5.754172062186161e7        # the plectoneme's contact radius and penalty at 9.72
 
 
@@ -38,15 +37,21 @@ def cpu_ms(f, reps=7):
 
 
 def laws():
-    from test_contact_math import Rod
+    from rodsnes import contact as C
     from rodsnes.contact import ContactKernel
     from rodsnes.contact_potential import PotentialKernel
     X = np.load(os.path.join(ROOT, "tests", "data", "plectoneme_9.72_line_contact.npy"))
-    rod = Rod(X, 3, False, 1.0, eps=EPS, mu=MU, delta=np.pi * EPS, nqc=5, reach=2.5 * EPS)
-    kp = ContactKernel(3, 5, EPS, MU, rod.delta, 1.0, rod.nelem, False, segments=True)
-    kq = PotentialKernel(3, 5, EPS, MU, rod.delta, 1.0, rod.nelem, False)
-    pairs, xe = rod.pairs(X), X[rod.conn]
-    args = (rod.ids, xe, rod.ids, xe, pairs)
+    order, delta = 3, np.pi * EPS
+    nelem = (len(X) - 1) // order
+    ids = np.arange(nelem)
+    conn = C.element_node_ids(ids, order, nelem, False)
+    kp = ContactKernel(order, 5, EPS, MU, delta, 1.0, nelem, False, segments=True)
+    kq = PotentialKernel(order, 5, EPS, MU, delta, 1.0, nelem, False)
+    xe = X[conn]
+    cen, rad = C.element_bounds(xe)
+    pairs = C.candidate_pairs(ids, cen, rad, ids, cen, rad, 2.5 * EPS, 1.0, 1.0 / nelem, False,
+                              delta)
+    args = (ids, xe, ids, xe, pairs)
     t = {"projection, with tangent": cpu_ms(lambda: kp.evaluate(*args, tangent=True), 3),
          "potential, with tangent and report": cpu_ms(lambda: kq.evaluate(*args)),
          "potential, residual alone": cpu_ms(lambda: kq.evaluate(*args, tangent=False,
@@ -64,10 +69,23 @@ def laws():
 
 
 def term():
-    from conftest import build_run
+    import tempfile
+
+    from petsc4py import PETSc
+
     from rodsnes.partition import NDOF
-    run = build_run("plectoneme", restart=os.path.join(ROOT, "cases", "checkpoints",
-                                                       "plectoneme_9.72"))
+    from rodsnes.run import Run
+    from rodsnes.scene import read_scene
+    opts = PETSc.Options()
+    with open(os.path.join(ROOT, "cases", "plectoneme.opts")) as fh:   # the case's options
+        for line in fh:
+            tok = line.split("#", 1)[0].split()
+            if tok:
+                opts.setValue(tok[0].lstrip("-"), " ".join(tok[1:]))
+    for k, v in (("restart", os.path.join(ROOT, "cases", "checkpoints", "plectoneme_9.72")),
+                 ("output_dir", tempfile.mkdtemp(prefix="bench_contact_law_")), ("quiet", "")):
+        opts.setValue(k, v)
+    run = Run(read_scene(["rodsnes"], opts), PETSc.COMM_WORLD)
     p, c = run.problem, run.contact
     r0, _ = p.state.local_config()
     rng = np.random.default_rng(0)
