@@ -410,6 +410,12 @@ class ContactTerm:
             self.kernel.add_report(out)
         return self.comm.allreduce(self.deepest_local(out, report), op=MPI.MAX)
 
+    def depth_allowed(self, depth):
+        """The deepest penetration a Newton step or a predictor may reach from a state whose
+        deepest is ``depth``: twice it, or 2 % of the contact diameter (RodProblem.precheck,
+        the minimiser's line search and predictor)."""
+        return max(2.0 * depth, 0.02 * 2.0 * self.eps)
+
     @staticmethod
     def deepest_local(out, report=False):
         """max d over this rank's points of an evaluation ``out``: its ``depth``, at the points

@@ -52,6 +52,7 @@ from petsc4py import PETSc
 from . import so3
 from .partition import NDOF
 from .profiling import logged, timed
+from .scene import residual_floor
 from .stability import Inertia
 
 # the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
@@ -86,15 +87,6 @@ class MinimizeResult:
         self.factorizations = factorizations
 
 
-def residual_floor(problem):
-    """Round-off floor of the residual: strains of size ~1 differentiated over a node spacing,
-    times the largest stiffness, summed over the nodes (a residual at this level is as
-    converged as the arithmetic allows)."""
-    rod, m = problem.scene.rod, problem.mesh
-    stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
-    return 3 * np.finfo(float).eps * stiff * m.nelem * m.order * np.sqrt(m.n_nodes)
-
-
 class EnergyMinimizer:
     """Inertia-controlled Newton on the total energy at one load factor (module docstring)."""
 
@@ -106,7 +98,7 @@ class EnergyMinimizer:
         self.factor = problem.inertia
         self.force_scale = force_scale
         self.tol = rtol * force_scale
-        self.floor = residual_floor(problem)
+        self.floor = residual_floor(problem.scene.rod)
         self.max_it = max_it
         self.quiet = quiet
         m = problem.mesh
@@ -164,7 +156,6 @@ class EnergyMinimizer:
         pivot; returns sigma (inf when none up to 1e8 |H| / |M| does)."""
         if nneg == 0:
             return 0.0
-        H = self.factor.H
         scale = self._same(self.factor.diagonal.norm(PETSc.NormType.INFINITY)
                            / self.metric.norm(PETSc.NormType.INFINITY))
         sigma = max(0.5 * self.sigma_last, 1e-8 * scale)
@@ -180,7 +171,6 @@ class EnergyMinimizer:
                 return sigma
             sigma *= 4.0
         shift.destroy()
-        del H
         return np.inf
 
     def _lowest_mode(self, its=6):
@@ -393,7 +383,7 @@ class EnergyMinimizer:
         p = self.problem
         allow = None
         if depth0 is not None:
-            allow = max(2.0 * depth0, 0.02 * 2.0 * p.contact.eps)
+            allow = p.contact.depth_allowed(depth0)
         slack = self.roundoff * (abs(E0) + self.energy_scale)
         for k in range(LINE_SEARCH_TRIES):
             X.copy(Xt)
@@ -513,17 +503,15 @@ class LoadPath:
         state with the end turns spread as twist (twist_predictor).  Collective."""
         p = self.problem
         if prev is not None and PREDICTOR:
-            m = self.minimizer
-            depth0 = m.energy_at(p.state.X)[1] if p.contact is not None else None
+            c, same = p.contact, self.minimizer._same
+            if c is not None:
+                allow = c.depth_allowed(same(c.deepest(p.state.local_config()[0], report=False)))
             snap = p.state.snapshot()
             p.state.predict(prev[0], dl / (lam - prev[1]))
             p.state.recentre()
-            if p.contact is None:
+            if c is None:
                 return
-            r, _ = p.state.local_config()
-            out = p.contact.evaluate(r)
-            depth = m._same(m.comm.allreduce(p.contact.deepest_local(out), op=MPI.MAX))
-            if depth <= max(2.0 * depth0, 0.02 * 2.0 * p.contact.eps):
+            if same(c.deepest(p.state.local_config()[0], report=False)) <= allow:
                 return
             p.state.restore(snap)
         self.twist_predictor(dl)

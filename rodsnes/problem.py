@@ -449,7 +449,7 @@ class RodProblem:
             self.stats["limited_steps"] = self.stats.get("limited_steps", 0) + 1
             changed = True
         c = self.contact
-        d_allow = max(2.0 * c.deepest(report=False), 0.02 * 2.0 * c.eps)   # as at the trials
+        d_allow = c.depth_allowed(c.deepest(report=False))     # as at the trials
         use_energy = self._energy_descent_applies(Y)
         if use_energy:
             r0, q0 = self.state.local_config(X)

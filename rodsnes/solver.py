@@ -82,10 +82,8 @@ class NewtonSolver:
         # roundoff floor of the residual: strains of size ~1 (v3 = 1), differentiated over a
         # node spacing, times the largest stiffness, summed over the nodes; a residual at this level is as converged as the
         # arithmetic allows (DIVERGED_MAX_IT there would reject a correct equilibrium).
-        stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
-        m = problem.mesh
-        nodes_per_length = m.nelem * m.order
-        self.floor = 3 * np.finfo(float).eps * stiff * nodes_per_length * np.sqrt(m.n_nodes)
+        from .scene import residual_floor
+        self.floor = residual_floor(rod)
         self.divtol = 1e12
         self.force_scale = force_scale
         self.predictor = PETSc.Options().getBool("load_predictor", True)
