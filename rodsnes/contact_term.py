@@ -21,10 +21,11 @@ Per evaluation (residual, line-search trial or Jacobian), on every rank:
   6. slave-side residual goes into the owned/ghost rows; master-side residual is sent back to
      the owners through the same SF (reduce with MPI.SUM); tangent blocks go straight into the
      global matrix (MatSetValuesBlocked with off-process rows, communicated at assembly).
-The Jacobian's block pattern holds the candidate pairs found with a wider margin
-(pattern_reach) at the start of every load step, and before every Newton step the pairs of
-the iterate's evaluation are checked against it (RodProblem.ensure_pattern, pattern_covers): a
-pair outside the pattern gets a new, wider-preallocated matrix before any value is set.  Entries
+The Jacobian's block pattern holds the element pairs that can touch (capsules within
+2 eps + PATTERN_MARGIN eps) at the start of every load step, and before every Jacobian the
+pairs that the iterate's tangent couples are checked against it (RodProblem.ensure_pattern,
+pattern_covers): a pair outside the pattern gets a new, wider-preallocated matrix before any
+value is set.  Entries
 are never inserted beyond the preallocation: on PETSc 3.18, a new off-diagonal block inserted
 into an assembled MPIBAIJ lands in a wrong column, and MUMPS reuses a symbolic analysis that no
 longer fits (a segfault).
@@ -42,6 +43,7 @@ from .support import SupportTerm
 
 class ContactTerm:
     SKIN = 1.0          # Verlet skin of the candidate search, in eps (module docstring, 2.)
+    PATTERN_MARGIN = 0.25   # the Jacobian's pattern: pairs within 2 eps + this, in eps
 
     def __init__(self, scene, mesh, layout):
         rod, c = scene.rod, scene.contact
@@ -70,10 +72,7 @@ class ContactTerm:
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
         self.skin = self.SKIN * self.eps                         # Verlet skin of the search
-        # the Jacobian is preallocated for the pairs of the search's Verlet list (reach + skin);
-        # RodProblem.ensure_pattern grows it when an iterate needs more.  A wider margin
-        # (6 eps + h before) filled the compact plectoneme's matrix: its LU took 1.8x longer
-        self.pattern_reach = self.reach + self.skin
+        self._slots = None              # row of every element in the allgathered arrays
         self.own_ids = layout.owned_elems
         self.lconn = layout.lconn
         self.unit = MPI.DOUBLE.Create_contiguous(3).Commit()
@@ -291,49 +290,71 @@ class ContactTerm:
     def energy(self, r_loc):
         return self.evaluate(r_loc)["energy"]
 
-    def pattern_pairs(self, r_loc, reach):
-        """All ranks' element pairs coupled in the Jacobian by the candidates within ``reach``,
-        as sorted unique rows (a, b), a <= b, the same on every rank (collective): every
-        candidate pair (slave, master), and every two masters of the same slave element (a
-        switch point couples them, ``ContactKernel._switch_terms``, if they lie within 4 eps + margin
-        of each other)."""
-        pairs, cen, rad = self._search_pairs(*ck.element_bounds(r_loc[self.lconn]), reach,
-                                             bounds=True)
-        # two closest points of one slave point both lie within 2 eps of it: masters farther
-        # apart than 4 eps never share a switch point.  The margin is the evaluation's own
-        # (reach - 2 eps), not the wider preallocation margin: these pairs would fill most
-        # of the matrix of a compact plectoneme, and ensure_pattern adds any that appear
-        if self.model != "potential":           # the pair potential has no switch points
-            pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, cen, rad,
-                                                              self.reach + 2.0 * self.eps)])
-        pairs = np.concatenate(self.comm.allgather(pairs))
+    def pattern_pairs(self, r_loc, margin=None):
+        """All ranks' element pairs that the Jacobian may couple near the positions r_loc, as
+        sorted unique rows (a, b), a <= b, the same on every rank (collective): the pairs whose
+        capsules (contact.element_capsules) come within 2 eps + ``margin`` (PATTERN_MARGIN eps
+        by default) of each other, i.e. every pair with a couple of points closer than that;
+        with the closest-point law also every two candidate masters of one slave element that
+        a switch point can couple (``ContactKernel._switch_terms``); the mounts' pairs.
+
+        Only pairs that can touch: a wider pattern (the search's Verlet list, 3.5 eps on
+        bounding spheres) held 7 times the pairs in contact on the compact plectoneme and
+        made its factorisation 3-5 times slower (tools/bench_scaling.py, docs/contact.md).
+        An iterate that couples a pair outside the pattern gets a new matrix
+        (RodProblem.ensure_pattern, pattern_covers)."""
+        margin = self.PATTERN_MARGIN * self.eps if margin is None else float(margin)
+        touch = 2.0 * self.eps + margin
+        x_el = r_loc[self.lconn]
+        pairs, cen, rad = self._search_pairs(*ck.element_bounds(x_el), touch, bounds=True)
+        if len(pairs):
+            lay_ids = self._element_slots()
+            caps = ck.element_capsules(np.concatenate(self.comm.allgather(x_el)))
+            near = ck.capsules_within([v[lay_ids[pairs[:, 0]]] for v in caps],
+                                      [v[lay_ids[pairs[:, 1]]] for v in caps], touch)
+            if self.model != "potential":       # the pair potential has no switch points
+                # two closest points of one slave point both lie within 2 eps of it
+                pairs = np.concatenate([pairs[near], ck.co_master_pairs(
+                    pairs[near], cen, rad, 4.0 * self.eps + margin)])
+            else:
+                pairs = pairs[near]
+        pairs = np.concatenate(self.comm.allgather(pairs.reshape(-1, 2)))
         if self.supports is not None:
             pairs = np.concatenate([pairs.reshape(-1, 2), self.supports.pattern_pairs()])
         if len(pairs):
             pairs = np.unique(np.sort(pairs, axis=1), axis=0)
         return pairs.reshape(-1, 2).astype(np.int64)
 
+    def _element_slots(self):
+        """Row of every element id in arrays allgathered from the owned elements."""
+        if self._slots is None:
+            ids = np.concatenate(self.comm.allgather(self.own_ids))
+            self._slots = np.empty(self.mesh.nelem, dtype=np.int64)
+            self._slots[ids] = np.arange(len(ids))
+        return self._slots
+
+    def coupled_pairs(self, r_loc):
+        """This rank's element pairs (a, b), a <= b, that the tangent at r_loc couples: every
+        (slave, master) in contact and, with the closest-point law, the three pairs of every
+        switch point (slave, A, B).  Collective (the evaluation)."""
+        out = self.evaluate(r_loc, tangent=True)
+        rows = [np.asarray(out["active"], dtype=np.int64).reshape(-1, 2)]
+        sw = np.asarray(out["switch"], dtype=np.int64).reshape(-1, 3)
+        if len(sw):
+            rows += [sw[:, [0, 1]], sw[:, [0, 2]], sw[:, [1, 2]]]
+        pairs = np.sort(np.concatenate(rows), axis=1)
+        return np.unique(pairs, axis=0) if len(pairs) else pairs
+
     def pattern_covers(self, r_loc, have):
         """Whether the element pairs ``have`` (sorted unique rows a <= b: the Jacobian's
-        preallocated pattern) hold every pair that the evaluation at r_loc couples: its
-        candidates within reach and, with the closest-point law, their co-masters, as
-        pattern_pairs(r_loc, reach) finds them, without its allgather (each rank checks its
-        own pairs; the mounts' pairs are in every pattern).  Collective."""
-        self.evaluate(r_loc)
-        st = self._state
-        pairs = st["pairs"]
-        if self.model != "potential" and len(pairs):
-            ids, cen, rad = st["bounds"]
-            c = np.zeros((self.mesh.nelem, 3))
-            r = np.zeros(self.mesh.nelem)
-            c[ids], r[ids] = cen, rad
-            pairs = np.concatenate([pairs, ck.co_master_pairs(pairs, c, r,
-                                                              self.reach + 2.0 * self.eps)])
+        preallocated pattern) hold every pair that the tangent at r_loc couples
+        (coupled_pairs; each rank checks its own; the mounts' pairs are in every pattern).
+        Collective."""
+        pairs = self.coupled_pairs(r_loc)
         ok = True
         if len(pairs):
             n = self.mesh.nelem
-            rows = np.sort(pairs, axis=1)
-            ok = len(have) > 0 and bool(np.isin(rows[:, 0] * n + rows[:, 1],
+            ok = len(have) > 0 and bool(np.isin(pairs[:, 0] * n + pairs[:, 1],
                                                 have[:, 0] * n + have[:, 1]).all())
         return self.comm.allreduce(ok, op=MPI.LAND)
 
@@ -349,7 +370,7 @@ class ContactTerm:
         """Natural node groups (npair, 2(p+1)) coupled by candidate pairs of the positions
         r_loc within the preallocation margin, from all ranks (every rank needs the rows it
         owns)."""
-        return self.node_groups(self.pattern_pairs(r_loc, self.pattern_reach))
+        return self.node_groups(self.pattern_pairs(r_loc))
 
     def clearance(self, r_loc, k=48):
         """A lower bound of the free space between strands that have come back toward each

@@ -204,8 +204,7 @@ class RodProblem:
         self.lam = 0.0
         self._pattern_pairs = None          # contact element pairs preallocated in J
         if contact is not None:
-            self._pattern_pairs = contact.pattern_pairs(mesh.x_init[layout.local_nodes],
-                                                        contact.pattern_reach)
+            self._pattern_pairs = contact.pattern_pairs(mesh.x_init[layout.local_nodes])
         self.J = layout.create_matrix(contact.node_groups(self._pattern_pairs)
                                       if contact is not None else None)
         self.F = layout.create_vec()
@@ -292,33 +291,27 @@ class RodProblem:
             self.elastic.set_reference(self.twisted_reference(self.e0_base))
 
     def refresh_pattern(self):
-        """At the start of a load step: the Jacobian's pattern follows the contact candidates
-        of the current state within the preallocation margin (pattern_reach, wider than a load
-        step is expected to move); a new matrix when they changed."""
+        """At the start of a load step: the Jacobian's pattern follows the contact pairs that
+        can touch at the current state (ContactTerm.pattern_pairs); a new matrix when they
+        changed."""
         r, _ = self.state.local_config()
-        want = self.contact.pattern_pairs(r, self.contact.pattern_reach)
+        want = self.contact.pattern_pairs(r)
         if not np.array_equal(want, self._pattern_pairs):
             self._new_matrix(want)
 
     def ensure_pattern(self):
-        """Before every Newton step (update): every candidate pair of the iterate (within the
-        search reach of the contact evaluation) must be preallocated, else a new matrix with
-        the candidates within pattern_reach of the iterate, plus the old pattern, is made
-        before the Jacobian is assembled.  No entry is ever inserted beyond the preallocation
-        (see contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column).  The
-        check reads the pairs of the iterate's evaluation (ContactTerm.pattern_covers)."""
+        """Before every Jacobian: every pair that the iterate's contact tangent couples must be
+        preallocated (ContactTerm.pattern_covers), else a new matrix with those pairs, the
+        pairs that can touch at the iterate (pattern_pairs) and the old pattern is made before
+        the Jacobian is assembled.  No entry is ever inserted beyond the preallocation (see
+        contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column)."""
         c = self.contact
         r, _ = self.state.local_config()
         if c.pattern_covers(r, self._pattern_pairs):
             return
-        need = c.pattern_pairs(r, c.reach)
-        if not len(need):
-            return
-        n = self.mesh.nelem
-        have = self._pattern_pairs
-        if len(have) and np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all():
-            return
-        want = np.unique(np.concatenate([c.pattern_pairs(r, c.pattern_reach), have]), axis=0)
+        coupled = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
+        want = np.unique(np.concatenate([c.pattern_pairs(r), coupled, self._pattern_pairs]),
+                         axis=0)
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
 

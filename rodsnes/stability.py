@@ -49,7 +49,7 @@ class Inertia:
         if p.contact is None:
             return np.zeros((0, 2), dtype=np.int64)
         r_loc, _ = p.state.local_config()
-        return p.contact.pattern_pairs(r_loc, p.contact.pattern_reach)
+        return p.contact.pattern_pairs(r_loc)
 
     def _build(self, pairs):
         p = self.problem

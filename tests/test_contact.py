@@ -7,6 +7,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import natural_residuals, place, run_case, tangent_against_finite_differences
+from rodsnes import contact as ck
 from rodsnes.partition import NDOF
 
 SETUP = dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0")
@@ -342,26 +343,32 @@ def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
 @pytest.mark.mpi
 @pytest.mark.parametrize("model", ["projection", "potential"])
 def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
-    """RodProblem.ensure_pattern asks ContactTerm.pattern_covers (the pairs of the iterate's
-    evaluation, each rank its own) instead of a search within reach gathered on every rank:
-    the same answer as that search's pairs checked against the pattern, for a pattern that
-    holds them and for one that misses one of them."""
+    """RodProblem.ensure_pattern asks ContactTerm.pattern_covers whether the pairs that the
+    iterate's tangent couples (each rank its own) are preallocated: true for the pattern of
+    the pairs that can touch there (which holds every coupled pair, on every rank), false
+    for a pattern that misses one of them; and that pattern is tighter than the search's
+    candidates (the Verlet list within reach + skin)."""
     run = coiled(**LAW[model])
     c, p = run.contact, run.problem
     r, _ = p.state.local_config()
     assert not c.pattern_covers(r, p._pattern_pairs)     # made for the straight rod
     p.refresh_pattern()                                   # as at the start of a load step
-    need = c.pattern_pairs(r, c.reach)
+    need = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
     have = p._pattern_pairs
     n = run.mesh.nelem
-    assert np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all()
+    assert len(need) and np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all()
     assert c.pattern_covers(r, have)
+    wide = c.comm.allreduce(len(c._search_pairs(*ck.element_bounds(r[c.lconn]),
+                                                c.reach + c.skin)))
+    assert len(have) < wide
     contact_pairs = need[need[:, 0] != need[:, 1]]
     # a pattern without one pair that the evaluation couples (the same on every rank)
     drop = contact_pairs[np.argmax(np.abs(contact_pairs[:, 0] - contact_pairs[:, 1]))]
     less = have[~((have[:, 0] == drop[0]) & (have[:, 1] == drop[1]))]
     assert len(less) == len(have) - 1
     assert not c.pattern_covers(r, less)
+    p.ensure_pattern()                                     # and a step there gets a new one
+    assert c.pattern_covers(r, p._pattern_pairs)
 
 
 @pytest.mark.parametrize("model", ["projection", "potential"])
