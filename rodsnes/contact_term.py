@@ -43,7 +43,7 @@ from .support import SupportTerm
 
 class ContactTerm:
     SKIN = 1.0          # Verlet skin of the candidate search, in eps (module docstring, 2.)
-    PATTERN_MARGIN = 0.25   # the Jacobian's pattern: pairs within 2 eps + this, in eps
+    PATTERN_MARGIN = 0.0    # the Jacobian's pattern: pairs within 2 eps + this, in eps
 
     def __init__(self, scene, mesh, layout):
         rod, c = scene.rod, scene.contact
