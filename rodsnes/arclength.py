@@ -34,9 +34,9 @@ lambda: the branch as it arrives at the fold); the next ones are secants through
 points.  Each step counts the Hessian's negative eigenvalues with -stability: along a branch
 through a simple fold, their number changes by one exactly where lambda turns.
 
-The corrector is held to the load steps' convergence test (NewtonSolver._converged), its steps to
-the contact step limits of RodProblem.precheck (1: motion near contact, 2: penetration; not the
-energy line search, which does not apply where lambda moves).
+The corrector is held to the load steps' convergence test (NewtonSolver.convergence_test), its
+steps to the contact step limits of RodProblem.precheck (1: motion near contact, 2: penetration;
+not the energy line search, which does not apply where lambda moves).
 """
 import time
 
@@ -45,11 +45,13 @@ from petsc4py import PETSc
 
 from . import so3
 from .partition import NDOF
-from .solver import StepResult
+from .step import StepResult
 
 
 class Arclength:
-    """Pseudo-arclength steps from the current converged state (module docstring)."""
+    """Pseudo-arclength steps from the current converged state (module docstring).  solver: the
+    Newton path's solver (solver.NewtonSolver), whose SNES, linear solver, convergence test,
+    inertia count and penalty promise the corrector uses."""
 
     def __init__(self, solver):
         self.solver = solver
@@ -162,7 +164,7 @@ class Arclength:
                 p.residual(None, p.state.X, p.F)
                 f = p.F.norm()
                 hist.append(f)
-                reason = solver._converged(snes, its, (0.0, 0.0, f))
+                reason = solver.convergence_test(snes, its, (0.0, 0.0, f))
                 if reason != PETSc.SNES.ConvergedReason.CONVERGED_ITERATING or its >= maxit:
                     break
                 p.jacobian(None, p.state.X, p.J, p.J)
@@ -243,14 +245,13 @@ class Arclength:
                         break
                     continue
             if res.converged and solver.check_stability:
-                from .stability import negative_eigenvalues
-                res.negative_eigenvalues = solver._count_negative(negative_eigenvalues)
+                res.negative_eigenvalues = solver.negative_eigenvalues()
             if not res.converged:
                 p.state.restore(snap)
                 p.set_load(lam)
                 ds *= 0.5
-                solver._say(f"  arclength step ds {2 * ds:.3e} from load {lam:.6f} not accepted "
-                            f"(reason {res.reason}, {res.its} its): ds halved")
+                solver.say(f"  arclength step ds {2 * ds:.3e} from load {lam:.6f} not accepted "
+                           f"(reason {res.reason}, {res.its} its): ds halved")
                 if ds < ds_min:
                     break
                 continue

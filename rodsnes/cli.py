@@ -3,8 +3,11 @@
     mpirun -n 2 rodsnes -options_file cases/rollup.opts -rod_nelem 64 -snes_monitor
 
 Exit codes: 0 converged to load 1 (or -load_stop); 2 refused before the solve (bad input: one
-line per problem on stderr, ``rodsnes: error: ...``, naming the option and the fix); 3 the load
-path failed (the last converged step stays in DIR/result.h5 and DIR/summary.json says so);
+line per problem on stderr, ``rodsnes: error: ...``, naming the option and the fix; a retired
+option says what replaced it); 3 the load path failed (the last converged step stays in
+DIR/result.h5 and DIR/summary.json says so), or a conservative scene ended on an unstable
+equilibrium that was not asked for (asked for: -load_arclength, or -load_path newton, whose
+last line then says "unstable" with exit code 0);
 128 + N stopped by signal N (130 SIGINT, 143 SIGTERM): summary.json says ``"interrupted": true``
 and the steps written stay readable.
 

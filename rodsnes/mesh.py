@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import so3
+from . import fe, so3
 
 
 @dataclass
@@ -167,3 +167,20 @@ def reference_length(rod, bc=None, samples=4096):
     r0, t, R0 = _shape(rod, s)
     r, _ = _imperfect(rod, s, r0, t, R0, bc)
     return float(np.linalg.norm(np.diff(r, axis=0), axis=1).sum())
+
+
+def lumped_weights(mesh, layout):
+    """M_i = int N_i ds for the owned nodes of ``layout`` (partition.Layout): the row-sum
+    lumping of the consistent mass matrix of a unit line density, positive for the equispaced
+    Lagrange elements of order 1..4 (the minimiser's metric).  Collective."""
+    from .partition import NDOF
+    xi, w = fe.gauss_legendre(mesh.order + 1)
+    N, _, _ = fe.lagrange(mesh.order, xi)
+    we = (w * mesh.h / 2.0) @ N                       # (p+1,) per element node
+    loc = np.zeros((len(layout.local_nodes), NDOF))
+    np.add.at(loc, layout.lconn, np.broadcast_to(we[None, :, None], layout.lconn.shape + (NDOF,)))
+    V = layout.create_vec()
+    layout.add_to_global(loc, V)
+    M = V.getArray(readonly=True).reshape(-1, NDOF)[:, 0].copy()
+    V.destroy()
+    return M

@@ -116,7 +116,7 @@ class EnergyMinimizer:
     def _metric(self):
         """Lumped metric M (a Vec): m_i for position rows, m_i h^2 for rotation rows (m_i =
         int N_i ds, h the element length), 1 on the Dirichlet rows."""
-        from .relax import lumped_weights
+        from .mesh import lumped_weights
         p = self.problem
         m = lumped_weights(p.mesh, p.layout)
         h = p.mesh.length / p.mesh.nelem

@@ -216,10 +216,6 @@ class RodProblem:
         self.stats = {}
         self.inertia = None                 # stability.Inertia, made at the first count
         self._e0_nodes = None
-        # further terms with add_residual(r, q, Floc), add_jacobian(r, q, P), energy(r, q) on
-        # local (owned + ghost) nodes; P is the global matrix (add with ADD_VALUES, before
-        # assembly).  Used by regularisations such as the relaxation of relax.py.
-        self.extra_terms = []
         self.on_pattern_change = None
         self.step_limit = contact.step_limit if contact is not None else 0.0
         # energy as the line search's merit function (precheck, limit 3): only where the loads
@@ -247,10 +243,9 @@ class RodProblem:
         node 0 is back in place), is a symmetry of the continuous problem, so its writhed
         equilibria come in one-parameter families; the discretisation pins them only weakly
         (lowest Hessian eigenvalue 2.8e-6 against 4.7e-5 next for the writhed Michell ring), and
-        relaxation and Newton creep along that valley.  This holds the coordinate of the
+        a descent or Newton creeps along that valley.  This holds the coordinate of the
         node opposite node 0 that lies most along its tangent at its current value.  Called
-        when the path leaves a symmetric state (branch switching); a circle does not feel
-        it.  Its reaction (the force the discretisation's weak pinning would exert, zero in the
+        by the minimiser at the start of its load path; a circle does not feel it.  Its reaction (the force the discretisation's weak pinning would exert, zero in the
         continuous problem) is reported by gauge_report (summary.json ``gauge``).  Collective."""
         m = self.mesh
         if (self.gauge is not None or not m.closed or not self.scene.rod.closed_gauge
@@ -343,8 +338,6 @@ class RodProblem:
         self.loads.add_residual(self.lam, r, q, Floc)
         if self.contact is not None:
             self.contact.add_residual(r, Floc)
-        for term in self.extra_terms:
-            term.add_residual(r, q, Floc)
         F.set(0.0)
         self.layout.add_to_global(Floc, F)
         xa = X.getArray(readonly=True)
@@ -376,8 +369,6 @@ class RodProblem:
                                   addv=PETSc.InsertMode.ADD)
         if self.contact is not None:
             self.contact.add_jacobian(r, T)
-        for term in self.extra_terms:
-            term.add_jacobian(r, q, T)
         if masked:
             T.finish(self.constraints.rows_global)
         P.assemble()
@@ -496,14 +487,11 @@ class RodProblem:
         return not self.layout.comm.tompi4py().allreduce(moves, op=MPI.LOR)
 
     def _energy_local(self, r, q, contact_energy):
-        """This rank's share of the total energy (elastic + conservative loads + contact + extra
-        terms) at local positions r and rotations q, with the contact term's share given (the
-        expensive part: precheck takes it from the evaluation it makes anyway)."""
+        """This rank's share of the total energy (elastic + conservative loads + contact) at
+        local positions r and rotations q, with the contact term's share given (the expensive
+        part: precheck takes it from the evaluation it makes anyway)."""
         E = self.elastic.energy(q[self.lconn], r[self.lconn]) + self.loads.potential(self.lam, r)
-        E += contact_energy
-        for term in self.extra_terms:
-            E += term.energy(r, q)
-        return E
+        return E + contact_energy
 
     def update(self, snes, its):
         self.state.recentre()

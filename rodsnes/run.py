@@ -2,11 +2,13 @@
 
 Files (DIR = -output_dir): result.h5 (one group per converged step, flushed per step),
 rod.xdmf (+ rod.h5, ParaView), summary.json (rewritten atomically after every step, so a
-failed or killed run leaves the last converged state described on disk).  A relaxation
-(branch switch or jump, -stability) keeps its state every 25 kept pseudo-time steps and when it
-ends unfinished in DIR/relaxation/result.h5 (one step, not an equilibrium: attribute
-relaxation_unfinished); -restart DIR/relaxation -stability -stability_switch_restart goes on
-with it.
+failed or killed run leaves the last converged state described on disk).
+
+A run of a conservative scene that ends on an unstable equilibrium (negative eigenvalues of the
+energy Hessian, counted by the minimiser or by -stability) has failed unless unstable
+equilibria were asked for: by -load_arclength, which follows unstable branches, or by
+-load_path newton, which finds a zero of the residual, stable or not; then it has converged
+and its last line says that the equilibrium is unstable.
 """
 import os
 import time
@@ -43,6 +45,8 @@ class Run:
         from .loads import nonconservative
         self.conservative = nonconservative(scene.loads) is None
         self.path = self._choose_path(scene)
+        # -load_arclength: unstable branches followed on purpose (the Newton path's continuation)
+        self.arclength = PETSc.Options().getBool("load_arclength", False)
         if self.path == "minimize":
             self.solver = LoadPath(self.problem, self.force_scale,
                                    rtol=PETSc.Options().getReal("snes_rtol", 1e-10),
@@ -63,35 +67,22 @@ class Run:
         self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
-        self.resume = None          # an unfinished relaxation to go on with (-restart DIR/relaxation)
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
         append = False
-        if PETSc.Options().getBool("stability_switch_restart", False) and not (
-                scene.output.restart and self.solver.switch_restart):
-            from .scene import SceneError
-            raise SceneError("-stability_switch_restart relaxes the state of a -restart: give "
-                             "-restart DIR and -stability (with -stability_switch 1, the default)",
-                             ("-stability_switch_restart",))
         if scene.output.restart:
             self._restart(scene.output.restart)
-            relax_only = self.solver.switch_restart and self.lam0 <= scene.loads.stop + 1e-14
-            if self.lam0 >= scene.loads.stop - 1e-14 and not relax_only:
+            if self.lam0 >= scene.loads.stop - 1e-14:
                 from .scene import SceneError
                 raise SceneError(f"-load_stop {scene.loads.stop:g}: the run restarted from "
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
                                  f"raise -load_stop (at most 1) or drop it", ("-load_stop", "-restart"))
             append = os.path.abspath(scene.output.restart) == os.path.abspath(self.outdir)
-            if self.resume is not None and append:
-                self.step += 1      # the unfinished relaxation stays in the file as its step
         if self.rank == 0:
             os.makedirs(self.outdir, exist_ok=True)
         self.mpi.Barrier()
         self.writer = output.ResultWriter(self.outdir, self.mpi, self.mesh.n_nodes, meta, append=append)
-        self.meta = meta
         self.dofs = NDOF * self.mesh.n_nodes
-        if self.solver.switch:
-            self.solver.on_relaxation = self._keep_relaxation
 
     @staticmethod
     def _choose_path(scene):
@@ -134,26 +125,13 @@ class Run:
         self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
         self.step = int(last["step"])
         self.problem.set_load(self.lam0)
-        if last["attrs"].get("relaxation_unfinished", 0):
-            # DIR/relaxation of a relaxation that did not finish: not an equilibrium
-            a = last["attrs"]
-            if not self.solver.switch_restart:
-                from .scene import SceneError
-                raise SceneError(f"-restart {rdir}: it holds an unfinished relaxation at load "
-                                 f"{self.lam0:.6f} (undamped |F| {float(a['residual_norm']):.3e}), "
-                                 f"not an equilibrium: go on with it with -stability "
-                                 f"-stability_switch_restart, or restart from the run's own "
-                                 f"directory", ("-restart", "-stability_switch_restart"))
-            self.resume = {"phase": str(a.get("relaxation_phase", "flow")),
-                           "c": float(a["relaxation_c"]), "c_min": float(a["relaxation_c_min"])}
-            self.step -= 1          # the relaxed state, once at equilibrium, is that step
-            return
         # the steps the interrupted run would have taken next: its next increment, and the
-        # secant predictor through the step before (none after a branch switch or jump)
+        # secant predictor through the step before (none across a step flagged branch_switch:
+        # files written by earlier versions, e.g. cases/checkpoints)
         dlam = last["attrs"].get("next_increment")
         self.dlam0 = None if dlam is None else float(dlam)
         arc = last["attrs"].get("arclength_from")
-        if arc is not None and self.solver.arclength:
+        if arc is not None and self.arclength:
             self.arc0 = float(arc)      # dlam0 is then the continuation's next increment
         # (a checkpoint of one step has no step before it: the last state predicts)
         if (self.step >= 1 and not last["attrs"].get("branch_switch", 0)
@@ -161,35 +139,6 @@ class Run:
             before = output.read_step(rdir, self.step - 1)
             self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
                           float(before["attrs"]["load"]))
-
-    def _keep_relaxation(self, lam, info):
-        """NewtonSolver.on_relaxation: write the state of a relaxation at load lam (not an
-        equilibrium) to DIR/relaxation/result.h5, one step, replacing the one kept before, with
-        attributes relaxation_unfinished = 1, relaxation_phase / _c / _c_min (where it goes on
-        from), relaxation_steps, residual_norm (undamped |F|), negative_eigenvalues (of the
-        state it relaxes from).  Collective.  The run's own report (last_* of summary.json)
-        is left as it was.  A finished relaxation (info["ok"]) removes the directory: its
-        state goes on to the undamped solve and, at equilibrium, into result.h5."""
-        rdir = os.path.join(self.outdir, "relaxation")
-        if info["ok"]:
-            if self.rank == 0 and self.solver.relaxation_kept is not None:
-                import shutil
-                shutil.rmtree(rdir, ignore_errors=True)
-            self.mpi.Barrier()
-            self.solver.relaxation_kept = None
-            return
-        extra = {"load": lam, "residual_norm": info["fnorm"], "branch_switch": 1,
-                 "relaxation_unfinished": 1,
-                 "relaxation_phase": info["phase"], "relaxation_c": info["c"],
-                 "relaxation_c_min": info["c_min"], "relaxation_steps": info["steps"],
-                 "negative_eigenvalues": info["negative_eigenvalues"]}
-        with output.ResultWriter(rdir, self.mpi, self.mesh.n_nodes, self.meta, xdmf=False) as w:
-            energy = self._write_state(w, self.step + 1, extra, report=False)
-        self.solver.relaxation_kept = rdir
-        if info["final"]:
-            self.solver._say(f"  the unfinished relaxation's state (E {energy:.9g}, undamped |F| "
-                             f"{info['fnorm']:.3e}) is in {rdir}: go on with -restart {rdir} "
-                             f"-stability -stability_switch_restart")
 
     def _tip(self, fields):
         if self.mesh.closed:
@@ -200,28 +149,23 @@ class Run:
     def _step_record(res):
         """What a converged step reports, in result.h5 and in summary.json's history: Newton
         iterations, residual, seconds, the increment the next step starts from, negative
-        eigenvalues (-stability), switch/jump flags."""
+        eigenvalues, the fold a continuation point goes round, the minimiser's statistics."""
         rec = {"newton_iterations": res.its, "residual_norm": res.fnorm, "seconds": res.seconds}
         if hasattr(res, "next_increment"):
             rec["next_increment"] = res.next_increment
         if hasattr(res, "negative_eigenvalues"):
             rec["negative_eigenvalues"] = res.negative_eigenvalues
-        if getattr(res, "damped", False):
-            rec["damped"] = True
         if getattr(res, "arclength", False):
             rec["arclength_from"] = res.arclength_from
         for key in ("link_error", "shifts", "line_search_cuts", "escapes"):
             if getattr(res, key, None) is not None:
                 rec[key] = res.__dict__[key]
-        if getattr(res, "branch_switch", False):
-            rec["branch_switch"] = True
-            rec["jump"] = bool(getattr(res, "jump", False))
         return rec
 
-    def _observe(self, report=True):
-        """The current state's fields, energy, contact report and topology (collective); with
-        report, sets the last_* attributes that summary.json is made from.  Returns (fields,
-        energy, contact attrs, quadrature-point fields, topology)."""
+    def _observe(self):
+        """The current state's fields, energy, contact report and topology (collective); sets
+        the last_* attributes that summary.json is made from.  Returns (fields, energy, contact
+        attrs, quadrature-point fields, topology)."""
         p = self.problem
         fields = p.owned_fields()
         energy = p.energy()
@@ -236,41 +180,39 @@ class Run:
             cattrs = {"contact_" + k: v for k, v in contact.items()}
             qp = self.contact.qp_fields()
         topo = p.topology()
-        if report:
-            if contact is not None:
-                self.last_contact = contact
-            if topo is not None:
-                self.last_topology = topo
-            self.last_fields = fields
-            self.last_energy = energy
+        if contact is not None:
+            self.last_contact = contact
+        if topo is not None:
+            self.last_topology = topo
+        self.last_fields = fields
+        self.last_energy = energy
         return fields, energy, cattrs, qp, topo
 
-    def _write_state(self, writer, step, extra, report=True):
-        """Write the current state as ``step`` of ``writer``: load, energy, ``extra`` attributes,
-        the contact KKT picture and the topology (``_observe(report)``).  Returns the energy."""
-        fields, energy, cattrs, qp, topo = self._observe(report)
-        attrs = {"load": self.problem.lam, "energy": energy, "newton_iterations": 0,
-                 "residual_norm": 0.0, **extra, **cattrs, **(topo or {})}
-        writer.write_step(step, attrs, self.layout.owned_nodes, fields,
-                          qp_owned=qp.get("ids"), qp_fields=qp.get("fields"), n_qp=qp.get("n"))
-        return energy
-
     def _write(self, res):
+        """Write the current state as step self.step of result.h5: load, energy, the step's
+        record (res: a converged step, None for the start), the contact KKT picture and the
+        topology (_observe).  Returns the energy."""
         extra = {}
-        if res is not None:       # HDF5 attributes: the switch flags as 0/1
+        if res is not None:       # HDF5 attributes: flags as 0/1
             extra = {k: int(v) if isinstance(v, bool) else v
                      for k, v in self._step_record(res).items()}
-        return self._write_state(self.writer, self.step, extra)
+        fields, energy, cattrs, qp, topo = self._observe()
+        attrs = {"load": self.problem.lam, "energy": energy, "newton_iterations": 0,
+                 "residual_norm": 0.0, **extra, **cattrs, **(topo or {})}
+        self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
+                               qp_owned=qp.get("ids"), qp_fields=qp.get("fields"),
+                               n_qp=qp.get("n"))
+        return energy
 
     def summary(self, converged, failed_reason=None):
         s = {"case": self.scene.output.case_name, "converged": bool(converged),
              "load": self.problem.lam, "energy": self.last_energy,
              "newton_iterations": self.solver.total_its, "load_steps": len(self.history),
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
-             "ranks": self.comm.getSize(), "predictor_retries": self.solver.predictor_retries,
-             "stagnated_solves": self.solver.stagnations,
-             "damped_solves": self.solver.damped_solves, "path": self.path,
-             "steps": self.history}
+             "ranks": self.comm.getSize(), "path": self.path, "steps": self.history}
+        if self.path == "newton":
+            s["predictor_retries"] = self.solver.predictor_retries
+            s["stagnated_solves"] = self.solver.stagnations
         nneg = self.history[-1].get("negative_eigenvalues") if self.history else None
         s["negative_eigenvalues"] = nneg
         # None: not counted, or loads without a potential (follower forces, 3-D end moments),
@@ -326,8 +268,6 @@ class Run:
             if not self.quiet and self.rank == 0:
                 if res.reason == "stability":
                     why = "it lands on a less stable equilibrium"
-                elif str(res.reason).startswith("damped"):
-                    why = f"Levenberg-Marquardt, {res.its} steps, |F| {res.fnorm:.3e}: {res.reason}"
                 elif res.reason == "stagnation":
                     why = (f"Newton stagnated: |F| not halved in {self.solver.stagnation_its} its, "
                            f"{res.its} its")
@@ -335,31 +275,38 @@ class Run:
                     why = f"{res.reason}, {res.its} its, |g| {res.fnorm:.3e}"
                 else:
                     why = f"SNES reason {res.reason}, {res.its} its"
-                then = ("solving it again by Levenberg-Marquardt" if dlam is None
-                        else f"cutting the increment {dlam:.3e} in half")
-                print(f"  load {res.lam:.6f} not accepted ({why}): {then}", flush=True)
+                print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
+                      f"{dlam:.3e} in half", flush=True)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
-                                       arc0=self.arc0, stop=ld.stop, resume=self.resume)
+                                       arc0=self.arc0, stop=ld.stop)
         reason = None if ok else self.solver.fail_reason or (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
         nneg = self.history[-1].get("negative_eigenvalues") if self.history else None
-        # unstable branches asked for: continuation, or -stability with -stability_switch 0
-        unstable_asked = self.solver.arclength or (self.scene.stability and not self.solver.switch)
-        if ok and nneg and not unstable_asked and self.conservative:
+        unstable = bool(nneg) and self.conservative
+        if ok and unstable and not self.unstable_asked():
             ok, reason = False, (f"the load path ends at load {self.problem.lam:.6f} on an "
                                  f"UNSTABLE equilibrium ({nneg} negative eigenvalues of the energy "
                                  f"Hessian): -load_path minimize ends on stable ones; "
                                  f"-load_arclength traces unstable branches on purpose")
-        kept = self.solver.relaxation_kept
-        if not ok and kept is not None and kept not in reason:
-            reason += f"; the last relaxation's state is in {kept}"
         output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))
         self.writer.close()
         if self.rank == 0 and not self.quiet:
-            print(("converged" if ok else "FAILED: " + reason) + f"; results in {self.outdir}", flush=True)
+            if not ok:
+                last = "FAILED: " + reason
+            elif unstable:
+                last = (f"converged to an unstable equilibrium at load {self.problem.lam:.6f} "
+                        f"({nneg} negative eigenvalues of the energy Hessian)")
+            else:
+                last = "converged"
+            print(last + f"; results in {self.outdir}", flush=True)
         return ok
+
+    def unstable_asked(self):
+        """Whether this run may end on an unstable equilibrium: it follows unstable branches
+        (-load_arclength), or the user chose -load_path newton, a zero of the residual."""
+        return self.arclength or self.scene.loads.path == "newton"
 
     # ------------------------------------------------------------------------------
     def _restart_step(self, rdir):
@@ -412,8 +359,7 @@ class Run:
         """Store the scene record (scene.scene_record) in result.h5 for later restarts to
         compare against (collective)."""
         from .scene import scene_record
-        self.meta["scene"] = scene_record(self.scene)       # relaxation files keep it too
-        self.writer.add_meta({"scene": self.meta["scene"]})
+        self.writer.add_meta({"scene": scene_record(self.scene)})
 
     def record_interruption(self, signal_name):
         """summary.json after a SIGINT/SIGTERM: the last step's summary marked interrupted

@@ -251,14 +251,11 @@ class O:
     load_stagnation_its = Opt(INT, 15, "a Newton solve whose residual has not halved in this many "
                               "iterations fails (and the step is cut back); 0: only -snes_max_it",
                               "load", rng="[0,inf)", note="a number of Newton iterations")
-    load_damped_its = Opt(INT, 0, "a load step whose Newton solve failed is solved again by "
-                          "Levenberg-Marquardt, at most this many steps, before it is cut back "
-                          "(conservative loads only); 0: off", "load", rng="[0,inf)",
-                          note="a number of damped Newton steps")
     load_arclength = Opt(BOOL, False, "at a fold of the load path (every cut-back failed), follow "
                          "the branch around it by pseudo-arclength continuation, through its "
                          "unstable part, until it goes on stable with the load increasing "
-                         "(instead of a jump with -stability, or the end of the run)", "load")
+                         "(else the run ends at the fold); the Newton path (-load_path auto or "
+                         "newton)", "load")
     load_arclength_max_steps = Opt(INT, 200, "pseudo-arclength continuation: most steps around "
                                    "one fold", "load", rng="[1,inf)", note="a number of steps")
     load_arclength_its = Opt(INT, 8, "pseudo-arclength continuation: Newton iterations per step "
@@ -317,24 +314,30 @@ class O:
                     "cases/ directory, else of the last -options_file, else 'default')",
                     "output", shown="from -options_file", metavar="NAME")
     # --- analysis ---------------------------------------------------------------
-    stability = Opt(BOOL, False, "report the inertia of the tangent at each converged step",
+    stability = Opt(BOOL, False, "-load_path newton: count the negative eigenvalues of the "
+                    "energy Hessian at each converged step (a step that lands on a less stable "
+                    "equilibrium than it left is cut back); the minimiser counts them always",
                     "analysis")
-    stability_switch = Opt(BOOL, True, "with -stability: relax a step that stays unstable onto a "
-                           "stable equilibrium (branch switching; conservative loads only)",
-                           "analysis")
-    stability_switch_restart = Opt(BOOL, False, "with -restart from an unstable step and "
-                                   "-stability: relax that state onto a stable equilibrium first, "
-                                   "written as a step at the same load (also at -load_stop)",
-                                   "analysis")
-    stability_perturbation = Opt(REAL, 1e-2, "branch switching: initial push along the lowest "
-                                 "eigenvector, largest nodal displacement / L", "analysis",
-                                 rng="(0,inf)", note="a fraction of the rod length")
-    stability_relax_max_it = Opt(INT, 200, "branch switching: most pseudo-time steps of one "
-                                 "relaxation", "analysis", rng="[1,inf)",
-                                 note="number of relaxation steps")
-    stability_jump_overshoot = Opt(REAL, 0.0, "a fold's jump relaxes at the last converged load "
-                                   "plus at least this load increment (0: at the shortest step "
-                                   "tried)", "analysis", rng="[0,1]", note="a fraction of the full load")
+
+
+_MINIMISER = "conservative load steps are energy minimisations (-load_path minimize, the default)"
+RETIRED = {
+    "stability_switch": "branch switching: " + _MINIMISER + ", which end on stable equilibria; "
+                        "use -load_arclength to follow unstable branches",
+    "stability_switch_restart": "branch switching: " + _MINIMISER + ", which end on stable "
+                                "equilibria, from a restart state too; use -load_arclength to "
+                                "follow unstable branches",
+    "stability_perturbation": "branch switching: " + _MINIMISER + ", which leave an unstable "
+                              "equilibrium along negative curvature by themselves",
+    "stability_relax_max_it": "the relaxation of branch switching: " + _MINIMISER + "; their "
+                              "iterations are -load_max_it",
+    "stability_jump_overshoot": "the fold jump: " + _MINIMISER + ", which go past a fold by "
+                                "descent; use -load_arclength to follow the branch around it",
+    "load_damped_its": "the Levenberg-Marquardt fallback: " + _MINIMISER + ", with a line "
+                       "search; on -load_path newton a failed step is cut back "
+                       "(-load_max_cutbacks, -load_min_step)",
+}
+"""Options rodsnes once had, each with what replaced it: given, they are refused by name."""
 
 
 OPTIONS = tuple(v for v in vars(O).values() if isinstance(v, Opt))
@@ -1075,7 +1078,8 @@ def check_unknown_options(options=None):
     rodsnes option nor starts with a known PETSc prefix (any option starting
     with a rodsnes prefix must be a rodsnes option).  All unknown options are
     listed, one per line in alphabetical order, with the closest rodsnes options
-    as suggestions.  Option names are compared case-insensitively, as PETSc does."""
+    as suggestions; a retired option (:data:`RETIRED`) says what replaced it.
+    Option names are compared case-insensitively, as PETSc does."""
     if options is None:
         options = _default_options()
     known = {o.name.lower(): o.name for o in OPTIONS}
@@ -1083,6 +1087,10 @@ def check_unknown_options(options=None):
     for name in sorted(options.getAll(), key=str.lower):
         low = name.lower()
         if low in known:
+            continue
+        if low in RETIRED:
+            msgs.append("-%s was retired with %s" % (low, RETIRED[low]))
+            bad.append("-" + name)
             continue
         if not low.startswith(RODSNES_PREFIXES) and low.startswith(PETSC_PREFIXES):
             continue
@@ -1434,10 +1442,8 @@ def check_solvable(scene, memory="machine"):
 # ----------------------------------------------------------------------------
 # Options that do nothing in this scene (warnings, as PETSc's -options_left)
 # ----------------------------------------------------------------------------
-_STABILITY_ONLY = ("stability_switch", "stability_perturbation", "stability_relax_max_it",
-                   "stability_jump_overshoot")
 _PATH_ONLY = {"load_max_it": "minimize", "load_predictor": "newton",
-              "load_stagnation_its": "newton", "load_damped_its": "newton"}
+              "load_stagnation_its": "newton"}
 """Options read by one load path only (-load_path, run.path)."""
 
 
@@ -1457,8 +1463,6 @@ def _idle_reasons(scene, options, path):
     if not c.enabled:
         out += [(o, "self-contact is off (add -contact)") for o in OPTIONS
                 if o.section == "contact" and o is not O.contact]
-    if not scene.stability:
-        out += [(getattr(O, n), "it acts with -stability only") for n in _STABILITY_ONLY]
     if not bool(options.getBool("load_arclength", False)):
         out += [(o, "it acts with -load_arclength only")
                 for o in (O.load_arclength_its, O.load_arclength_max_steps)]

@@ -46,7 +46,7 @@ DEFAULT_OVERRIDES = {}
 @pytest.fixture(scope="module")
 def newton_path():
     """The test's runs take -load_path newton (the Newton path's own machinery: cut-back,
-    branch switching, relaxation, Levenberg-Marquardt, continuation) unless they say
+    secant predictor, stability count, pseudo-arclength continuation) unless they say
     otherwise.  Use with pytestmark = pytest.mark.usefixtures("newton_path")."""
     DEFAULT_OVERRIDES["load_path"] = "newton"
     yield

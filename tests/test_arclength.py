@@ -1,17 +1,18 @@
 """Pseudo-arclength continuation around a fold (-load_arclength, rodsnes/arclength.py).
 
 The scene: a clamped rod under a small end tension, its end turned 1.25 times (sliding end), no
-contact (test_relax's TWISTED).  The nearly straight twisted rod's path folds at load 0.990; the
-jump (-stability) relaxes from there onto a stable loop.  Pseudo-arclength continuation instead
-follows the branch: back through its unstable part (one negative eigenvalue) to a second fold
-at load 0.418, then on, stable, with the load increasing, to the loop at load 1.
+contact (test_relax's TWISTED).  The nearly straight twisted rod's path folds at load 0.990;
+the default path (the minimiser) snaps from there onto a stable loop.  Pseudo-arclength
+continuation instead follows the branch: back through its unstable part (one negative
+eigenvalue) to a second fold at load 0.418, then on, stable, with the load increasing, to the
+loop at load 1.
 """
 import numpy as np
 import pytest
 
 from conftest import run_case
 
-# the Newton path's own machinery (rodsnes/solver.py, relax.py, arclength.py)
+# the Newton path's continuation (rodsnes/solver.py, arclength.py)
 pytestmark = [pytest.mark.usefixtures("newton_path"), pytest.mark.slow]
 
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
@@ -22,14 +23,14 @@ TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.
 @pytest.fixture(scope="module")
 def branch():
     """The continuation stopped inside the fold's unstable part (-load_arclength_max_steps 10),
-    restarted from its directory to the end; and the jump (-stability) to compare with."""
+    restarted from its directory to the end; and the default path's snap to compare with."""
     first = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=10,
                      load_arclength_its=12, **TWISTED)
     res_first = list(first.solver.results)
     rest = run_case(None, stability=True, load_arclength=True, load_arclength_its=12,
                     restart=first.outdir, outdir=first.outdir, **TWISTED)
-    jump = run_case(None, stability=True, **TWISTED)
-    return first, res_first, rest, jump
+    snap = run_case(None, load_path="auto", **TWISTED)
+    return first, res_first, rest, snap
 
 
 def test_arclength_follows_the_branch_around_both_folds(branch):
@@ -105,20 +106,21 @@ def _positions_directors(run, i):
 
 
 @pytest.mark.mpi
-def test_a_restart_inside_the_continuation_ends_where_the_jump_does(branch):
+def test_a_restart_inside_the_continuation_ends_where_the_default_path_does(branch):
     """The run stopped after 10 arclength steps on the unstable branch (one negative eigenvalue,
     the fold's load stored with the step); the restart goes on from its last two points (secant)
-    around the second fold and ends, stable, at load 1 on the same loop as the jump: the same
-    energy to 1e-12, link, twist, writhe to 1e-8 (writhe -0.98; without contact the rod passes
-    through itself on the way, link 1.25 -> -0.75).  Serial and on 2 ranks."""
+    around the second fold and ends, stable, at load 1 on the same loop as the default path's
+    snap past the fold: the same energy to 1e-12, link, twist, writhe to 1e-8 (writhe -0.98;
+    without contact the rod passes through itself on the way, link 1.25 -> -0.75).  Serial and
+    on 2 ranks."""
     from rodsnes.output import read_step
-    first, res_first, rest, jump = branch
+    first, res_first, rest, snap = branch
     assert not first.ok and len([r for r in res_first if getattr(r, "arclength", False)]) == 10
     assert res_first[-1].negative_eigenvalues == 1
-    assert rest.ok and jump.ok and any(getattr(r, "jump", False) for r in jump.solver.results)
+    assert rest.ok and snap.ok and snap.path == "minimize"
     lam = [r.lam for r in rest.solver.results]
     assert getattr(rest.solver.results[0], "arclength", False) and min(lam) < 0.43
-    a, b = read_step(first.outdir, -1)["attrs"], read_step(jump.outdir, -1)["attrs"]
+    a, b = read_step(first.outdir, -1)["attrs"], read_step(snap.outdir, -1)["attrs"]
     assert a["load"] == b["load"] == 1.0 and a["negative_eigenvalues"] == 0
     assert abs(a["energy"] - b["energy"]) <= 1e-12 * abs(b["energy"])
     for k in ("link", "twist", "writhe"):
@@ -128,8 +130,9 @@ def test_a_restart_inside_the_continuation_ends_where_the_jump_does(branch):
 
 def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
     """A continuation that brings the path back to the fold it started from (a closed loop of
-    equilibria) is not repeated: the second time the fold is met, it is jumped (-stability).
-    Here the continuation is replaced by one that returns at once, as if it had come round."""
+    equilibria) is not repeated: the second time the fold is met, the run ends there and says
+    why.  Here the continuation is replaced by one that returns at once, as if it had come
+    round."""
     from rodsnes.solver import NewtonSolver
     calls = []
 
@@ -140,6 +143,6 @@ def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
         return True, None, self.problem.lam, 0
     monkeypatch.setattr(NewtonSolver, "_around_fold", around)
     run = run_case(None, stability=True, load_arclength=True, **TWISTED)
-    assert run.ok and len(calls) == 1 and 0.990 < calls[0] < 0.9905
-    jumps = [r for r in run.solver.results if getattr(r, "jump", False)]
-    assert len(jumps) == 1 and jumps[0].negative_eigenvalues == 0
+    assert not run.ok and len(calls) == 1 and 0.990 < calls[0] < 0.9905
+    assert abs(run.problem.lam - calls[0]) < 1e-12
+    assert "came back to it (a closed loop of equilibria)" in run.solver.fail_reason

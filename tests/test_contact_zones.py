@@ -412,7 +412,7 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
     import tempfile
     src = tempfile.mkdtemp(prefix="rodsnes_relaxing_")
     shutil.copy(data, os.path.join(src, "result.h5"))
-    run = build_run("plectoneme", restart=src, stability=True, stability_switch_restart=True,
+    run = build_run("plectoneme", restart=src, stability=True,
                     load_path="newton",
                     contact_model="projection")
     c = run.problem.contact

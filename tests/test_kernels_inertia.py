@@ -79,7 +79,7 @@ def test_stability_count_by_the_kept_ldlt_equals_a_fresh_factorisation():
     branch (imperfection) none."""
     from rodsnes import stability
     for imperfection, want in ((0.0, 2), (1e-3, 0)):
-        run = run_case("euler", stability=True, stability_switch=0, rod_imperfection=imperfection,
+        run = run_case("euler", stability=True, rod_imperfection=imperfection,
                        load_path="newton",
                        load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4), load_steps=4)
         p = run.problem

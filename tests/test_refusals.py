@@ -156,6 +156,26 @@ REFUSALS = [
      ["-pc_factor_mat_solver_type superlu: superlu cannot factor rodsnes' Jacobian",
       "use mumps"]),
     ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
+    # retired options say what replaced them
+    ("retired_stability_switch", MATT + ("-stability", "-stability_switch", "0"),
+     ["-stability_switch was retired with branch switching: conservative load steps are energy "
+      "minimisations (-load_path minimize, the default), which end on stable equilibria; use "
+      "-load_arclength to follow unstable branches"]),
+    ("retired_stability_switch_restart", MATT + ("-stability_switch_restart",),
+     ["-stability_switch_restart was retired with branch switching",
+      "from a restart state too", "-load_arclength"]),
+    ("retired_stability_perturbation", MATT + ("-stability_perturbation", "0.1"),
+     ["-stability_perturbation was retired with branch switching",
+      "leave an unstable equilibrium along negative curvature"]),
+    ("retired_stability_relax_max_it", MATT + ("-stability_relax_max_it", "600"),
+     ["-stability_relax_max_it was retired with the relaxation of branch switching",
+      "-load_max_it"]),
+    ("retired_stability_jump_overshoot", MATT + ("-stability_jump_overshoot", "1e-3"),
+     ["-stability_jump_overshoot was retired with the fold jump", "go past a fold by descent",
+      "-load_arclength to follow the branch around it"]),
+    ("retired_load_damped_its", MATT + ("-load_path", "newton", "-load_damped_its", "40"),
+     ["-load_damped_its was retired with the Levenberg-Marquardt fallback",
+      "on -load_path newton a failed step is cut back (-load_max_cutbacks, -load_min_step)"]),
 ]
 
 
@@ -167,6 +187,8 @@ def test_refused_before_the_solve(capsys, tmp_path, args, expects):
 def test_independent_problems_are_all_listed(capsys, tmp_path):
     refused(capsys, tmp_path, MATT + ("-contact", "-contact_exclusion", "2"),
             ["-contact_exclusion = 2", "-rod_nelem = 8 with contact radius 0.01"], lines=2)
+    refused(capsys, tmp_path, MATT + ("-stability_switch", "1", "-load_damped_its", "3"),
+            ["-stability_switch was retired", "-load_damped_its was retired"], lines=2)
 
 
 def test_solvable_neighbours_of_the_refusals_are_accepted():
@@ -339,8 +361,8 @@ WARNINGS = [
      "-contact_penalty = 1e4 does nothing: self-contact is off (add -contact)"),
     ("youngs_with_direct_stiffness", MATT + ("-rod_youngs", "2e6"),
      "-rod_youngs = 2e6 does nothing: every stiffness it would enter is given directly"),
-    ("stability_option_without_stability", MATT + ("-stability_perturbation", "0.1"),
-     "-stability_perturbation = 0.1 does nothing: it acts with -stability only"),
+    ("newton_option_on_the_minimising_path", MATT + ("-load_stagnation_its", "5"),
+     "-load_stagnation_its = 5 does nothing: it acts on -load_path newton only"),
     ("arclength_option", MATT + ("-load_arclength_its", "5"),
      "-load_arclength_its = 5 does nothing: it acts with -load_arclength only"),
     ("follower_without_force", ROLLUP + ("-load_end_force_follower",),
@@ -378,6 +400,50 @@ def test_options_that_act_are_not_reported(capsys, tmp_path):
     assert rc == 0 and "warning" not in err, err
     rc, _, err = rodsnes(capsys, *MICHELL, "-load_stop", "0.04", out=tmp_path / "ring")
     assert rc == 0 and "warning" not in err, err          # -bc_start free on a ring is what it is
+
+
+# ------------------------------------------------------------------------ unstable ends
+EULER_LOUD = ("-options_file", os.path.join(CASES, "euler.opts"), "-rod_imperfection", "0",
+              "-load_steps", "4")
+
+
+@pytest.mark.parametrize("asked", [("-load_path", "newton"), ("-load_arclength",)],
+                         ids=["newton", "arclength"])
+def test_an_unstable_end_asked_for_converges_and_says_so(capsys, tmp_path, asked):
+    """The perfect Euler column at 1.2 P_cr on -load_path newton (a zero of the residual, which
+    is what was asked for) or with -load_arclength (unstable branches followed on purpose) ends
+    on the straight, unstable column: exit 0, the last line says unstable, summary.json
+    converged and stable false."""
+    d = tmp_path / "out"
+    rc, out, err = rodsnes(capsys, *EULER_LOUD, *asked, out=d)
+    assert rc == 0, err
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("converged to an unstable equilibrium at load 1.000000 (2 negative "
+                           "eigenvalues of the energy Hessian)"), last
+    s = summary(d)
+    assert s["converged"] is True and s["stable"] is False and s["negative_eigenvalues"] == 2
+
+
+def test_an_unstable_end_not_asked_for_fails(capsys, tmp_path, monkeypatch):
+    """A conservative run on the default path whose last step is unstable (faked: the
+    minimiser's steps end stable) has failed: exit 3, the last line says UNSTABLE."""
+    from rodsnes import minimize
+    solve = minimize.EnergyMinimizer.solve_at
+
+    def unstable(self, lam):
+        res = solve(self, lam)
+        res.negative_eigenvalues = 1 if res.converged else res.negative_eigenvalues
+        return res
+    monkeypatch.setattr(minimize.EnergyMinimizer, "solve_at", unstable)
+    d = tmp_path / "out"
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "euler.opts"),
+                           "-load_steps", "2", out=d)
+    assert rc == 3, err
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("FAILED: the load path ends at load 1.000000 on an UNSTABLE "
+                           "equilibrium (1 negative eigenvalues"), last
+    s = summary(d)
+    assert s["converged"] is False and s["stable"] is False and "UNSTABLE" in s["failure"]
 
 
 # ------------------------------------------------------------------------ subprocesses
