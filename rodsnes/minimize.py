@@ -429,11 +429,6 @@ class LoadPath:
         self.results = []
         self.link0 = None
         self.lam_link0 = 0.0
-        # what Run reads of a path (the Newton path's repair machinery has no place here)
-        self.switch = self.switch_restart = self.arclength = False
-        self.relaxation_kept = self.on_relaxation = None
-        self.predictor_retries = self.stagnations = self.damped_solves = 0
-        self.snes = None
         self.floor = self.minimizer.floor
 
     def tolerance(self):
