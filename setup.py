@@ -1,10 +1,10 @@
 from setuptools import Extension, setup, find_packages
 
 # The fused elastic element kernel: plain C, no Python API, loaded with ctypes
-# (rodsnes/elastic_compiled.py); pip install -e . builds it in place next to the package.
+# (rodsnes/model/elastic_compiled.py); pip install -e . builds it in place next to the package.
 elastic_kernel = Extension(
-    "rodsnes._elastic_kernel",
-    sources=["rodsnes/_elastic_kernel.c"],
+    "rodsnes.model._elastic_kernel",
+    sources=["rodsnes/model/_elastic_kernel.c"],
     extra_compile_args=["-O3", "-std=c99"],
     libraries=["m"],
 )

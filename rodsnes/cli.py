@@ -26,6 +26,10 @@ import signal
 import sys
 import tempfile
 import time
+from rodsnes.io.scene import _suggest, _or_list
+from rodsnes.io import scene as scn
+from rodsnes.run import Run
+from rodsnes.io import results as output
 
 EXIT_REFUSED, EXIT_FAILED = 2, 3
 
@@ -228,7 +232,6 @@ TYPE_OPTIONS = (("pc_factor_mat_solver_type", "MatSolver", "LU/Cholesky package"
 
 
 def _did_you_mean(word, names):
-    from .scene import _suggest, _or_list
     close = _suggest(word.lower(), list(names), cutoff=0.7)
     return f"; did you mean {_or_list(list(close))}?" if close else ""
 
@@ -357,7 +360,6 @@ def unused_petsc_warnings(given, late):
     """Warnings for the options of ``given`` (the names the user set) that nothing has read:
     ``late`` False: before the solve, leaving out those read only at the end of a solve
     (LATE_READ); True: after the run, those.  Options read at PetscFinalize are left alone."""
-    from . import scene as scn
     left = options_left()
     if left is None:
         return []
@@ -382,7 +384,6 @@ def unused_petsc_warnings(given, late):
 
 def _closest(word, names):
     """'-a', '-a or -b' ...: the names closest to word (scene._suggest), or ''."""
-    from .scene import _suggest, _or_list
     close = _suggest(word, list(names))
     return _or_list(["-" + c for c in close]) if close else ""
 
@@ -419,7 +420,6 @@ def check_newton_linear_solver(comm):
 
 def _load_path(scene):
     """The load path the Run will take (Run._choose_path where there is one, else newton)."""
-    from .run import Run
     choose = getattr(Run, "_choose_path", None)
     return choose(scene) if choose is not None else "newton"
 
@@ -463,7 +463,6 @@ def main(argv=None):
         _say(rank, "error", failed)
         return EXIT_REFUSED
     from petsc4py import PETSc
-    from . import scene as scn
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
     opts = PETSc.Options()
@@ -501,9 +500,6 @@ def main(argv=None):
 def _prepare(argv, comm, opts, rank, given):
     """Everything before the solve: the scene, its checks, the output directory, the Run,
     its linear solver set up once, the scene record, the warnings.  Returns the Run."""
-    from . import output
-    from . import scene as scn
-    from .run import Run
     scn.check_unknown_options(opts)
     scene = scn.read_scene(argv, opts)
     scn.check_solvable(scene)

@@ -16,12 +16,19 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from . import mesh as rodmesh
-from . import output, partition
-from .partition import NDOF
-from .problem import RodProblem
-from .minimize import LoadPath
-from .solver import NewtonSolver
+from rodsnes.model import mesh as rodmesh
+from rodsnes.io import results as output
+from rodsnes.model import partition
+from rodsnes.model.partition import NDOF
+from rodsnes.model.problem import RodProblem
+from rodsnes.solve.minimize import LoadPath
+from rodsnes.solve.newton import NewtonSolver
+from rodsnes.contact.term import ContactTerm
+from rodsnes.model.scales import force_scale
+from rodsnes.model.loads import nonconservative
+from rodsnes.errors import SceneError
+from rodsnes.io.scene import scene_record, record_mismatches
+from rodsnes.io.scene import scene_record
 
 
 class Run:
@@ -34,15 +41,12 @@ class Run:
         self.layout = partition.Layout(comm, self.mesh)
         self.contact = None
         if scene.contact.enabled:
-            from .contact_term import ContactTerm
             self.contact = ContactTerm(scene, self.mesh, self.layout)
         self.problem = RodProblem(scene, self.mesh, self.layout, contact=self.contact)
         rod = scene.rod
         L = rod.length
         ld = scene.loads
-        from .scene import force_scale
         self.force_scale = force_scale(scene)
-        from .loads import nonconservative
         self.conservative = nonconservative(scene.loads) is None
         self.path = self._choose_path(scene)
         # -load_arclength: unstable branches followed on purpose (the Newton path's continuation)
@@ -73,7 +77,6 @@ class Run:
         if scene.output.restart:
             self._restart(scene.output.restart)
             if self.lam0 >= scene.loads.stop - 1e-14:
-                from .scene import SceneError
                 raise SceneError(f"-load_stop {scene.loads.stop:g}: the run restarted from "
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
                                  f"raise -load_stop (at most 1) or drop it", ("-load_stop", "-restart"))
@@ -88,8 +91,6 @@ class Run:
     def _choose_path(scene):
         """-load_path: minimize where the loads are conservative (auto), newton otherwise or
         when pseudo-arclength continuation (-load_arclength) is asked for."""
-        from .loads import nonconservative
-        from .scene import SceneError
         why = nonconservative(scene.loads)
         path = scene.loads.path
         arclength = PETSc.Options().getBool("load_arclength", False)
@@ -113,7 +114,6 @@ class Run:
         st = self.problem.state
         pos, dirs = np.asarray(last["positions"]), np.asarray(last["directors"])
         if pos.shape[0] != self.mesh.n_nodes:
-            from .scene import SceneError
             raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
                              f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
         st.restore(st.snapshot_of(pos, dirs))
@@ -312,7 +312,6 @@ class Run:
     def _restart_step(self, rdir):
         """The last complete step of rdir/result.h5, or a SceneError that says what is wrong
         with the directory (no result.h5, unreadable or cut short, no complete step)."""
-        from .scene import SceneError
         path = os.path.join(rdir, output.RESULT_FILE)
         if not os.path.isdir(rdir):
             raise SceneError(f"-restart {rdir}: not a directory (give the output directory of an "
@@ -334,7 +333,6 @@ class Run:
         (closed, length, radius, nelem, order), and, where the file holds it (runs started by
         the rodsnes command), the whole scene record (scene.scene_record: stiffness, shape,
         supports, loads); a file without it must at least be of the same case."""
-        from .scene import SceneError, scene_record, record_mismatches
         import json
         mine = scene_record(self.scene)
         stored = {k: meta[k] for k in ("closed", "length", "radius", "nelem", "order")
@@ -358,7 +356,6 @@ class Run:
     def record_scene(self):
         """Store the scene record (scene.scene_record) in result.h5 for later restarts to
         compare against (collective)."""
-        from .scene import scene_record
         self.writer.add_meta({"scene": scene_record(self.scene)})
 
     def record_interruption(self, signal_name):

@@ -78,7 +78,7 @@ def build_run(case=None, comm=None, outdir=None, **overrides):
     """A Run of a scene on ``comm`` (default COMM_WORLD), not executed, writing into outdir
     (rank 0's, the same directory on every rank; a fresh temporary one if None)."""
     from rodsnes.run import Run
-    from rodsnes.scene import read_scene, check_unknown_options
+    from rodsnes.io.scene import read_scene, check_unknown_options
     comm = PETSc.COMM_WORLD if comm is None else comm
     mpi = comm.tompi4py()
     if mpi.rank == 0:
@@ -105,8 +105,8 @@ def gathered_positions(run):
 def place(run, x, t):
     """Put the rod of a built run on the natural-ordered node positions x (n, 3) with unit
     tangents t (n, 3) (frames from the tangent, rotation increments zero)."""
-    from rodsnes import so3
-    from rodsnes.partition import NDOF
+    from rodsnes.model import so3
+    from rodsnes.model.partition import NDOF
     p, lay = run.problem, run.layout
     p.state.q_ref[:] = so3.quat_from_rot(so3.frame_from_tangent(t))[lay.local_nodes]
     with p.state.X as a:
@@ -138,7 +138,7 @@ def tangent_against_finite_differences(p, J, seed, h=1e-7):
 
 def natural_residuals(*runs):
     """Each run's assembled residual at its state, natural-ordered (n, NDOF) on every rank."""
-    from rodsnes.partition import NDOF
+    from rodsnes.model.partition import NDOF
     out = []
     for run in runs:
         F = run.problem.F.duplicate()

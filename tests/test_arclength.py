@@ -1,4 +1,4 @@
-"""Pseudo-arclength continuation around a fold (-load_arclength, rodsnes/arclength.py).
+"""Pseudo-arclength continuation around a fold (-load_arclength, rodsnes/solve/arclength.py).
 
 The scene: a clamped rod under a small end tension, its end turned 1.25 times (sliding end), no
 contact (test_relax's TWISTED).  The nearly straight twisted rod's path folds at load 0.990;
@@ -12,7 +12,7 @@ import pytest
 
 from conftest import run_case
 
-# the Newton path's continuation (rodsnes/solver.py, arclength.py)
+# the Newton path's continuation (rodsnes/solve/newton.py, arclength.py)
 pytestmark = [pytest.mark.usefixtures("newton_path"), pytest.mark.slow]
 
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
@@ -37,7 +37,7 @@ def test_arclength_follows_the_branch_around_both_folds(branch):
     """The arclength points: the load turns at 0.990 and at 0.418; one negative eigenvalue
     exactly where the load falls (a simple fold changes the Hessian's inertia by one where the
     load turns), none elsewhere; every point at the load steps' tolerance; Lk = Tw + Wr."""
-    from rodsnes.output import read_step
+    from rodsnes.io.results import read_step
     first, res_first, rest, _ = branch
     res = res_first + list(rest.solver.results)
     tol = first.solver.tolerance()
@@ -70,7 +70,7 @@ def test_the_corrector_converges_like_newton_at_the_same_load():
     1e-6, with |F_k+1| / |F_k|^2 up to 1e4) the corrector needs at most one iteration more per
     step (plain Newton is given the load the corrector finds; the corrector finds it too).  A wrong border (F_lambda, the constraint row) would leave it
     converging linearly."""
-    from rodsnes.arclength import Arclength
+    from rodsnes.solve.arclength import Arclength
     run = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=2,
                    **TWISTED)
     solver, p = run.solver, run.solver.problem
@@ -100,7 +100,7 @@ def test_the_corrector_converges_like_newton_at_the_same_load():
 
 
 def _positions_directors(run, i):
-    from rodsnes.output import read_step
+    from rodsnes.io.results import read_step
     st = read_step(run.outdir, i)
     return np.asarray(st["positions"]), np.asarray(st["directors"])
 
@@ -113,7 +113,7 @@ def test_a_restart_inside_the_continuation_ends_where_the_default_path_does(bran
     snap past the fold: the same energy to 1e-12, link, twist, writhe to 1e-8 (writhe -0.98;
     without contact the rod passes through itself on the way, link 1.25 -> -0.75).  Serial and
     on 2 ranks."""
-    from rodsnes.output import read_step
+    from rodsnes.io.results import read_step
     first, res_first, rest, snap = branch
     assert not first.ok and len([r for r in res_first if getattr(r, "arclength", False)]) == 10
     assert res_first[-1].negative_eigenvalues == 1
@@ -133,7 +133,7 @@ def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
     equilibria) is not repeated: the second time the fold is met, the run ends there and says
     why.  Here the continuation is replaced by one that returns at once, as if it had come
     round."""
-    from rodsnes.solver import NewtonSolver
+    from rodsnes.solve.newton import NewtonSolver
     calls = []
 
     def around(self, lam_fold, on_step, prev=None, ds=None):

@@ -7,8 +7,8 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import natural_residuals, place, run_case, tangent_against_finite_differences
-from rodsnes import contact as ck
-from rodsnes.partition import NDOF
+from rodsnes.contact import projection as ck
+from rodsnes.model.partition import NDOF
 
 SETUP = dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0")
 
@@ -93,7 +93,7 @@ def test_contact_blocks_zero_at_the_first_assembly_stay_in_the_matrix():
                                   addv=PETSc.InsertMode.ADD)
         J.assemble()
     assert J.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["mallocs"] == 0
-    from rodsnes.stability import gather_csr
+    from rodsnes.solve.stability import gather_csr
     A = gather_csr(J, lay)
     if A is not None:
         A = A.toarray()
@@ -296,7 +296,7 @@ def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
 
 def _fresh_search_pairs(c, r):
     """The candidates within reach of a fresh search at r (what the evaluation must use)."""
-    from rodsnes import contact as ck
+    from rodsnes.contact import projection as ck
     return c._search_pairs(*ck.element_bounds(r[c.lconn]), c.reach)
 
 

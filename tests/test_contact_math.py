@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from rodsnes import contact as C
-from rodsnes import fe
+from rodsnes.contact import projection as C
+from rodsnes.model import fe
 
 EPS = 0.1
 
@@ -749,7 +749,7 @@ def test_projection_finds_a_minimum_next_to_a_maximum():
     element 15 near xi = 0.274 against master element 0, the sampled search alone misses the
     interior minimum at 16 of 201 points (it returns the node, 3e-6 farther: the gap jumps),
     the full projection at none, against a brute-force search on 40001 points."""
-    from rodsnes.contact import _monomials
+    from rodsnes.contact.projection import _monomials
     p = 3
     X, L = helix(p, 24, pitch=0.19, turns=1.6, noise=0.002)
     rod = Rod(X, p, False, L)

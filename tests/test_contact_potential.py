@@ -9,7 +9,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import natural_residuals, run_case, tangent_against_finite_differences
-from rodsnes.contact_potential import (ONSET, PotentialKernel, law_energy, law_force,
+from rodsnes.contact.potential import (ONSET, PotentialKernel, law_energy, law_force,
                                        law_stiffness, line_force_per_stiffness, onset_layer,
                                        pair_stiffness)
 from test_contact_math import Rod, check_gradient, check_tangent, hairpin, polyline
@@ -324,7 +324,7 @@ def test_residual_is_smooth_where_the_closest_point_races():
 
 def test_zones_with_the_potential_and_an_unresolved_mesh_are_refused():
     from conftest import build_run
-    from rodsnes.scene import SceneError
+    from rodsnes.errors import SceneError
     with pytest.raises(SceneError, match="contact_zones"):
         build_run("rollup_contact", contact_model="potential", contact_zones="true",
                   rod_nelem=64)

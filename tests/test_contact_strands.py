@@ -6,7 +6,7 @@ smooth, and the point is pushed by both."""
 import numpy as np
 import pytest
 
-from rodsnes import contact as C
+from rodsnes.contact import projection as C
 
 from test_contact_math import EPS, check_gradient, check_tangent
 from test_contact_zones import exact_energy, waypoint_rod

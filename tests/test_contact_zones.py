@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from rodsnes import fe
+from rodsnes.model import fe
 
 from test_contact_math import EPS, Rod, check_gradient, check_tangent, polyline
 
@@ -234,7 +234,7 @@ def test_switch_points_complete_the_tangent(p):
 def test_co_master_pairs():
     """Two masters of one slave element are coupled when their bounding spheres come within
     the reach; masters of different slaves, or far apart, are not."""
-    from rodsnes.contact import co_master_pairs
+    from rodsnes.contact.projection import co_master_pairs
     pairs = np.array([[0, 5], [0, 7], [0, 9], [1, 7], [1, 3]])
     cen = np.zeros((10, 3))
     cen[:, 0] = np.arange(10)
@@ -405,7 +405,7 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
     Checks: the kind of closest point is the same at all Gauss points of every piece, and the
     contact residual at the node that moves is smooth along 21 moves of 1e-7."""
     import os
-    from rodsnes.partition import NDOF
+    from rodsnes.model.partition import NDOF
     from conftest import build_run
     data = os.path.join(os.path.dirname(__file__), "data", "plectoneme_9.41_relaxing.h5")
     import shutil

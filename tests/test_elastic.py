@@ -3,7 +3,7 @@ interpolation order, and the strain measures themselves."""
 import numpy as np
 import pytest
 
-from rodsnes import elastic, fe, so3
+from rodsnes.model import elastic, fe, so3
 
 RNG = np.random.default_rng(7)
 STIFF = [3.0, 4.0, 50.0, 1.0, 2.0, 1.5]   # GA1, GA2, EA, EI1, EI2, GJ

@@ -1,4 +1,4 @@
-"""The compiled elastic kernel (rodsnes/_elastic_kernel.c through rodsnes/elastic_compiled.py)
+"""The compiled elastic kernel (rodsnes/model/_elastic_kernel.c through rodsnes/model/elastic_compiled.py)
 equals the einsum reference of ElasticRod.element_terms to round-off: energy, residual and both
 tangents, orders 1-4, full and reduced quadrature, with the curvature bound active or not, on
 deformed states whose nodal quaternions come with either sign.
@@ -9,8 +9,7 @@ import os
 import numpy as np
 import pytest
 
-import rodsnes
-from rodsnes import elastic, elastic_compiled, so3
+from rodsnes.model import elastic, elastic_compiled, so3
 
 STIFF = [3.0, 4.0, 50.0, 1.0, 2.0, 1.5]   # GA1, GA2, EA, EI1, EI2, GJ
 TOL = 1e-12
@@ -56,8 +55,8 @@ def assert_same(got, ref, what):
 def test_kernel_is_built_in_the_package():
     """pip install -e . puts the shared library where the loader finds it."""
     path = elastic_compiled.library_path()
-    assert path is not None, "rodsnes._elastic_kernel is not built: run `make install`"
-    assert os.path.dirname(path) == os.path.dirname(rodsnes.__file__)
+    assert path is not None, "rodsnes.model._elastic_kernel is not built: run `make install`"
+    assert os.path.dirname(path) == os.path.dirname(elastic_compiled.__file__)
     assert elastic_compiled.available()
 
 

@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from rodsnes import elastic, so3
+from rodsnes.model import elastic, so3
 from conftest import gathered_positions, place, run_case
 
 STIFF = [3.0, 4.0, 50.0, 1.0, 2.0, 1.5]
@@ -77,7 +77,7 @@ def test_stability_count_by_the_kept_ldlt_equals_a_fresh_factorisation():
     a fresh, Jacobi-scaled AIJ factorisation's.  A perfect Euler column at 1.2 P_cr held on the
     straight branch (no switch) has its two buckling modes (y and z) negative; the buckled
     branch (imperfection) none."""
-    from rodsnes import stability
+    from rodsnes.solve import stability
     for imperfection, want in ((0.0, 2), (1e-3, 0)):
         run = run_case("euler", stability=True, rod_imperfection=imperfection,
                        load_path="newton",
@@ -98,7 +98,7 @@ def test_the_kept_ldlt_follows_a_new_contact_pattern():
     the matrix; a state without contact (the rod put back straight) makes a new one; every
     count equals the fresh factorisation's.  (40 load steps reach the same equilibrium as 5 in
     40 % of the time: fewer cut-backs and long Newton solves at the first touch.)"""
-    from rodsnes import stability
+    from rodsnes.solve import stability
     run = run_case("rollup_contact", rod_nelem=16, load_steps=40, stability=True)
     assert run.ok and run.problem.contact.summary()["active_points"] > 0
     p = run.problem

@@ -1,4 +1,4 @@
-"""The energy-minimisation load path (rodsnes/minimize.py, -load_path minimize, the default for
+"""The energy-minimisation load path (rodsnes/solve/minimize.py, -load_path minimize, the default for
 conservative loads): every converged step is a stable equilibrium, saddles are left along
 negative curvature, the Hessian is the derivative of the gradient, Newton's end game is
 quadratic, prescribed turns arrive as link whatever the step, and the plectoneme forms from
@@ -8,7 +8,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import build_run, run_case
-from rodsnes import minimize
+from rodsnes.solve import minimize
 
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
                bc_start="clamped", bc_end="sliding")
@@ -168,7 +168,7 @@ def test_plectonemes_no_case_file_shows(kw, turns):
 
 
 def test_minimize_refused_for_follower_loads():
-    from rodsnes.scene import SceneError
+    from rodsnes.errors import SceneError
     with pytest.raises(SceneError, match="-load_path"):
         build_run("mattiasson", load_end_force_follower=True, load_path="minimize")
     assert build_run("mattiasson", load_end_force_follower=True).path == "newton"

@@ -16,8 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the package may not be pip-installed yet
     sys.path.insert(0, str(ROOT))
 
-from rodsnes import output  # noqa: E402
-from rodsnes.so3 import frame_from_tangent  # noqa: E402
+from rodsnes.io import results as output  # noqa: E402
+from rodsnes.model.so3 import frame_from_tangent  # noqa: E402
 
 N = 17          # nodes
 NQ = 24         # quadrature points
@@ -150,7 +150,7 @@ def test_killed_run_keeps_earlier_steps(tmp_path, where):
     script = textwrap.dedent(f"""
         import os, signal, sys
         sys.path[:0] = [{str(ROOT)!r}, {str(Path(__file__).parent)!r}]
-        from rodsnes import output
+        from rodsnes.io import results as output
         import test_output as t
         def die():
             os.kill(os.getpid(), signal.SIGKILL)

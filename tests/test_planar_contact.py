@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import run_case
-from rodsnes import output
+from rodsnes.io import results as output
 
 ROOT = Path(__file__).resolve().parents[1]
 

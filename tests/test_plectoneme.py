@@ -75,7 +75,8 @@ def test_a_plectoneme_checkpoint_is_an_equilibrium_of_the_current_code(name, tmp
     the diameter (OVER_PROMISE: within its measured value), the stored penalty and energy
     restored.  A change to the energy, the contact
     term or the result format that moves the plectoneme's equilibria fails here."""
-    from rodsnes import contact_potential, output
+    from rodsnes.contact import potential as contact_potential
+    from rodsnes.io import results as output
     # the pair-potential checkpoints were made with the quadratic law (no onset layer,
     # contact_potential.ONSET = 0), before the C2 onset became the default
     monkeypatch.setattr(contact_potential, "ONSET", 0.0)
@@ -107,7 +108,7 @@ def test_a_penalty_raise_whose_solve_fails_is_cut_back_to_a_smaller_one(tmp_path
     holds (the plectoneme's switched state at 9.415 turns: x 2.8 failed Newton, x 1.25
     converged in 22 its).  The checkpoint at 7.2 turns held to 0.6 %.  Without the cut-back
     the raise fails and the state keeps its penetration."""
-    from rodsnes.solver import StepResult
+    from rodsnes.solve.newton import StepResult
     ckpt = os.path.join(CHECKPOINTS, "plectoneme_7.2")
     target = 0.006
     run = build_run("plectoneme", outdir=tmp_path, restart=ckpt, load_path="newton",

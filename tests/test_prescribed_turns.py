@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import run_case
-from rodsnes import solver
+from rodsnes.solve import newton as solver
 
 # the Newton path's load steps (the minimiser's: tests/test_minimize.py)
 pytestmark = pytest.mark.usefixtures("newton_path")

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, clear_options
-from rodsnes import cli, output
+from rodsnes import cli
+from rodsnes.io import results as output
 
 CASES = os.path.join(ROOT, "cases")
 MATT = ("-options_file", os.path.join(CASES, "mattiasson.opts"), "-quiet")
@@ -194,7 +195,7 @@ def test_independent_problems_are_all_listed(capsys, tmp_path):
 def test_solvable_neighbours_of_the_refusals_are_accepted():
     """The smallest meshes and largest values the refusals name are accepted."""
     from conftest import set_options
-    from rodsnes.scene import check_solvable, read_scene
+    from rodsnes.io.scene import check_solvable, read_scene
     for case, kw in [("michell", dict(rod_nelem=3)), ("michell", dict(rod_nelem=3, rod_order=1)),
                      ("rollup", dict(rod_nelem=3)), ("rollup_contact", dict(rod_nelem=13)),
                      ("euler", dict(rod_imperfection=0.4)), ("plectoneme", {}),
@@ -427,7 +428,7 @@ def test_an_unstable_end_asked_for_converges_and_says_so(capsys, tmp_path, asked
 def test_an_unstable_end_not_asked_for_fails(capsys, tmp_path, monkeypatch):
     """A conservative run on the default path whose last step is unstable (faked: the
     minimiser's steps end stable) has failed: exit 3, the last line says UNSTABLE."""
-    from rodsnes import minimize
+    from rodsnes.solve import minimize
     solve = minimize.EnergyMinimizer.solve_at
 
     def unstable(self, lam):

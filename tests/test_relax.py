@@ -23,8 +23,8 @@ def test_lowest_eigenvector_of_the_twisted_ring_is_the_writhing_mode():
     its out-of-plane displacement is the two-wave (n = 2) writhing pattern.  (It is not purely
     out-of-plane: the twist couples the in-plane n = 2 deflection into it, so in- and out-of-plane
     motions alone are both stable.)  The dense and the sparse shift-invert path agree."""
-    from rodsnes import so3
-    from rodsnes.stability import hessian, lowest_eigenpair, negative_eigenvalues
+    from rodsnes.model import so3
+    from rodsnes.solve.stability import hessian, lowest_eigenpair, negative_eigenvalues
     run = run_case("michell", load_twist_turns=2.5, rod_imperfection=0, rod_nelem=16, load_steps=4,
                    load_path="newton")
     assert run.ok
@@ -74,8 +74,8 @@ def test_perfect_euler_column_ends_on_the_buckled_elastica():
     leaves it at P_cr and ends on the elastica, tip deflection 2k/K(k), stable at every step.
     On two ranks the same tip as on one (the buckling plane of the isotropic column is neutral:
     compare the axial tip and the deflection)."""
-    from rodsnes.output import read_step
-    from rodsnes.stability import negative_eigenvalues
+    from rodsnes.io.results import read_step
+    from rodsnes.solve.stability import negative_eigenvalues
     exact = _elastica_tip()
     plain = run_case("euler", rod_imperfection=0, stability=False, load_path="newton")
     assert plain.ok
@@ -113,7 +113,7 @@ def test_twisted_clamped_rod_snaps_into_a_loop_past_the_fold():
     equilibrium beyond it, the Newton path stops there.  The default path snaps past the fold
     onto a stable loop (|writhe| ~ 1), stable at every step, and ends at load 1.  Without
     contact the rod may pass through itself on the way (link changed by 0 or 2)."""
-    from rodsnes.output import read_step
+    from rodsnes.io.results import read_step
     plain = run_case(None, stability=True, load_path="newton", **TWISTED)
     assert not plain.ok and 0.95 < plain.problem.lam < 1.0
     fold = plain.problem.lam
@@ -169,7 +169,7 @@ def test_a_restart_from_an_unstable_state_ends_on_a_stable_one():
     to load 1 with every step stable: the ring leaves the circle and, having no contact term,
     passes through itself (link changed by 2, as the uninterrupted default path does:
     tests/test_minimize.py)."""
-    from rodsnes.stability import negative_eigenvalues
+    from rodsnes.solve.stability import negative_eigenvalues
     kw = dict(load_twist_turns=2.5, rod_nelem=12)
     circle = run_case("michell", load_path="newton", load_stop=0.8, **kw)
     assert circle.ok and abs(circle.last_topology["writhe"]) < 1e-3
@@ -208,7 +208,7 @@ def test_a_failed_predicted_step_is_tried_again_from_the_last_state(tmp_path):
     """The Newton path: a load step that fails from the secant predictor is solved once more from the last
     converged state, at the same load, before it is cut back (the secant can carry a strand
     into another); summary.json counts these retries."""
-    from rodsnes.solver import StepResult
+    from rodsnes.solve.newton import StepResult
     run = build_run("mattiasson", outdir=tmp_path, rod_nelem=4, load_steps=4, load_path="newton")
     solver = run.solver
     solve, calls = solver.solve_guarded, []

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # the package may not be pip-installed yet
     sys.path.insert(0, str(ROOT))
 
-from rodsnes import output  # noqa: E402
+from rodsnes.io import results as output  # noqa: E402
 
 
 

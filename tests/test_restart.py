@@ -99,7 +99,7 @@ def test_a_run_in_stages_with_load_stop_matches_the_run_in_one_go(tmp_path):
     """-load_stop ends a run at a load factor on the grid of -load_steps (0 -> 1); a restart
     from it goes on with the steps the single run takes (same loads, same end state), and a
     restart that already stands at -load_stop is refused with the option named."""
-    from rodsnes.scene import SceneError
+    from rodsnes.errors import SceneError
     full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
     staged = str(tmp_path / "staged")
     first = run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.5)
@@ -121,7 +121,7 @@ def test_a_checkpoint_of_the_last_steps_resumes_like_the_whole_file(tmp_path):
     import sys
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tools"))
     from checkpoint import checkpoint
-    from rodsnes import output
+    from rodsnes.io import results as output
     full = run_case("mattiasson", outdir=str(tmp_path / "full"), load_steps=4)
     staged = str(tmp_path / "staged")
     assert run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.75).ok

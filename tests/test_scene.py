@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from rodsnes import scene
-from rodsnes.scene import SceneError, check_unknown_options, help_text, read_scene
+from rodsnes.io import scene
+from rodsnes.io.scene import SceneError, check_unknown_options, help_text, read_scene
 
 ARGV = ["rodsnes"]
 

@@ -1,4 +1,4 @@
-"""The clamps' mounts as obstacles (rodsnes/support.py, -contact_supports): the half-line
+"""The clamps' mounts as obstacles (rodsnes/contact/mounts.py, -contact_supports): the half-line
 distance and penalty derivatives, the assembled tangent against finite differences of the
 assembled residual with the rod pressing on both mounts, one rank against two, no cost where
 the rod stays clear, and the option refused with other supports.  (The relaxation at 9.415
@@ -10,8 +10,8 @@ from petsc4py import PETSc
 from scipy.interpolate import CubicSpline
 
 from conftest import build_run, natural_residuals, place, tangent_against_finite_differences
-from rodsnes import support
-from rodsnes.scene import SceneError
+from rodsnes.contact import mounts as support
+from rodsnes.errors import SceneError
 
 SETUP = dict(rod_nelem=16, load_steps=1, rod_imperfection=0, contact_model="projection")
 

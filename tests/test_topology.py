@@ -3,8 +3,8 @@ conventions, invariances, convergence to the smooth Gauss integral, open-rod clo
 import numpy as np
 import pytest
 
-from rodsnes import topology as topo
-from rodsnes.topology import close_open_rod, link, topology, twist, writhe
+from rodsnes.model import topology as topo
+from rodsnes.model.topology import close_open_rod, link, topology, twist, writhe
 
 RNG = np.random.default_rng(11)
 

@@ -107,7 +107,7 @@ def test_michell_twisted_ring_loses_stability_at_sqrt3_B_over_C():
     """A ring of a naturally straight isotropic rod (nu = 0: B/C = 1) with excess twist T turns
     is a stable circle for T < sqrt(3) = 1.7321 and an unstable one beyond (negative
     eigenvalues of the energy Hessian: the writhing modes)."""
-    from rodsnes.stability import negative_eigenvalues
+    from rodsnes.solve.stability import negative_eigenvalues
     counts = {}
     for T in (1.5, 1.70, 1.76, 2.5):
         run = run_case("michell", load_twist_turns=T, load_steps=4, rod_nelem=16, load_path="newton",
@@ -131,7 +131,7 @@ def test_loading_then_unloading_returns_to_the_start():
     fields = run.problem.owned_fields()
     X = run.layout.allgather_nodes(fields["positions"])
     R = run.layout.allgather_nodes(fields["directors"])
-    from rodsnes import so3
+    from rodsnes.model import so3
     R0 = so3.rot(run.mesh.q_init)
     assert np.abs(X - run.mesh.x_init).max() < 1e-9
     assert np.abs(R - R0).max() < 1e-9

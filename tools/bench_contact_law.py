@@ -37,9 +37,9 @@ def cpu_ms(f, reps=7):
 
 
 def laws():
-    from rodsnes import contact as C
-    from rodsnes.contact import ContactKernel
-    from rodsnes.contact_potential import PotentialKernel
+    from rodsnes.contact import projection as C
+    from rodsnes.contact.projection import ContactKernel
+    from rodsnes.contact.potential import PotentialKernel
     X = np.load(os.path.join(ROOT, "tests", "data", "plectoneme_9.72_line_contact.npy"))
     order, delta = 3, np.pi * EPS
     nelem = (len(X) - 1) // order
@@ -73,9 +73,9 @@ def term():
 
     from petsc4py import PETSc
 
-    from rodsnes.partition import NDOF
+    from rodsnes.model.partition import NDOF
     from rodsnes.run import Run
-    from rodsnes.scene import read_scene
+    from rodsnes.io.scene import read_scene
     opts = PETSc.Options()
     with open(os.path.join(ROOT, "cases", "plectoneme.opts")) as fh:   # the case's options
         for line in fh:
@@ -129,7 +129,7 @@ def helix(nelem, p=3, h=1.0 / 60, R=0.1):
 
 
 def search():
-    from rodsnes import contact as ck
+    from rodsnes.contact import projection as ck
     print("search (helix, reach 2.5 eps):")
     for n in (1000, 10000, 100000):
         ids = np.arange(n)

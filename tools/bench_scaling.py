@@ -173,16 +173,16 @@ def iteration_parts(log):
 # -- child mode: rodsnes with its work logged as events ----------------------------------
 
 # (module, class, method, event): the first method found of each event's list is wrapped
-_WRAP = (("rodsnes.elastic", "ElasticRod", "element_terms", "ElasticKernel"),
-         ("rodsnes.contact_term", "ContactTerm", "_search_pairs", "ContactSearch"),
-         ("rodsnes.contact_term", "ContactTerm", "_pairs", "ContactSearch"),
-         ("rodsnes.contact_term", "ContactTerm", "_fetch", "ContactHalo"),
-         ("rodsnes.contact_term", "ContactTerm", "_send_back", "ContactHalo"),
-         ("rodsnes.contact_term", "ContactTerm", "_add_blocks", "ContactAssemble"),
-         ("rodsnes.contact", "ContactKernel", "evaluate", "ContactEval"),
-         ("rodsnes.contact", "ContactKernel", "add_tangent", "ContactTangent"),
-         ("rodsnes.contact_potential", "PotentialKernel", "evaluate", "ContactEval"),
-         ("rodsnes.contact_potential", "PotentialKernel", "add_tangent", "ContactTangent"))
+_WRAP = (("rodsnes.model.elastic", "ElasticRod", "element_terms", "ElasticKernel"),
+         ("rodsnes.contact.term", "ContactTerm", "_search_pairs", "ContactSearch"),
+         ("rodsnes.contact.term", "ContactTerm", "_pairs", "ContactSearch"),
+         ("rodsnes.contact.term", "ContactTerm", "_fetch", "ContactHalo"),
+         ("rodsnes.contact.term", "ContactTerm", "_send_back", "ContactHalo"),
+         ("rodsnes.contact.term", "ContactTerm", "_add_blocks", "ContactAssemble"),
+         ("rodsnes.contact.projection", "ContactKernel", "evaluate", "ContactEval"),
+         ("rodsnes.contact.projection", "ContactKernel", "add_tangent", "ContactTangent"),
+         ("rodsnes.contact.potential", "PotentialKernel", "evaluate", "ContactEval"),
+         ("rodsnes.contact.potential", "PotentialKernel", "add_tangent", "ContactTangent"))
 
 
 def instrument():
@@ -323,7 +323,7 @@ def contact_elements(rundir, n):
     """Share of the elements with a contact point in contact (gap d > 0 at a report point:
     the 'gap' quadrature-point field of the last step in result.h5); '' if unreadable."""
     try:
-        from rodsnes import output
+        from rodsnes.io import results as output
         gap = output.read_step(rundir, -1)["gap"]
     except (OSError, KeyError, ValueError):
         return ""

@@ -17,7 +17,7 @@ import sys
 
 import h5py
 
-from rodsnes import output
+from rodsnes.io import results as output
 
 
 def checkpoint(src_dir, dst_dir, nsteps=2):

@@ -12,7 +12,7 @@ import argparse
 
 import numpy as np
 
-from rodsnes import output
+from rodsnes.io import results as output
 
 
 def path_table(rdir):

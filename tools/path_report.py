@@ -24,7 +24,7 @@ import sys
 
 import numpy as np
 
-from rodsnes import output
+from rodsnes.io import results as output
 
 
 def intervals(s, active):

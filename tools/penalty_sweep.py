@@ -16,7 +16,7 @@ import shutil
 import subprocess
 import sys
 
-from rodsnes import output
+from rodsnes.io import results as output
 from work_precision import solver_command      # tools/ is on sys.path when run as a script
 
 

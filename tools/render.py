@@ -37,12 +37,14 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 try:
-    from rodsnes import output, so3
-    from rodsnes.fe import lagrange
+    from rodsnes.io import results as output
+    from rodsnes.model import so3
+    from rodsnes.model.fe import lagrange
 except ImportError:  # run from a checkout without pip install -e
     sys.path.insert(0, str(ROOT))
-    from rodsnes import output, so3
-    from rodsnes.fe import lagrange
+    from rodsnes.io import results as output
+    from rodsnes.model import so3
+    from rodsnes.model.fe import lagrange
 
 import matplotlib
 

@@ -86,12 +86,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 try:
-    from rodsnes import output
-    from rodsnes.fe import gauss_legendre, lagrange
+    from rodsnes.io import results as output
+    from rodsnes.model.fe import gauss_legendre, lagrange
 except ImportError:  # run from a checkout without pip install -e
     sys.path.insert(0, str(ROOT))
-    from rodsnes import output
-    from rodsnes.fe import gauss_legendre, lagrange
+    from rodsnes.io import results as output
+    from rodsnes.model.fe import gauss_legendre, lagrange
 
 CSV_COLUMNS = ["case", "order", "nelem", "penalty_factor", "penalty", "dofs", "wall_time_s", "step_time_s",
                "newton_iterations", "load_steps", "err_tip", "err_l2", "err_energy", "err_force", "err_tip_law", "err_force_law",
@@ -367,7 +367,7 @@ class _Options:
 
 def read_case_scene(case_file, extra):
     """The solver's own Scene (stiffnesses derived exactly as the solver does) for the case + extra."""
-    from rodsnes.scene import read_scene
+    from rodsnes.io.scene import read_scene
     d = tokens_to_dict(parse_opts_file(case_file) + list(extra))
     return read_scene(argv=["rodsnes", "-options_file", str(case_file)], options=_Options(d))
 
@@ -375,7 +375,7 @@ def read_case_scene(case_file, extra):
 def default_contact_penalty(case_file, extra):
     """The penalty mu0 the solver starts from: the case's -contact_penalty, else
     rodsnes.contact.default_penalty(min(EI1, EI2), eps, -contact_penetration) (as ContactTerm)."""
-    from rodsnes.contact import default_penalty
+    from rodsnes.contact.projection import default_penalty
     sc = read_case_scene(case_file, extra)
     c = sc.contact
     if c.penalty is not None:

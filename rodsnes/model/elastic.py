@@ -38,8 +38,9 @@ the unshearable (Kirchhoff) limit, up to O(shear strain) otherwise.
 """
 import numpy as np
 
-from .profiling import logged
-from . import fe, so3
+from rodsnes.profiling import logged
+from rodsnes.model import fe, so3
+from rodsnes.model import elastic_compiled
 
 
 def _coefficient_tensors():
@@ -107,11 +108,7 @@ def strain_measures(p, dp, dr, derivatives=0):
 
 
 def compiled_available():
-    """The fused C kernel (rodsnes/_elastic_kernel.c) is built and loads."""
-    try:
-        from . import elastic_compiled
-    except ImportError:
-        return False
+    """The fused C kernel (rodsnes/model/_elastic_kernel.c) is built and loads."""
     return elastic_compiled.available()
 
 
@@ -144,7 +141,7 @@ class ElasticRod:
 
     Three implementations of ``element_terms`` give the same numbers (to 1e-12, tests/
     test_elastic.py and tests/test_elastic_compiled.py):
-      compiled   a fused C kernel (rodsnes/_elastic_kernel.c, built by ``pip install -e .``),
+      compiled   a fused C kernel (rodsnes/model/_elastic_kernel.c, built by ``pip install -e .``),
                  one pass per element; the default when it is built;
       numpy      batched matrix products over (element x point) (``element_terms_numpy``);
       reference  the einsum transcription of the formulas (``element_terms_reference``).
@@ -306,7 +303,6 @@ class ElasticRod:
         the energy in the exponential chart (for inertia / stability: equal at equilibrium).
         Computed by the kernel chosen at construction (class docstring)."""
         if self.kernel == "compiled":
-            from . import elastic_compiled
             return elastic_compiled.element_terms(self, qe, xe, e0, tangent, symmetric)
         if self.kernel == "reference":
             return self.element_terms_reference(qe, xe, e0, tangent, symmetric)

@@ -108,9 +108,9 @@ compares it at the iterate and at its trials, with no closest point.
 """
 import numpy as np
 
-from .profiling import logged
-from . import fe
-from .contact import ContactKernel, _lookup, capsules_within, element_capsules
+from rodsnes.profiling import logged
+from rodsnes.model import fe
+from rodsnes.contact.projection import ContactKernel, _lookup, capsules_within, element_capsules
 
 __all__ = ["ONSET", "DENSITY", "MAX_POINTS", "law_energy", "law_force", "law_stiffness",
            "onset_layer", "pair_stiffness", "support_length", "points_per_element",

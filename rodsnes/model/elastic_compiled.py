@@ -1,6 +1,6 @@
 """Compiled elastic element kernel: ElasticRod.element_terms (elastic.py) fused per element in C.
 
-rodsnes/_elastic_kernel.c (plain C99, built by setup.py as the extension rodsnes._elastic_kernel
+rodsnes/model/_elastic_kernel.c (plain C99, built by setup.py as the extension rodsnes.model._elastic_kernel
 and loaded here with ctypes) evaluates, element by element and Gauss point by Gauss point,
 the same quantities as the batched numpy kernel:
 
@@ -42,7 +42,7 @@ def _optional(ptr):
 def library_path():
     """Path of the built shared library (the extension module file), or None."""
     try:
-        spec = importlib.util.find_spec("rodsnes._elastic_kernel")
+        spec = importlib.util.find_spec("rodsnes.model._elastic_kernel")
     except (ImportError, ValueError):
         spec = None
     if spec is None or not spec.origin or not os.path.isfile(spec.origin):

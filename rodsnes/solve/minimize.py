@@ -49,11 +49,12 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from . import so3
-from .partition import NDOF
-from .profiling import logged, timed
-from .scene import residual_floor
-from .stability import Inertia
+from rodsnes.model import so3
+from rodsnes.model.partition import NDOF
+from rodsnes.profiling import logged, timed
+from rodsnes.model.scales import residual_floor
+from rodsnes.solve.stability import Inertia
+from rodsnes.model.mesh import lumped_weights
 
 # the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
 # angle, but a step that turns a node by more than this is far outside its quadratic model
@@ -116,7 +117,6 @@ class EnergyMinimizer:
     def _metric(self):
         """Lumped metric M (a Vec): m_i for position rows, m_i h^2 for rotation rows (m_i =
         int N_i ds, h the element length), 1 on the Dirichlet rows."""
-        from .mesh import lumped_weights
         p = self.problem
         m = lumped_weights(p.mesh, p.layout)
         h = p.mesh.length / p.mesh.nelem

@@ -31,8 +31,8 @@ node) are preallocated once (``pattern_pairs``: O(N) blocks).  Pure numpy but fo
 import numpy as np
 from mpi4py import MPI
 
-from . import contact as ck
-from .partition import add_position_blocks
+from rodsnes.contact import projection as ck
+from rodsnes.model.partition import add_position_blocks
 
 
 def half_line_distance(x, p, e, projector=True):

@@ -1,5 +1,5 @@
 /* Fused elastic element kernel of rodsnes (C99, no Python API; loaded with ctypes by
- * rodsnes/elastic_compiled.py).  Computes exactly what ElasticRod.element_terms (elastic.py)
+ * rodsnes/model/elastic_compiled.py).  Computes exactly what ElasticRod.element_terms (elastic.py)
  * computes, element by element and quadrature point by quadrature point, without any
  * intermediate arrays beyond the element's own accumulators.
  *
@@ -436,7 +436,7 @@ static ALWAYS_INLINE void element(
                 e0 + (long)e * 6 * nq, symmetric, energy + e, vec + (long)e * 6 * (NN),    \
                 tangent ? H + (long)e * 36 * (NN) * (NN) : (double *)0)
 
-/* Public entry point (see rodsnes/elastic_compiled.py).  Arrays are C-contiguous float64:
+/* Public entry point (see rodsnes/model/elastic_compiled.py).  Arrays are C-contiguous float64:
  *   N, dN (nq, nn) shape functions and their arclength derivatives at the Gauss points,
  *   wJ (nq) weights times Jacobian, C (6) stiffness (GA1, GA2, EA, EI1, EI2, GJ),
  *   limit != 0: curvature bound kappa_max with stiffness mu_kappa,

@@ -43,9 +43,9 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from . import so3
-from .partition import NDOF
-from .step import StepResult
+from rodsnes.model import so3
+from rodsnes.model.partition import NDOF
+from rodsnes.solve.step import StepResult
 
 
 class Arclength:

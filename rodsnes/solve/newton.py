@@ -26,8 +26,10 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from .arclength import Arclength
-from .step import StepResult
+from rodsnes.solve.arclength import Arclength
+from rodsnes.solve.step import StepResult
+from rodsnes.model.scales import residual_floor
+from rodsnes.solve.stability import negative_eigenvalues
 
 # the smallest penalty raise keep_penetration cuts a failed one back to (x mu)
 RAISE_MIN = 1.1
@@ -79,7 +81,6 @@ class NewtonSolver:
         # node spacing, times the largest stiffness, summed over the nodes; a residual at this
         # level is as converged as the arithmetic allows (DIVERGED_MAX_IT there would reject a
         # correct equilibrium).
-        from .scene import residual_floor
         self.floor = residual_floor(rod)
         self.divtol = 1e12
         self.force_scale = force_scale
@@ -399,7 +400,6 @@ class NewtonSolver:
         """The negative eigenvalues of the energy Hessian at the current state
         (stability.negative_eigenvalues), the same on every rank (max over ranks).  Collective."""
         from mpi4py import MPI
-        from .stability import negative_eigenvalues
         n = int(negative_eigenvalues(self.problem))
         return int(self.problem.layout.comm.tompi4py().allreduce(n, op=MPI.MAX))
 

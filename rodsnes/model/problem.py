@@ -14,9 +14,11 @@ changing the equilibrium (the resultant of the internal forces of a free ring va
 import numpy as np
 from petsc4py import PETSc
 
-from . import elastic, fe, so3
-from .loads import Loads, nonconservative
-from .partition import NDOF, DirichletRows
+from rodsnes.model import elastic, fe, so3
+from rodsnes.model.loads import Loads, nonconservative
+from rodsnes.model.partition import NDOF, DirichletRows
+from rodsnes.errors import SceneError
+from rodsnes.model import topology
 
 
 def reference_strains(rod, mesh, conn, strains):
@@ -115,7 +117,6 @@ class Constraints:
                     t = so3.rot(q_init[node])[:, 2]
                     axis = int(np.argmax(np.abs(t)))
                     if abs(abs(t[axis]) - 1.0) > 1e-10:
-                        from .scene import SceneError
                         raise SceneError("-bc_end sliding: the end tangent must lie along a coordinate "
                                          f"axis (it is {t}); use -bc_end clamped or a straight rod")
                     fixed += [(node, c) for c in range(3) if c != axis]
@@ -527,7 +528,6 @@ class RodProblem:
         bc = self.scene.bc
         if not (self.mesh.closed or (bc.start == "clamped" and bc.end in ("clamped", "sliding"))):
             return None
-        from . import topology
         r, q = self.state.local_config()
         no = self.layout.n_owned
         X = self.layout.allgather_nodes(r[:no])

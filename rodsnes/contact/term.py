@@ -34,11 +34,12 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from .profiling import logged
-from . import contact as ck, so3
-from .partition import add_position_blocks
-from .contact_potential import PotentialKernel
-from .support import SupportTerm
+from rodsnes.profiling import logged
+from rodsnes.contact import projection as ck
+from rodsnes.model import so3
+from rodsnes.model.partition import add_position_blocks
+from rodsnes.contact.potential import PotentialKernel
+from rodsnes.contact.mounts import SupportTerm
 
 
 class ContactTerm:

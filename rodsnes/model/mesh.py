@@ -24,7 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import fe, so3
+from rodsnes.model import fe, so3
+from rodsnes.model.partition import NDOF
 
 
 @dataclass
@@ -173,7 +174,6 @@ def lumped_weights(mesh, layout):
     """M_i = int N_i ds for the owned nodes of ``layout`` (partition.Layout): the row-sum
     lumping of the consistent mass matrix of a unit line density, positive for the equispaced
     Lagrange elements of order 1..4 (the minimiser's metric).  Collective."""
-    from .partition import NDOF
     xi, w = fe.gauss_legendre(mesh.order + 1)
     N, _, _ = fe.lagrange(mesh.order, xi)
     we = (w * mesh.h / 2.0) @ N                       # (p+1,) per element node

@@ -105,8 +105,8 @@ elements share a node or coincide).
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .profiling import logged
-from . import fe
+from rodsnes.profiling import logged
+from rodsnes.model import fe
 
 __all__ = ["default_exclusion", "default_penalty", "element_bounds", "candidate_pairs",
            "spheres_within", "element_capsules", "segment_distance", "capsules_within",

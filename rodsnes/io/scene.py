@@ -35,20 +35,11 @@ from typing import Optional, Tuple
 
 import numpy as np
 
+from rodsnes.errors import SceneError
+from rodsnes.model.scales import force_scale, residual_floor
+
 __all__ = ["SceneError", "Rod", "BC", "Loads", "Contact", "Output", "Scene",
            "O", "OPTIONS", "read_scene", "help_text", "check_unknown_options"]
-
-
-class SceneError(Exception):
-    """A user-facing problem with the scene options.
-
-    ``str(err)`` is the message to print (one problem per line); ``err.options``
-    is the tuple of option names (with dash) it concerns.
-    """
-
-    def __init__(self, message, options=()):
-        super().__init__(message)
-        self.options = tuple(options)
 
 
 # ----------------------------------------------------------------------------
@@ -875,10 +866,10 @@ def _rod(c):
                % (c.show(O.rod_kappa0), c.show(O.rod_radius), math.hypot(kappa0[0], kappa0[1]),
                   1.0 / r), O.rod_kappa0, O.rod_radius)
     if c[O.rod_kernel] == "compiled":
-        from .elastic import compiled_available
+        from rodsnes.model.elastic import compiled_available
         if not compiled_available():
             c.fail("%s: the compiled elastic kernel is not built on this machine; run `make "
-                   "install` (it compiles rodsnes/_elastic_kernel.c) or use -rod_kernel auto"
+                   "install` (it compiles rodsnes/model/_elastic_kernel.c) or use -rod_kernel auto"
                    % c.show(O.rod_kernel), O.rod_kernel)
     rod = dict(length=float(L), radius=float(r), EA=float(EA), GA1=float(GA), GA2=float(GA),
                EI1=float(EI1), EI2=float(EI2), GJ=float(GJ),
@@ -994,7 +985,7 @@ def _contact(c, rod, bc):
                "integrates at fixed points (-contact_quadrature); drop the option"
                % c.show(O.contact_zones), O.contact_zones, O.contact_model)
     if enabled and c[O.contact_model] == "potential" and q is None:
-        from .contact_potential import DENSITY, MAX_POINTS, points_per_element, support_length
+        from rodsnes.contact.potential import DENSITY, MAX_POINTS, points_per_element, support_length
         pen = float(c[O.contact_penetration])
         h = rod["length"] / rod["nelem"]
         need = points_per_element(h, rcontact, pen)
@@ -1137,28 +1128,6 @@ vectors); measured on the cantilever, 0.41 GB at 10^4 and 2.97 GB at 10^5 cubic 
 (docs/bench_scaling.md).  Contact adds more, growing with the pairs in contact."""
 
 
-def force_scale(scene):
-    """F_scale = EI/L^2 + |F| + |M|/L + |g| L + GJ 2 pi (|T_end| + |T_twist|) / L^2: the forces
-    the equilibrium is made of (the last term: the twisting moment of the prescribed turns
-    -bc_end_turns and of the twist load -load_twist_turns, over L), to which the residual is
-    compared (Run.force_scale).  hypot, not a 2-norm of squares, so that a problem scaled by
-    1e-200 keeps its scale."""
-    r, ld = scene.rod, scene.loads
-    L = r.length
-    turns = abs(float(getattr(scene.bc, "end_turns", 0.0) or 0.0)) + abs(float(ld.twist_turns or 0.0))
-    return (max(r.EI1, r.EI2) / L ** 2 + math.hypot(*ld.end_force)
-            + math.hypot(*ld.end_moment) / L + math.hypot(*ld.gravity) * L
-            + r.GJ * 2.0 * math.pi * turns / L ** 2)
-
-
-def residual_floor(rod):
-    """Roundoff floor of the residual: 3 eps x (largest stretch/shear stiffness + largest
-    bending/twist stiffness / L) x nodes x sqrt(nodes) (the Newton solver's floor)."""
-    n = rod.nelem * rod.order + (0 if rod.closed else 1)
-    stiff = max(rod.EA, rod.GA1, rod.GA2) + max(rod.EI1, rod.EI2, rod.GJ) / rod.length
-    return 3 * np.finfo(float).eps * stiff * rod.nelem * rod.order * math.sqrt(n)
-
-
 def _show(flag, value):
     if isinstance(value, np.ndarray):
         value = _fmt_vec(value)
@@ -1293,7 +1262,7 @@ def _check_supports(scene, fail):
 def _imperfection_limit(rod, bc, target):
     """The |amplitude| at which the imperfect centreline is ``target`` long (bisection)."""
     from dataclasses import replace
-    from .mesh import reference_length
+    from rodsnes.model.mesh import reference_length
     lo, hi = 0.0, abs(rod.imperfection)
     for _ in range(40):
         mid = 0.5 * (lo + hi)
@@ -1306,7 +1275,7 @@ def _imperfection_limit(rod, bc, target):
 
 def _check_imperfection(scene, fail):
     """An imperfection so large that the stress-free rod is no longer -rod_length long."""
-    from .mesh import reference_length
+    from rodsnes.model.mesh import reference_length
     r = scene.rod
     if r.imperfection == 0.0:
         return
@@ -1390,7 +1359,7 @@ def _load_turn_per_element(scene):
 def _check_element_turns(scene, mesh, fail):
     """Elements across which the frames turn by MAX_ELEMENT_TURN or more: in the reference
     shape (a ring, a helix, -rod_twist_turns) or, certainly, under the loads."""
-    from .mesh import element_turns
+    from rodsnes.model.mesh import element_turns
     r = scene.rod
     ref = float(element_turns(mesh).max())
     load, cause, opt = _load_turn_per_element(scene)
@@ -1421,7 +1390,7 @@ def check_solvable(scene, memory="machine"):
     that can never happen or always happens, elements too long for contact, and elements whose
     frames turn by MAX_ELEMENT_TURN or more (rings of one or two elements, twisted or bent
     rods on too few elements).  Every message names the options and the smallest fix."""
-    from .mesh import build_mesh
+    from rodsnes.model.mesh import build_mesh
     msgs, opts = [], []
 
     def fail(msg, *options):

@@ -10,7 +10,7 @@ Potential energy of the conservative ones: -lambda f . r_end - lambda int g . r 
 """
 import numpy as np
 
-from . import fe, so3
+from rodsnes.model import fe, so3
 
 
 class Loads:

@@ -1,0 +1,13 @@
+"""Errors a user sees: a scene that cannot be run, with the options it concerns."""
+
+
+class SceneError(Exception):
+    """A user-facing problem with the scene options.
+
+    ``str(err)`` is the message to print (one problem per line); ``err.options``
+    is the tuple of option names (with dash) it concerns.
+    """
+
+    def __init__(self, message, options=()):
+        super().__init__(message)
+        self.options = tuple(options)

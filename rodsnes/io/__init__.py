@@ -1,0 +1,1 @@
+"""Reading a scene from the options database (scene) and writing results (results)."""

@@ -1,0 +1,1 @@
+"""The discrete rod: rotations (so3), Lagrange elements (fe), the mesh, the elastic energy and its kernels, loads, the parallel layout (partition), the assembled problem and the centreline's topology."""
