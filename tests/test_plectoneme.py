@@ -3,7 +3,7 @@ radius 0.025, E = 1e6, G = E/1.5, end clamped in rotation and sliding along the 
 small tension), here to 1.5 turns instead of 10 with 40 elements so that it fits the test budget (~3 min): the
 straight rod's loop formation is a fold of the stable path, which -stability passes by
 relaxation (jump_branch) into a loop in self-contact.  The full 10 turns are a batch run
-(docs/plectoneme_path.md)."""
+(README, Plectoneme)."""
 import os
 
 import numpy as np
@@ -39,7 +39,7 @@ def test_twisted_rod_snaps_into_a_loop_in_self_contact():
 
 
 CHECKPOINTS = os.path.join(ROOT, "cases", "checkpoints")
-# checkpoints that break the penetration promise (docs/plectoneme_path.md: the stable branch at
+# checkpoints that break the penetration promise (the stable branch at
 # 9.415 turns presses the rod 2.3 % into the start clamp's mount at the penalty of the switch;
 # the first load step from it raises the penalty): kept to go on from, with their measured
 # penetration held here

@@ -2,7 +2,7 @@
 distance and penalty derivatives, the assembled tangent against finite differences of the
 assembled residual with the rod pressing on both mounts, one rank against two, no cost where
 the rod stays clear, and the option refused with other supports.  (The relaxation at 9.415
-turns that went round the start clamp is a 45-minute batch run: docs/plectoneme_path.md.)"""
+turns that went round the start clamp is a 45-minute batch run.)"""
 import numpy as np
 import pytest
 from mpi4py import MPI
