@@ -50,10 +50,10 @@ class Run:
         self.conservative = nonconservative(scene.loads) is None
         self.path = self._choose_path(scene)
         # -load_arclength: unstable branches followed on purpose (the Newton path's continuation)
-        self.arclength = PETSc.Options().getBool("load_arclength", False)
+        self.arclength = scene.loads.arclength
         if self.path == "minimize":
             self.solver = LoadPath(self.problem, self.force_scale,
-                                   rtol=PETSc.Options().getReal("snes_rtol", 1e-10),
+                                   rtol=ld.rtol,
                                    max_it=ld.max_it, quiet=scene.output.quiet)
         else:
             self.solver = NewtonSolver(self.problem, self.force_scale,
@@ -93,7 +93,7 @@ class Run:
         when pseudo-arclength continuation (-load_arclength) is asked for."""
         why = nonconservative(scene.loads)
         path = scene.loads.path
-        arclength = PETSc.Options().getBool("load_arclength", False)
+        arclength = scene.loads.arclength
         if path == "auto":
             return "newton" if (why or arclength) else "minimize"
         if path == "minimize" and why:

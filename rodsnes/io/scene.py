@@ -441,6 +441,12 @@ class Loads:
     stop: float = 1.0
     path: str = "auto"
     max_it: int = 200
+    rtol: float = 1e-10              # -snes_rtol: |g| <= rtol x the force scale
+    predictor: bool = True           # the Newton path's secant predictor
+    stagnation_its: int = 15
+    arclength: bool = False          # pseudo-arclength continuation at folds
+    arclength_max_steps: int = 200
+    arclength_its: int = 8
 
 
 @dataclass
@@ -600,6 +606,7 @@ class _Reader:
 
     def __init__(self, options):
         self.values, self.raw, self.errors = {}, {}, []
+        self.options = options
         for opt in OPTIONS:
             if not options.hasName(opt.name):
                 self.values[opt] = opt.default
@@ -716,6 +723,15 @@ def read_scene(argv=None, options=None):
     return Scene(rod=rod, bc=bc, loads=loads, contact=contact, output=output,
                  stability=bool(c[O.stability]),
                  given=tuple(sorted(o.name for o in reader.raw)))
+
+
+def _snes_rtol(options):
+    """-snes_rtol as a number (1e-10 when absent; a malformed value is refused with its fix by
+    cli.petsc_option_problems)."""
+    try:
+        return float(options.getReal("snes_rtol", 1e-10))
+    except Exception:
+        return 1e-10
 
 
 def helix_curvature(radius, pitch):
@@ -941,7 +957,12 @@ def _loads(c, rod, bc):
                  end_moment=M, gravity=g, steps=int(c[O.load_steps]),
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
                  twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]),
-                 path=str(c[O.load_path]), max_it=int(c[O.load_max_it]))
+                 path=str(c[O.load_path]), max_it=int(c[O.load_max_it]),
+                 rtol=_snes_rtol(c.r.options),
+                 predictor=bool(c[O.load_predictor]), stagnation_its=int(c[O.load_stagnation_its]),
+                 arclength=bool(c[O.load_arclength]),
+                 arclength_max_steps=int(c[O.load_arclength_max_steps]),
+                 arclength_its=int(c[O.load_arclength_its]))
 
 
 def _contact(c, rod, bc):

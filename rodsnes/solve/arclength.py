@@ -56,9 +56,9 @@ class Arclength:
     def __init__(self, solver):
         self.solver = solver
         self.p = p = solver.problem
-        opts = PETSc.Options()
-        self.max_steps = opts.getInt("load_arclength_max_steps", 200)
-        self.target_its = opts.getInt("load_arclength_its", 8)
+        ld = p.scene.loads
+        self.max_steps = ld.arclength_max_steps
+        self.target_its = ld.arclength_its
         L = p.mesh.length
         ell = L / (2 * np.pi)
         n = p.mesh.n_nodes

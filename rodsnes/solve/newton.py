@@ -84,10 +84,11 @@ class NewtonSolver:
         self.floor = residual_floor(rod)
         self.divtol = 1e12
         self.force_scale = force_scale
-        self.predictor = opts.getBool("load_predictor", True)
+        ld = problem.scene.loads
+        self.predictor = ld.predictor
         # a Newton solve that has not halved its best residual in this many iterations has
         # stalled (at a fold it 2-cycles between two residual levels for ever): give up early
-        self.stagnation_its = opts.getInt("load_stagnation_its", 15)
+        self.stagnation_its = ld.stagnation_its
         self.stagnated = False              # the last solve stopped at that test
         self.stagnations = 0                # solves stopped at it
         self.check_stability = check_stability
@@ -95,7 +96,7 @@ class NewtonSolver:
         self.total_its = 0
         self.fail_reason = None             # why run() stopped early, when not a failed step
         # -load_arclength: at a fold, follow the branch around it (arclength.py)
-        self.arclength = opts.getBool("load_arclength", False)
+        self.arclength = ld.arclength
         self.nominal = None                 # the nominal load increment of run()
         self._folds = []                    # (load, positions) where continuations started
         self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
