@@ -162,7 +162,7 @@ class Run:
                 rec[key] = res.__dict__[key]
         return rec
 
-    def _observe(self):
+    def observe(self):
         """The current state's fields, energy, contact report and topology (collective); sets
         the last_* attributes that summary.json is made from.  Returns (fields, energy, contact
         attrs, quadrature-point fields, topology)."""
@@ -191,12 +191,12 @@ class Run:
     def _write(self, res):
         """Write the current state as step self.step of result.h5: load, energy, the step's
         record (res: a converged step, None for the start), the contact KKT picture and the
-        topology (_observe).  Returns the energy."""
+        topology (observe).  Returns the energy."""
         extra = {}
         if res is not None:       # HDF5 attributes: flags as 0/1
             extra = {k: int(v) if isinstance(v, bool) else v
                      for k, v in self._step_record(res).items()}
-        fields, energy, cattrs, qp, topo = self._observe()
+        fields, energy, cattrs, qp, topo = self.observe()
         attrs = {"load": self.problem.lam, "energy": energy, "newton_iterations": 0,
                  "residual_norm": 0.0, **extra, **cattrs, **(topo or {})}
         self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
@@ -254,7 +254,7 @@ class Run:
             self.problem.set_load(0.0)
             self._write(None)
         else:
-            self._observe()        # a restart that fails at once still reports its state
+            self.observe()        # a restart that fails at once still reports its state
         ld = self.scene.loads
 
         def on_step(res):

@@ -141,7 +141,7 @@ def _energy_at(p, X):
     """Total energy at the vector X (all ranks), as RodProblem.precheck measures it."""
     r, q = p.state.local_config(X)
     out = p.contact.evaluate(r, tangent=False)
-    return p.layout.comm.tompi4py().allreduce(p._energy_local(r, q, out["energy"]))
+    return p.layout.comm.tompi4py().allreduce(p.energy_local(r, q, out["energy"]))
 
 
 @pytest.mark.mpi
@@ -203,7 +203,7 @@ def test_newton_step_may_not_raise_the_energy():
     with Z as a:
         if len(p.constraints.rows_local):
             a[p.constraints.rows_local[0]] = 1e-3
-    assert not p._energy_descent_applies(Z) and p._energy_descent_applies(Y)
+    assert not p.energy_descent_applies(Z) and p.energy_descent_applies(Y)
     ksp.destroy()
 
 
@@ -264,7 +264,7 @@ def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
     r, _ = p.state.local_config()
 
     def fresh(**kw):
-        c._state = None
+        c.kept_evaluation = None
         return c.evaluate(r, **kw)
 
     def assembled():
@@ -297,7 +297,7 @@ def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
 def _fresh_search_pairs(c, r):
     """The candidates within reach of a fresh search at r (what the evaluation must use)."""
     from rodsnes.contact import projection as ck
-    return c._search_pairs(*ck.element_bounds(r[c.lconn]), c.reach)
+    return c.search_pairs(*ck.element_bounds(r[c.lconn]), c.reach)
 
 
 @pytest.mark.mpi
@@ -311,7 +311,7 @@ def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
     c, p = run.contact, run.problem
     r0, _ = p.state.local_config()
     c.evaluate(r0)
-    n0, pairs0 = c.searches, c._state["pairs"]
+    n0, pairs0 = c.searches, c.kept_evaluation["pairs"]
     assert np.array_equal(pairs0, _fresh_search_pairs(c, r0))
     # slide the free end along x by 0.4 skin (a ramp over s/L in [0.6, 0.8]): element 10 comes
     # within reach of element 0 (sphere distance 0.282 at reach 0.25, skin 0.1)
@@ -319,14 +319,14 @@ def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
     r1 = r0 + 0.4 * c.skin * np.clip((s - 0.6) / 0.2, 0.0, 1.0)[:, None] * np.array([1.0, 0, 0])
     c.evaluate(r1)
     assert c.searches == n0                          # reused
-    pairs1 = c._state["pairs"]
+    pairs1 = c.kept_evaluation["pairs"]
     assert np.array_equal(pairs1, _fresh_search_pairs(c, r1))
     grown = run.layout.comm.tompi4py().allreduce(len(pairs1) - len(pairs0))
     assert grown > 0                                 # new pairs within reach, none missed
     # the residual is the one of an evaluation with a search of its own
     Floc = np.zeros((len(r1), NDOF))
     c.add_residual(r1, Floc)
-    c._search, c._state = None, None
+    c.verlet_list, c.kept_evaluation = None, None
     Fnew = np.zeros((len(r1), NDOF))
     c.add_residual(r1, Fnew)
     assert c.searches == n0 + 1 and np.array_equal(Floc, Fnew)
@@ -334,7 +334,7 @@ def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
     r2 = r1 + np.array([0.6 * c.skin, 0.0, 0.0])
     c.evaluate(r2)
     assert c.searches == n0 + 2
-    assert np.array_equal(c._state["pairs"], _fresh_search_pairs(c, r2))
+    assert np.array_equal(c.kept_evaluation["pairs"], _fresh_search_pairs(c, r2))
     r3 = r2 + np.array([0.0, 0.4 * c.skin, 0.0])      # then within half the skin again
     c.evaluate(r3)
     assert c.searches == n0 + 2 and c.search_reuses >= 2
@@ -351,14 +351,14 @@ def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
     run = coiled(**LAW[model])
     c, p = run.contact, run.problem
     r, _ = p.state.local_config()
-    assert not c.pattern_covers(r, p._pattern_pairs)     # made for the straight rod
+    assert not c.pattern_covers(r, p.contact_pairs)     # made for the straight rod
     p.refresh_pattern()                                   # as at the start of a load step
     need = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
-    have = p._pattern_pairs
+    have = p.contact_pairs
     n = run.mesh.nelem
     assert len(need) and np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all()
     assert c.pattern_covers(r, have)
-    wide = c.comm.allreduce(len(c._search_pairs(*ck.element_bounds(r[c.lconn]),
+    wide = c.comm.allreduce(len(c.search_pairs(*ck.element_bounds(r[c.lconn]),
                                                 c.reach + c.skin)))
     assert len(have) < wide
     contact_pairs = need[need[:, 0] != need[:, 1]]
@@ -368,7 +368,7 @@ def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
     assert len(less) == len(have) - 1
     assert not c.pattern_covers(r, less)
     p.ensure_pattern()                                     # and a step there gets a new one
-    assert c.pattern_covers(r, p._pattern_pairs)
+    assert c.pattern_covers(r, p.contact_pairs)
 
 
 @pytest.mark.parametrize("model", ["projection", "potential"])

@@ -90,7 +90,7 @@ def test_a_plectoneme_checkpoint_is_an_equilibrium_of_the_current_code(name, tmp
     p.residual(None, p.state.X, F)
     fnorm = F.norm()
     assert fnorm <= max(run.solver.tolerance(), 2 * last["attrs"]["residual_norm"])
-    _, energy, cattrs, _, topo = run._observe()
+    _, energy, cattrs, _, topo = run.observe()
     assert abs(energy - last["attrs"]["energy"]) <= 1e-9 * abs(energy)
     turns = run.scene.bc.end_turns * run.lam0
     assert abs(topo["link"] - turns) < 1e-2

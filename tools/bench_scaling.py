@@ -174,7 +174,7 @@ def iteration_parts(log):
 
 # (module, class, method, event): the first method found of each event's list is wrapped
 _WRAP = (("rodsnes.model.elastic", "ElasticRod", "element_terms", "ElasticKernel"),
-         ("rodsnes.contact.term", "ContactTerm", "_search_pairs", "ContactSearch"),
+         ("rodsnes.contact.term", "ContactTerm", "search_pairs", "ContactSearch"),
          ("rodsnes.contact.term", "ContactTerm", "_pairs", "ContactSearch"),
          ("rodsnes.contact.term", "ContactTerm", "_fetch", "ContactHalo"),
          ("rodsnes.contact.term", "ContactTerm", "_send_back", "ContactHalo"),

@@ -83,10 +83,10 @@ class ContactTerm:
         self.last_min_gap = np.nan
         self.sf_builds = 0
         self._all_ids = None            # every rank's owned elements, in allgather order
-        self._search = None             # (own centres, own radii, pairs within reach + skin)
+        self.verlet_list = None             # (own centres, own radii, pairs within reach + skin)
         self.searches = 0               # candidate searches made ...
         self.search_reuses = 0          # ... and evaluations that reused one
-        self._state = None              # the last evaluation (positions, mu, output, pairs)
+        self.kept_evaluation = None              # the last evaluation (positions, mu, output, pairs)
         self.cache_hits = 0
         # the clamps' mounts (support.py): a rod clamped at its start and sliding at its end
         self.supports = None
@@ -101,7 +101,7 @@ class ContactTerm:
         evaluation, whose residual and tangent belong to the old mu."""
         self.mu = float(mu)
         self.kernel.mu = self.mu
-        self._state = None
+        self.kept_evaluation = None
 
     # -- communication ----------------------------------------------------------------
     def _ensure_sf(self, nodes):
@@ -150,7 +150,7 @@ class ContactTerm:
         made at and mu is the same (residual and Jacobian at one iterate, the line search's
         accepted trial and the residual after it): a tangent or report asked for later is made
         then, from what the residual kept (kernel.add_tangent, add_report; both local)."""
-        st = self._state
+        st = self.kept_evaluation
         hit = st is not None and st["mu"] == self.kernel.mu and st["r"].shape == r_loc.shape \
             and np.array_equal(st["r"], r_loc)
         if self.comm.allreduce(hit, op=MPI.LAND):
@@ -174,20 +174,20 @@ class ContactTerm:
         Collective."""
         x_own = r_loc[self.lconn]
         cen, rad = ck.element_bounds(x_own)
-        s = self._search
+        s = self.verlet_list
         stale = s is None
         if not stale and len(cen):
             move = np.linalg.norm(cen - s[0], axis=1) + np.maximum(rad - s[1], 0.0)
             stale = not float(move.max()) < 0.5 * self.skin * (1.0 - 1e-6)
         if self.comm.allreduce(stale, op=MPI.LOR):
-            self._search = (cen, rad, self._search_pairs(cen, rad, self.reach + self.skin))
+            self.verlet_list = (cen, rad, self.search_pairs(cen, rad, self.reach + self.skin))
             self.searches += 1
         else:
             self.search_reuses += 1
-        return x_own, cen, rad, self._search[2]
+        return x_own, cen, rad, self.verlet_list[2]
 
     @logged("ContactSearch")
-    def _search_pairs(self, cen, rad, reach, bounds=False):
+    def search_pairs(self, cen, rad, reach, bounds=False):
         """Candidate pairs (own element, any element) within ``reach`` of the bounding spheres
         (cen, rad) of the own elements: the spheres of all ranks allgathered, a cKDTree
         (contact.candidate_pairs).  With ``bounds`` also the spheres of all elements, by
@@ -229,11 +229,11 @@ class ContactTerm:
         if self.supports is not None:
             out["support"] = self.supports.evaluate(r_loc, tangent=False)
             out["energy"] += out["support"]["energy"]
-        self._state = {"r": np.array(r_loc, copy=True), "mu": self.kernel.mu, "out": out,
+        self.kept_evaluation = {"r": np.array(r_loc, copy=True), "mu": self.kernel.mu, "out": out,
                        "pairs": pairs, "near": None,
                        "bounds": (np.concatenate([self.own_ids, other]),
                                   np.concatenate([cen, c_other]), np.concatenate([rad, r_other]))}
-        return self._state
+        return self.kept_evaluation
 
     @property
     def near_local(self):
@@ -242,7 +242,7 @@ class ContactTerm:
         report point within one contact radius of touching (gap > -eps), with the pair
         potential (whose report is made only when asked for) every element with a candidate
         within reach."""
-        st = self._state
+        st = self.kept_evaluation
         if st is None:
             return np.zeros(0, dtype=np.int64)
         if st["near"] is None:
@@ -307,7 +307,7 @@ class ContactTerm:
         margin = self.PATTERN_MARGIN * self.eps if margin is None else float(margin)
         touch = 2.0 * self.eps + margin
         x_el = r_loc[self.lconn]
-        pairs, cen, rad = self._search_pairs(*ck.element_bounds(x_el), touch, bounds=True)
+        pairs, cen, rad = self.search_pairs(*ck.element_bounds(x_el), touch, bounds=True)
         if len(pairs):
             lay_ids = self._element_slots()
             caps = ck.element_capsules(np.concatenate(self.comm.allgather(x_el)))

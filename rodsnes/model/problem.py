@@ -203,10 +203,10 @@ class RodProblem:
         self.state = RodState(layout, q_local, X)
         self.contact = contact
         self.lam = 0.0
-        self._pattern_pairs = None          # contact element pairs preallocated in J
+        self.contact_pairs = None          # contact element pairs preallocated in J
         if contact is not None:
-            self._pattern_pairs = contact.pattern_pairs(mesh.x_init[layout.local_nodes])
-        self.J = layout.create_matrix(contact.node_groups(self._pattern_pairs)
+            self.contact_pairs = contact.pattern_pairs(mesh.x_init[layout.local_nodes])
+        self.J = layout.create_matrix(contact.node_groups(self.contact_pairs)
                                       if contact is not None else None)
         self.F = layout.create_vec()
         self.lconn = lconn
@@ -292,7 +292,7 @@ class RodProblem:
         changed."""
         r, _ = self.state.local_config()
         want = self.contact.pattern_pairs(r)
-        if not np.array_equal(want, self._pattern_pairs):
+        if not np.array_equal(want, self.contact_pairs):
             self._new_matrix(want)
 
     def ensure_pattern(self):
@@ -303,10 +303,10 @@ class RodProblem:
         contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column)."""
         c = self.contact
         r, _ = self.state.local_config()
-        if c.pattern_covers(r, self._pattern_pairs):
+        if c.pattern_covers(r, self.contact_pairs):
             return
         coupled = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
-        want = np.unique(np.concatenate([c.pattern_pairs(r), coupled, self._pattern_pairs]),
+        want = np.unique(np.concatenate([c.pattern_pairs(r), coupled, self.contact_pairs]),
                          axis=0)
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
@@ -317,7 +317,7 @@ class RodProblem:
         (on_pattern_change) takes the new matrix and drops its factorisation."""
         old = self.J
         self.J = self.layout.create_matrix(self.contact.node_groups(pairs))
-        self._pattern_pairs = pairs
+        self.contact_pairs = pairs
         if self.on_pattern_change is not None:
             self.on_pattern_change(self.J)
         old.destroy()
@@ -435,10 +435,10 @@ class RodProblem:
             changed = True
         c = self.contact
         d_allow = c.depth_allowed(c.deepest(report=False))     # as at the trials
-        use_energy = self._energy_descent_applies(Y)
+        use_energy = self.energy_descent_applies(Y)
         if use_energy:
             r0, q0 = self.state.local_config(X)
-            E0 = self._energy_local(r0, q0, c.last["energy"])
+            E0 = self.energy_local(r0, q0, c.last["energy"])
             E0 = comm.allreduce(E0)
             slack = 1e-11 * abs(E0) + 1e-300
         # slope of the energy along the step X - s Y at s = 0: -F . Y (F: the residual at X,
@@ -458,7 +458,7 @@ class RodProblem:
                     first_ok = scale
                 if not use_energy:
                     break
-                E = comm.allreduce(self._energy_local(r, q, out["energy"]))
+                E = comm.allreduce(self.energy_local(r, q, out["energy"]))
                 if E <= E0 + self.ARMIJO * scale * min(slope, 0.0) + slack:
                     break
                 if descent:      # minimiser of the quadratic through E0, slope, E(scale)
@@ -477,7 +477,7 @@ class RodProblem:
             changed = True
         return changed
 
-    def _energy_descent_applies(self, Y):
+    def energy_descent_applies(self, Y):
         """Energy is a merit function for this step: conservative loads, and the step leaves
         every constrained dof where it is (after the first Newton iteration of a load step)."""
         from mpi4py import MPI
@@ -487,7 +487,7 @@ class RodProblem:
         moves = bool(np.any(Y.getArray(readonly=True)[rows] != 0.0))
         return not self.layout.comm.tompi4py().allreduce(moves, op=MPI.LOR)
 
-    def _energy_local(self, r, q, contact_energy):
+    def energy_local(self, r, q, contact_energy):
         """This rank's share of the total energy (elastic + conservative loads + contact) at
         local positions r and rotations q, with the contact term's share given (the expensive
         part: precheck takes it from the evaluation it makes anyway)."""
@@ -504,7 +504,7 @@ class RodProblem:
         """Total potential energy (elastic + conservative loads + contact), all ranks."""
         r, q = self.state.local_config()
         Ec = self.contact.energy(r) if self.contact is not None else 0.0
-        return self.layout.comm.tompi4py().allreduce(self._energy_local(r, q, Ec))
+        return self.layout.comm.tompi4py().allreduce(self.energy_local(r, q, Ec))
 
     def max_curvature(self):
         """Largest flexure |(u1, u2)| at the quadrature points times the contact radius eps,

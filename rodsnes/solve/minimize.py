@@ -147,7 +147,7 @@ class EnergyMinimizer:
             out = p.contact.evaluate(r, tangent=False)
             Ec = out["energy"]
             depth = self.comm.allreduce(p.contact.deepest_local(out), op=MPI.MAX)
-        E = self.comm.allreduce(p._energy_local(r, q, Ec))
+        E = self.comm.allreduce(p.energy_local(r, q, Ec))
         return self._same(E, depth)
 
     @logged("MinHessian")
@@ -264,7 +264,7 @@ class EnergyMinimizer:
             newton = not small and self._newton_step(g, d)
             if not newton:
                 with timed("MinHessian"):
-                    self.factor.assemble(p._pattern_pairs if p.contact is not None else None)
+                    self.factor.assemble(p.contact_pairs if p.contact is not None else None)
                     nneg = self._same(self.factor.factor())
                 self.factorizations += 1
                 if small and nneg == 0:
