@@ -1,4 +1,4 @@
-"""The pair-potential contact law (-contact_model potential, rodsnes.contact_potential): its
+"""The pair-potential contact law (-contact_model potential, rodsnes.contact.potential): its
 calibration against the closest-point law, gradient and tangent against finite differences,
 smoothness where closest points race, the quadrature's ripple, the option, and the assembled
 problem (tangent, two ranks against one, a Newton solve)."""
@@ -392,3 +392,81 @@ def test_rollup_contact_solves_and_newton_converges_fast():
     h = res.history
     assert res.converged and h[0] > 1e2
     assert h[1] < 1e-6 * h[0] and h[2] <= 100 * h[1] ** 2 and h[3] <= s.floor, h
+
+
+def kernel_states():
+    """(name, rod, own elements or None) for the compiled-against-numpy comparison: the
+    plectoneme's line contact and end loop, dense random coils of orders 1-4, open and closed
+    (deep couples: a beyond the onset layer), with own elements a part of the rod as on a rank;
+    a helix with near pairs but no couple in contact (negative depth)."""
+    from test_contact_math import helix, random_coil
+    out = []
+    for name in ("plectoneme_9.72_line_contact", "plectoneme_end_loop"):
+        X = np.load(os.path.join(DATA, name + ".npy"))
+        out.append((name, X, 3, False, 1.0, 0.025, 5.754172062186161e7, 0.0625, None))
+    for p in (1, 2, 3, 4):
+        for closed in (False, True):
+            X = random_coil(p, 40, 0.08, 10 * p)
+            X = X[:-1] if closed else X
+            out.append((f"coil p{p} closed {closed}", X, p, closed, 3.2, 0.05, 1e3, None, None))
+            out.append((f"coil p{p} closed {closed}, own 5-22", X, p, closed, 3.2, 0.05, 1e3,
+                        None, np.arange(5, 23)))
+    X, L = helix(3, 30, a=0.3, pitch=0.5, turns=2.0)
+    out.append(("helix apart", X, 3, False, L, 0.1, 1e3, 0.9, None))
+    return out
+
+
+def same(a, b, rtol=1e-12):
+    """a equals b to rtol of b's largest entry (integers and non-finite values exactly)."""
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape:
+        return False
+    if b.dtype.kind in "biu":
+        return np.array_equal(a, b)
+    fin = np.isfinite(b)
+    if not np.array_equal(np.isfinite(a), fin) or not np.array_equal(a[~fin], b[~fin],
+                                                                    equal_nan=True):
+        return False
+    return not fin.any() or np.abs(a[fin] - b[fin]).max() <= rtol * np.abs(b[fin]).max()
+
+
+@pytest.mark.parametrize("onset", [None, 0.0])
+def test_compiled_kernel_equals_the_numpy_path(onset):
+    """The compiled kernel (rodsnes/contact/_potential_kernel.c through potential_compiled.py) against
+    the numpy path of PotentialKernel, and the numpy path against the dense formulas
+    (``dense_reference``) where every element is own: energy, residual, depth, active rows,
+    tangent and report to 1e-12 (the same couples: depth and rows exactly), with the end caps
+    on and off.  `make install` builds the kernel: a missing library is a failure."""
+    from rodsnes.contact import potential_compiled
+    assert potential_compiled.available(), "the compiled potential kernel is not built"
+    for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
+        rod = potential_rod(X, p, closed, L, eps, mu, reach=reach, onset=onset)
+        pairs = rod.pairs(X)
+        ids = rod.ids
+        if own is not None:
+            pairs = pairs[np.isin(pairs[:, 0], own)]
+            ids = own
+        args = (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+        kern = {}
+        for kind in ("numpy", "compiled"):
+            kern[kind] = PotentialKernel(p, rod.k.nqc, eps, mu, rod.delta, L, rod.nelem, closed,
+                                         onset=onset, kernel=kind)
+        assert kern["compiled"].compiled and not kern["numpy"].compiled
+        for cap in (None, 0.0):
+            out = {}
+            for kind, k in kern.items():
+                if cap is not None:
+                    k.cap = cap
+                out[kind] = k.evaluate(*args, tangent=True, report=True)
+            ref, got = out["numpy"], out["compiled"]
+            assert ref["depth"] == got["depth"], name
+            assert np.array_equal(ref["active"], got["active"]), name
+            for key in ("energy", "vec", "mat", "gap", "force", "total_force",
+                        "complementarity", "d_active", "zones"):
+                assert same(got[key], ref[key]), (name, cap, key)
+            if own is None and len(ref["active"]):
+                E, act, vec, mat = dense_reference(kern["numpy"], X, rod.conn, pairs)
+                assert np.array_equal(ref["active"], act), name
+                assert ref["energy"] == pytest.approx(E, rel=1e-12), name
+                assert same(ref["vec"], vec) and same(ref["mat"], mat), name
+    assert -np.inf < ref["depth"] < 0 and len(ref["active"]) == 0     # the helix: near, apart

@@ -1,4 +1,4 @@
-"""rodsnes.output: result.h5 round trip, restart after a partial step, summary.json, XDMF, MPI-IO."""
+"""rodsnes.io.results: result.h5 round trip, restart after a partial step, summary.json, XDMF, MPI-IO."""
 import json
 import os
 import shutil

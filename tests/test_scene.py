@@ -1,4 +1,4 @@
-"""Tests of rodsnes.scene: reading, deriving and validating the rodsnes options."""
+"""Tests of rodsnes.io.scene: reading, deriving and validating the rodsnes options."""
 import math
 
 import numpy as np

@@ -174,15 +174,15 @@ def iteration_parts(log):
 
 # (module, class, method, event): the first method found of each event's list is wrapped
 _WRAP = (("rodsnes.model.elastic", "ElasticRod", "element_terms", "ElasticKernel"),
-         ("rodsnes.contact.term", "ContactTerm", "search_pairs", "ContactSearch"),
-         ("rodsnes.contact.term", "ContactTerm", "_pairs", "ContactSearch"),
-         ("rodsnes.contact.term", "ContactTerm", "_fetch", "ContactHalo"),
-         ("rodsnes.contact.term", "ContactTerm", "_send_back", "ContactHalo"),
-         ("rodsnes.contact.term", "ContactTerm", "_add_blocks", "ContactAssemble"),
-         ("rodsnes.contact.projection", "ContactKernel", "evaluate", "ContactEval"),
-         ("rodsnes.contact.projection", "ContactKernel", "add_tangent", "ContactTangent"),
-         ("rodsnes.contact.potential", "PotentialKernel", "evaluate", "ContactEval"),
-         ("rodsnes.contact.potential", "PotentialKernel", "add_tangent", "ContactTangent"))
+         ("rodsnes.contact.projection.term", "ContactTerm", "search_pairs", "ContactSearch"),
+         ("rodsnes.contact.projection.term", "ContactTerm", "_pairs", "ContactSearch"),
+         ("rodsnes.contact.projection.term", "ContactTerm", "_fetch", "ContactHalo"),
+         ("rodsnes.contact.projection.term", "ContactTerm", "_send_back", "ContactHalo"),
+         ("rodsnes.contact.projection.term", "ContactTerm", "_add_blocks", "ContactAssemble"),
+         ("rodsnes.contact.projection.projection", "ContactKernel", "evaluate", "ContactEval"),
+         ("rodsnes.contact.projection.projection", "ContactKernel", "add_tangent", "ContactTangent"),
+         ("rodsnes.contact.projection.potential", "PotentialKernel", "evaluate", "ContactEval"),
+         ("rodsnes.contact.projection.potential", "PotentialKernel", "add_tangent", "ContactTangent"))
 
 
 def instrument():

@@ -353,7 +353,7 @@ def _is_number(t):
 
 
 class _Options:
-    """The two petsc4py.Options methods rodsnes.scene.read_scene uses, over a plain dict."""
+    """The two petsc4py.Options methods rodsnes.io.scene.read_scene uses, over a plain dict."""
 
     def __init__(self, d):
         self.d = d

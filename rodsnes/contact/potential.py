@@ -100,16 +100,25 @@ block each).
 
 Cost: each part is made only when asked for (``PotentialKernel.evaluate``): the energy and
 residual always, over the element pairs whose capsules come within 2 eps (the others hold no
-couple in contact: ``contact.capsules_within``), with the reductions over the pairs that touch;
-the tangent (``add_tangent``) and the report (``add_report``) from what the residual kept, at
-the same positions.  ``depth`` = max 2 eps - |D_qj| over the admissible couples of the near
-pairs (the potential's own points; -inf without any): RodProblem.precheck's penetration limit
-compares it at the iterate and at its trials, with no closest point.
+couple in contact: ``contact.capsules_within``); the tangent (``add_tangent``) and the report
+(``add_report``) from what the residual kept, at the same positions.  Of the near pairs'
+nqp (nqp + 2) couples only those in contact (|D| < 2 eps, admissible: a fifth to a third of
+them in the plectoneme's two-ply) are kept, as a flat list sorted by (pair, q, j); the energy,
+the residual and the tangent are sums over that list (per row and slave point, per row and
+master point), contracted with the shape functions.  The compiled kernel
+(potential_compiled.py, rodsnes/contact/_potential_kernel.c; ``kernel="auto"`` uses it when built)
+makes the list, the energy and the residual rows in one pass over the couples, and the tangent
+blocks from the list; the numpy path (``kernel="numpy"``) is its reference: the same couples
+(the same floating-point operations on the distances and the exclusion), sums equal to
+round-off.  ``depth`` = max 2 eps - |D_qj| over the admissible couples of the near pairs (the
+potential's own points; -inf without any): RodProblem.precheck's penetration limit compares
+it at the iterate and at its trials, with no closest point.
 """
 import numpy as np
 
 from rodsnes.profiling import logged
 from rodsnes.model import fe
+from rodsnes.contact import potential_compiled
 from rodsnes.contact.projection import ContactKernel, _lookup, capsules_within, element_capsules
 
 __all__ = ["ONSET", "DENSITY", "MAX_POINTS", "law_energy", "law_force", "law_stiffness",
@@ -191,19 +200,19 @@ _SYM6 = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))     # entries of a symm
 _FULL9 = np.array([0, 3, 4, 3, 1, 5, 4, 5, 2])                   # ... back to its 9, row-major
 
 
-def _rows(rows, *arrays):
-    """arrays[rows], without a copy when rows are all of them."""
-    if len(rows) == len(arrays[0]):
-        return arrays
-    return tuple(x[rows] for x in arrays)
-
-
 class PotentialKernel:
     """The pair potential (1) over a set of own (slave) elements; the interface of
-    contact.ContactKernel (evaluate, slave_arclength, mu, eps, delta, h, nqc, wq, Nq)."""
+    contact.ContactKernel (evaluate, slave_arclength, mu, eps, delta, h, nqc, wq, Nq).
+    ``kernel``: "auto" (the compiled kernel if built, else numpy), "compiled" or "numpy"
+    (module docstring, Cost)."""
 
     def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None,
-                 onset=None):
+                 onset=None, kernel="auto"):
+        if kernel not in ("auto", "compiled", "numpy"):
+            raise ValueError(f"unknown potential kernel {kernel!r}: use auto, compiled or numpy")
+        self.compiled = kernel != "numpy" and potential_compiled.available()
+        if kernel == "compiled" and not self.compiled:
+            raise RuntimeError("the compiled potential kernel is not built (run pip install -e .)")
         self.gauge = ContactKernel(order, nqc, eps, mu, delta, L, nelem, closed, segments=False)
         g = self.gauge
         self.p, self.nqc, self.eps, self.delta = g.p, g.nqc, g.eps, g.delta
@@ -228,6 +237,13 @@ class PotentialKernel:
         self._NmT = np.ascontiguousarray(self.Nm.T)                     # (p+1, nqp + 2)
         self._NNp = np.einsum("qa,qb->abq", self.Np, self.Np).reshape(-1, self.nqp)
         self._NNm = np.einsum("ja,jb->abj", self.Nm, self.Nm).reshape(-1, self.nqp + 2)
+        # weights and arclength offsets of the points (_near_couples, _admissible_couples)
+        self._wpJ = self.wp * (0.5 * self.h)
+        self._sq = (self.xp + 1.0) * 0.5 * self.h
+        self._sm = (self.xm + 1.0) * 0.5 * self.h
+        self._wmJ = np.concatenate([self._wpJ, [0.0, 0.0]])
+        self._Npc, self._Nmc = np.ascontiguousarray(self.Np), np.ascontiguousarray(self.Nm)
+        self._scratch = {}
 
     @property
     def mu(self):
@@ -300,42 +316,135 @@ class PotentialKernel:
         return out
 
     def _near_couples(self, own_ids, x_own, other_ids, x_other, pairs):
-        """The point couples of the element pairs that may be in contact: pairs whose capsules
-        (contact.element_capsules) come within 2 eps (no couple of another pair is closer),
-        the distances |D| of their couples D = r_e(xi_q) - r_m(xi_j) at the nqp slave and
-        nqp + 2 master points (coordinate by coordinate: no (pairs, nqp, nqp + 2, 3) array),
-        and, of the pairs that touch (an admissible couple closer than 2 eps), a, |D|, D, the
-        weights W and the master weights, in the order of the pairs."""
+        """The point couples in contact of the element pairs that may be in contact: the near
+        pairs (``_near_pairs``) and, of all their couples D = r_e(xi_q) - r_m(xi_j) at the nqp
+        slave and nqp + 2 master points, those closer than 2 eps and admissible, as a flat list
+        ``couples`` = (pair, q, j, |D|) sorted by (pair, q, j), and the depth: the residual,
+        the tangent and the report work on these, O(couples in contact), not on the pairs'
+        nqp (nqp + 2) couples.  Made by the compiled kernel (potential_compiled.py, with the
+        energy and the residual rows) or by numpy (``_couples_numpy``), the same couples."""
+        c = self._near_pairs(own_ids, x_own, other_ids, x_other, pairs)
+        if self.compiled:
+            return potential_compiled.couples(self, c, self._workspace)
+        return self._couples_numpy(c)
+
+    def _near_pairs(self, own_ids, x_own, other_ids, x_other, pairs):
+        """The pairs whose capsules (contact.element_capsules) come within 2 eps (no couple of
+        another pair is closer): own index oi, pool index mi, elements e, m, in the order of the
+        pairs; the slave points xs (own, nqp, 3) and master points xm (pool, nqp + 2, 3)."""
         pool_ids, pool_x = self.gauge.master_pool(own_ids, x_own, other_ids, x_other)
         oi = _lookup(own_ids, pairs[:, 0], "own")
         mi = _lookup(pool_ids, pairs[:, 1], "other")
         ko, kp = element_capsules(x_own), element_capsules(pool_x)
         near = np.flatnonzero(capsules_within([v[oi] for v in ko], [v[mi] for v in kp],
                                               2.0 * self.eps))
-        oi, mi, e, m = oi[near], mi[near], pairs[near, 0], pairs[near, 1]
-        xs = (self.Np @ x_own)[oi]                                     # (nn, nqp, 3)
-        xm = (self.Nm @ pool_x)[mi]                                    # (nn, nqp + 2, 3)
-        r2 = np.square(xs[:, :, None, 0] - xm[:, None, :, 0])
-        for d in (1, 2):
-            t = xs[:, :, None, d] - xm[:, None, :, d]
-            t *= t
-            r2 += t
-        r = np.sqrt(r2)
-        # the exclusion, on the pairs that come closer than delta in arclength
-        ra = r
-        part = np.flatnonzero(self._min_arclength(e, m) < self.delta)
+        return {"oi": oi[near], "mi": mi[near], "e": pairs[near, 0], "m": pairs[near, 1],
+                "xs": self.Np @ x_own, "xm": self.Nm @ pool_x}
+
+    def _couples_numpy(self, c):
+        """``couples`` and ``depth`` of the near pairs ``c`` in numpy: the squared distances of
+        all their couples in one pass (``_squared_distances``), those below 4 eps^2 (a
+        superset: the roundoff of the square root), |D| < 2 eps exactly, the exclusion tested
+        on these couples alone (``_admissible_couples``)."""
+        oi, mi, e, m = c["oi"], c["mi"], c["e"], c["m"]
+        nqp, nm, two_eps = self.nqp, self.nqp + 2, 2.0 * self.eps
+        r2 = self._squared_distances(c["xs"], c["xm"], oi, mi)
+        cand = np.flatnonzero(r2 < two_eps * two_eps * (1.0 + 1e-12))
+        r = np.sqrt(r2.ravel()[cand])
+        keep = r < two_eps
+        p, qj = np.divmod(cand, nqp * nm)
+        q, j = np.divmod(qj, nm)
+        cut = self._min_arclength(e, m) < self.delta                   # pairs the exclusion cuts
+        t = np.flatnonzero(keep & cut[p])
+        if len(t):
+            keep[t] = self._admissible_couples(e[p[t]], m[p[t]], q[t], j[t])
+        if keep.all():
+            c["couples"] = (p, q, j, r)
+        else:
+            c["couples"] = (p[keep], q[keep], j[keep], r[keep])
+        r = c["couples"][3]
+        c["depth"] = two_eps - float(r.min()) if len(r) else self._depth_apart(r2, e, m, cut)
+        return c
+
+    def _active_couples(self, c):
+        """The couples of W > 0 (every Gauss point; the end points only as an open rod's
+        caps): the rows' pairs act, and per couple its row, q, j, |D|, a, W, the master weight
+        wm and D (made once per evaluation, kept in ``c``)."""
+        if "active_couples" not in c:
+            p, q, j, r = c["couples"]
+            first = np.ones(len(p), dtype=bool)
+            np.not_equal(p[1:], p[:-1], out=first[1:])
+            t = np.cumsum(first) - 1                # the touching pair (a couple in contact)
+            nt = int(t[-1]) + 1 if len(t) else 0
+            wm = self._couple_master_weights(c["m"][p], j)
+            on = np.flatnonzero(wm > 0.0)
+            if len(on) < len(p):
+                p, q, j, r, wm, t = p[on], q[on], j[on], r[on], wm[on], t[on]
+            first = np.ones(len(p), dtype=bool)
+            np.not_equal(p[1:], p[:-1], out=first[1:])
+            D = np.take(c["xs"].reshape(-1, 3), c["oi"][p] * self.nqp + q, axis=0)
+            D -= np.take(c["xm"].reshape(-1, 3), c["mi"][p] * (self.nqp + 2) + j, axis=0)
+            c["active_couples"] = {"act": p[first], "row": np.cumsum(first) - 1, "q": q, "j": j,
+                                   "r": r, "a": 2.0 * self.eps - r, "W": self._wpJ[q] * wm,
+                                   "wm": wm, "D": D, "t": t, "nt": nt}
+        return c["active_couples"]
+
+    def _couple_master_weights(self, m, j):
+        """``master_weights`` of the master points j of elements m, couple by couple."""
+        w = self._wmJ[j]
+        end = np.flatnonzero(j >= self.nqp)
+        if len(end) and not self.closed:
+            last = np.where(j[end] == self.nqp, 0, self.nelem - 1)
+            w[end] = np.where(m[end] == last, self.cap, 0.0)
+        return w
+
+    def _workspace(self, name, shape, dtype=np.float64):
+        """A scratch array of the kernel, valid until the next call that asks for it (kept
+        between calls: fresh large arrays cost their pages' faults every time)."""
+        n = int(np.prod(shape))
+        buf = self._scratch.get(name)
+        if buf is None or len(buf) < n or buf.dtype != dtype:
+            buf = self._scratch[name] = np.empty(max(n, 2 * len(buf) if buf is not None else n),
+                                                 dtype=dtype)
+        return buf[:n].reshape(shape)
+
+    def _squared_distances(self, xs, xm, oi, mi):
+        """|D_qj|^2 (npair, nqp, nqp + 2) of the couples of the pairs (slave oi, master mi),
+        D = xs[oi, q] - xm[mi, j], coordinate by coordinate (no (npair, nqp, nqp + 2, 3)
+        array), in scratch arrays."""
+        shape = (len(oi), self.nqp, self.nqp + 2)
+        r2, t = self._workspace("r2", shape), self._workspace("t", shape)
+        xsT, xmT = xs.transpose(2, 0, 1), xm.transpose(2, 0, 1)
+        for d in range(3):
+            u = r2 if d == 0 else t
+            np.subtract(xsT[d][oi][:, :, None], xmT[d][mi][:, None, :], out=u)
+            np.multiply(u, u, out=u)
+            if d:
+                r2 += t
+        return r2
+
+    def _admissible_couples(self, e, m, q, j):
+        """True where dist(s, sigma) >= delta for the couples (slave point q of element e,
+        master point j of element m), couple by couple (``_admissible`` on a list)."""
+        h = self.h
+        s = e * h + self._sq[q]
+        sig = m * h + self._sm[j]
+        dist = np.abs(s - sig)
+        if self.closed:
+            dist = np.minimum(dist, self.L - dist)
+        return dist >= self.delta
+
+    def _depth_apart(self, r2, e, m, cut):
+        """2 eps - min |D| over the admissible couples of the near pairs (r2 of
+        ``_squared_distances``, overwritten) when none is closer than 2 eps; -inf without
+        any."""
+        if not len(e):
+            return -np.inf
+        part = np.flatnonzero(cut)
         if len(part):
-            ra = r.copy()
-            ra[part] = np.where(self._admissible(e[part], m[part], self.xp, self.xm), r[part],
+            r2[part] = np.where(self._admissible(e[part], m[part], self.xp, self.xm), r2[part],
                                 np.inf)
-        rmin = ra.min(axis=(1, 2)) if len(near) else np.zeros(0)
-        touch = np.flatnonzero(rmin < 2.0 * self.eps)
-        wm = self.master_weights(m[touch])
-        W = (self.wp * (0.5 * self.h))[None, :, None] * wm[:, None, :]   # (nt, nqp, nqp + 2)
-        return {"oi": oi, "e": e, "m": m, "xm": xm, "touch": touch,
-                "depth": 2.0 * self.eps - float(rmin.min()) if len(rmin) else -np.inf,
-                "a": np.maximum(2.0 * self.eps - ra[touch], 0.0), "r": r[touch],
-                "D": xs[touch][:, :, None, :] - xm[touch][:, None, :, :], "wm": wm, "W": W}
+        return 2.0 * self.eps - float(np.sqrt(r2.min()))
 
     def _min_arclength(self, e, m):
         """Least arclength distance between points of elements e and m (periodic on a ring)."""
@@ -344,69 +453,100 @@ class PotentialKernel:
             k = np.minimum(k, self.nelem - k)
         return np.maximum(k - 1, 0) * self.h
 
+    def _energy_sum(self, ac, terms):
+        """sum W psi(a) of the couples in contact, by numpy's sum over the touching pairs'
+        (nqp, nqp + 2) couple grids (zero where no couple is in contact): the round-off of a
+        sum over every couple of those pairs, whichever of them are in contact."""
+        nqp, nm = self.nqp, self.nqp + 2
+        grid = self._workspace("energy", (ac["nt"] * nqp * nm,))
+        grid[:] = 0.0
+        grid[(ac["t"] * nqp + ac["q"]) * nm + ac["j"]] = terms
+        return float(np.sum(grid))
+
+    @staticmethod
+    def _per_point(V, row, idx, nrow, n):
+        """(nrow, n, V.shape[1]): the sums of the couples' values V (ncouple, ncomp) per row
+        and point idx (slave q or master j)."""
+        key = row * n + idx
+        out = np.empty((V.shape[1], nrow * n))
+        for d in range(V.shape[1]):
+            out[d] = np.bincount(key, weights=V[:, d], minlength=nrow * n)
+        return np.ascontiguousarray(out.T).reshape(nrow, n, V.shape[1])
+
     def _residual(self, out):
         """Energy, residual rows (one per element pair with a couple in contact) and depth of
-        (1) from the couples of ``_near_couples``:
+        (1) from the couples in contact of ``_near_couples`` (made there by the compiled
+        kernel, here by numpy):
 
-            dE/dx_A = - sum W k psi'(a) Ntil_A nu,   Ntil = [N(xi_q), -N(xi_j)]."""
+            dE/dx_A = - sum W k psi'(a) Ntil_A nu,   Ntil = [N(xi_q), -N(xi_j)],
+
+        the couples' dE/dD summed per row and slave point q (per master point j), then
+        contracted with N(xi_q) (N(xi_j))."""
         n1 = self.p + 1
         c = out["_near"]
-        k = self.k
-        a, W = c["a"], c["W"]
         out["depth"] = c["depth"]
-        out["energy"] = k * float(np.sum(W * law_energy(a, self.a_s)))
-        act = np.flatnonzero((W * a > 0.0).any(axis=(1, 2)))
-        c["act"] = act
-        if not len(act):
-            return
-        a, r, D, W = _rows(act, a, c["r"], c["D"], W)
+        if "vec" in c:
+            act, vec, out["energy"] = c["act"], c["vec"], c["energy"]
+        else:
+            k = self.k
+            ac = self._active_couples(c)
+            a, W, r, act = ac["a"], ac["W"], ac["r"], ac["act"]
+            out["energy"] = k * self._energy_sum(ac, W * law_energy(a, self.a_s))
+            # dE/dD = -k W psi'(a) nu per couple
+            G = (-k * W * law_force(a, self.a_s) / np.where(r > 0.0, r, 1.0))[:, None] * ac["D"]
+            vec = np.empty((len(act), 2 * n1, 3))
+            vec[:, :n1] = self._NpT @ self._per_point(G, ac["row"], ac["q"], len(act), self.nqp)
+            vec[:, n1:] = -(self._NmT @ self._per_point(G, ac["row"], ac["j"], len(act),
+                                                        self.nqp + 2))
         nact = len(act)
-        out["active"] = np.stack([c["e"], c["m"]], axis=1)[c["touch"][act]]
+        if not nact:
+            return
+        out["active"] = np.stack([c["e"][act], c["m"][act]], axis=1)
         out.update(qp=np.full(nact, -1, dtype=np.int64), xi=np.full(nact, np.nan),
                    xi_slave=np.full(nact, np.nan), normal=np.full((nact, 3), np.nan),
-                   interior=np.zeros(nact, dtype=bool))
-        # dE/dD = -k W psi'(a) nu per couple, summed over the masters (slave rows) and the slaves
-        G = (-k * W * law_force(a, self.a_s) / np.where(r > 0.0, r, 1.0))[..., None] * D
-        vec = np.empty((nact, 2 * n1, 3))
-        vec[:, :n1] = self._NpT @ G.sum(axis=2)
-        vec[:, n1:] = -(self._NmT @ G.sum(axis=1))
-        out["vec"] = vec
+                   interior=np.zeros(nact, dtype=bool), vec=vec)
 
     @logged("ContactTangent")
     def add_tangent(self, out):
         """The tangent blocks of an evaluation (in place; nothing to do if it has them), from
-        the couples its residual kept:
+        the couples in contact its residual kept:
 
             d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (psi'' + psi'/|D|) nu nu^T - (psi'/|D|) I ]
 
-        over [slave element, master element] of every active pair: the slave-slave block sums
-        the couples' Hessians H_qj over the masters j first, the master-master block over the
-        slave points q, the slave-master block contracts q with N(xi_q) and j with N(xi_j):
-        matrix products, O(active pairs x nqp^2)."""
+        over [slave element, master element] of every active pair: the couples' Hessians H
+        (6 entries each); the slave-slave block sums them per row and slave point q, then
+        contracts with N(xi_q) N(xi_q), the master-master block per row and master point j;
+        the slave-master block scatters them onto the row's (q, j) grid and contracts q with
+        N(xi_q) and j with N(xi_j): matrix products (compiled: the same sums, pair by pair)."""
         if out["mat"] is not None:
             return out
         n1 = self.p + 1
         out["switch_mat"] = np.zeros((0, 9 * n1, 9 * n1))
         c = out["_near"]
-        act = c["act"] if c is not None and "act" in c else np.zeros(0, dtype=np.int64)
-        nact = len(act)
+        nact = len(out["active"])
         if not nact:
             out["mat"] = np.zeros((0, 6 * n1, 6 * n1))
             return out
-        a, r, D, W = _rows(act, c["a"], c["r"], c["D"], c["W"])
-        nqp, nm = a.shape[1], a.shape[2]
+        if "vec" in c:
+            out["mat"] = potential_compiled.tangent(self, c)
+            return out
+        nqp, nm = self.nqp, self.nqp + 2
+        ac = self._active_couples(c)
+        a, r, D, W, row, q, j = (ac[v] for v in ("a", "r", "D", "W", "row", "q", "j"))
         rs = np.where(r > 0.0, r, 1.0)
-        on = np.where(a > 0.0, self.k * W, 0.0)
+        on = self.k * W
         cr = law_force(a, self.a_s) / rs
         # H = on (psi'' + psi'/|D|) nu nu^T - on (psi'/|D|) I (nu nu^T = D D^T / |D|^2): 6 entries
-        U = (on * (law_stiffness(a, self.a_s) + cr) / rs ** 2)[..., None] * D
-        H = np.empty(a.shape + (6,))
-        for n, (i, j) in enumerate(_SYM6):
-            np.multiply(U[..., i], D[..., j], out=H[..., n])
-        H[..., :3] -= (on * cr)[..., None]
-        ss = self._NNp @ H.sum(axis=2)                                   # (nact, (a, b), 6)
-        mm = self._NNm @ H.sum(axis=1)
-        Hq = (self._NpT @ H.reshape(nact, nqp, nm * 6)).reshape(nact * n1, nm, 6)
+        U = (on * (law_stiffness(a, self.a_s) + cr) / rs ** 2)[:, None] * D
+        H = np.empty((len(a), 6))
+        for n, (i, k) in enumerate(_SYM6):
+            np.multiply(U[:, i], D[:, k], out=H[:, n])
+        H[:, :3] -= (on * cr)[:, None]
+        ss = self._NNp @ self._per_point(H, row, q, nact, nqp)          # (nact, (a, b), 6)
+        mm = self._NNm @ self._per_point(H, row, j, nact, nm)
+        Hd = np.zeros((nact * nqp * nm, 6))
+        Hd[(row * nqp + q) * nm + j] = H
+        Hq = (self._NpT @ Hd.reshape(nact, nqp, nm * 6)).reshape(nact * n1, nm, 6)
         sm = -(self._NmT @ Hq)                                           # (nact n1, n1, 6)
         ss, mm, sm = (b.reshape(nact, n1, n1, 6)[..., _FULL9].reshape(nact, n1, n1, 3, 3)
                       for b in (ss, mm, sm))                              # [p, a, b, i, k]
@@ -439,21 +579,27 @@ class PotentialKernel:
         out["zones"] = int(np.count_nonzero(gap > 0.0))
         # line force density at the report points, over the near pairs
         xs = self.Nq @ x_own[c["oi"]]
-        a, r, nu = self._couples(xs, c["xm"], self._admissible(c["e"], c["m"], self.xq, self.xm))
+        a, r, nu = self._couples(xs, c["xm"][c["mi"]],
+                                 self._admissible(c["e"], c["m"], self.xq, self.xm))
         wm = self.master_weights(c["m"])
         f = np.zeros((no, nqc, 3))
         fa = wm[:, None, :] * law_force(a, self.a_s)
         np.add.at(f, c["oi"], k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
         out["force"] = np.linalg.norm(f, axis=2)
         out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
-        # total force by the nqp rule, and the depth at the nqp points, over the touching pairs
-        t = c["touch"]
+        # total force by the nqp rule over the couples in contact
         fp = np.zeros((no, self.nqp, 3))
-        if len(t):
-            coef = c["wm"][:, None, :] * law_force(c["a"], self.a_s) \
-                / np.where(c["r"] > 0.0, c["r"], 1.0)
-            np.add.at(fp, c["oi"][t], k * np.matmul(coef[:, :, None, :], c["D"])[:, :, 0])
+        ac = self._active_couples(c)
+        if len(ac["act"]):
+            coef = ac["wm"] * law_force(ac["a"], self.a_s) / np.where(ac["r"] > 0.0, ac["r"], 1.0)
+            np.add.at(fp, (c["oi"][ac["act"][ac["row"]]], ac["q"]), k * coef[:, None] * ac["D"])
         out["total_force"] = float(np.sum(self.wp * J * np.linalg.norm(fp, axis=2)))
-        deep = c["a"].max(axis=2)
-        out["d_active"] = np.concatenate([gap[gap > 0.0], deep[deep > 0.0]])
+        # the depth at the nqp points: the deepest couple of each (pair, q) in contact
+        p, q, _, r = c["couples"]
+        deep = np.zeros(0)
+        if len(r):
+            key = p * self.nqp + q
+            first = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+            deep = np.maximum.reduceat(2.0 * self.eps - r, first)
+        out["d_active"] = np.concatenate([gap[gap > 0.0], deep])
         return out

@@ -25,9 +25,16 @@ phi may be non-convex on the slot (a Bernstein lower bound of phi'' is not posit
 can hide between two samples next to a maximum; there every real root of the polynomial phi'
 (companion eigenvalues) is a candidate as well (``_stationary_min``).  The
 global minimum over candidates is kept; a closest point shared by two elements (a node) is thus
-counted once.  Before projecting, slots are pruned exactly: a slot whose element's bounding
-sphere is farther from the slave point than an admissible slot end of another candidate cannot
-hold the minimum.  Cost: O(#pairs * nqc) vectorised work, no Python loop over elements or points.
+counted once.  Before projecting many slots (more than ``PRUNE``), they are pruned exactly: a slot
+whose element's bounding sphere is farther from the slave point than an admissible slot end of
+another candidate cannot hold the minimum.  Cost: O(#pairs * nqc) vectorised work, no Python loop
+over elements or points.  The samples of all slots are one matrix product (in the slot
+coordinate t, xi = lo + (hi - lo) t, the monomials of the sample fractions are fixed:
+``_taylor``), and the Newton iterations of all starts run together (``_newton``).  An evaluation is a sequence of such searches (report points,
+zone samples, the steps of the root findings and bisections below); since each costs about the
+same whatever its number of points, every search serves as many points as it can: all strands
+at once (``evaluate``), the roots at both ends of the zones in one Illinois solve, several
+levels of every bisection of a cut per search (``_bisect_kind``).
 
 Bounding spheres (``element_bounds``).  For a Lagrange curve r(xi) the sampled points r(xi_j)
 (spacing Dxi) lie in a ball B(c, R_s); linear interpolation between samples stays in it
@@ -395,6 +402,12 @@ def _nearest_per_point(idx, f, pt):
     return order[first]
 
 
+def _split_record(cl, n):
+    """The closest-point records (``ContactKernel._closest``) of the first n points of cl and
+    of the rest."""
+    return {k: v[:n] for k, v in cl.items()}, {k: v[n:] for k, v in cl.items()}
+
+
 def _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc):
     """One Illinois (modified regula falsi) update, in place on the entries act of the
     brackets [a, b] with values fa, fb: the end whose value has the sign of f(c) moves to c;
@@ -442,17 +455,36 @@ def _monomial_matrix(order):
 
 def _monomials(order, xi):
     """xi^k, d/dxi xi^k, d2/dxi2 xi^k for k = 0..p: three (len(xi), p+1) arrays."""
-    xi = np.asarray(xi, dtype=float)
-    k = np.arange(order + 1)
-    pw = np.empty((len(xi), order + 1))
-    pw[:, 0] = 1.0
-    for j in range(1, order + 1):
-        pw[:, j] = pw[:, j - 1] * xi
-    pw1 = np.zeros_like(pw)
-    pw1[:, 1:] = k[1:] * pw[:, :-1]
-    pw2 = np.zeros_like(pw)
-    pw2[:, 2:] = (k[2:] * (k[2:] - 1)) * pw[:, :-2]
-    return pw, pw1, pw2
+    W = _powers(order, np.asarray(xi, dtype=float), 2)
+    return W[:, 0], W[:, 1], W[:, 2]
+
+
+_POWER_TABLES = {}
+
+
+def _power_tables(order):
+    """Exponents E[j, k] = max(k - j, 0) and factors F[j, k] = k! / (k - j)! (0 for k < j) of
+    d^j/dxi^j xi^k = F[j, k] xi^E[j, k], j = 0, 1, 2, k = 0..p."""
+    if order not in _POWER_TABLES:
+        k = np.arange(order + 1)
+        E = np.stack([k, np.maximum(k - 1, 0), np.maximum(k - 2, 0)])
+        F = np.stack([np.ones(order + 1), k, k * (k - 1)]).astype(float)
+        _POWER_TABLES[order] = E, F
+    return _POWER_TABLES[order]
+
+
+def _powers(order, x, nder):
+    """d^j/dxi^j xi^k for k = 0..p, j = 0..nder (nder <= 2) at the points x (any shape):
+    (x.shape, nder + 1, p + 1); xi^k by repeated products (a cumulative product)."""
+    pw = np.empty(x.shape + (order + 1,))
+    pw[..., 0] = 1.0
+    if order:
+        pw[..., 1:] = x[..., None]
+        np.cumprod(pw, axis=-1, out=pw)
+    if nder == 0:
+        return pw[..., None, :]
+    E, F = _power_tables(order)
+    return F[:nder + 1] * pw[..., E[:nder + 1]]
 
 
 # --------------------------------------------------------------------------------------------
@@ -464,6 +496,8 @@ class ContactKernel:
     MAXIT = 60          # Newton iterations of the projection
     MAXBT = 40          # backtracking halvings
     CHUNK = 16384       # projection problems per vectorised batch
+    PRUNE = 96          # slots beyond which _closest prunes them before projecting
+    BISECT_POINTS = 32  # slave points per _closest call of _bisect_kind (its tree levels)
 
     def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, segments=False):
         self.p = int(order)
@@ -479,9 +513,23 @@ class ContactKernel:
         self.Nq = fe.lagrange(self.p, self.xq)[0]
         self.C = _monomial_matrix(self.p)
         self.nsamp = 4 * self.p + 1 if self.p > 1 else 3
-        # phi'(xi) = sum_n c_n xi^n, c_n = sum_{i + j - 1 = n} j D_i . A_j  (_project_chunk)
         from math import comb
-        nb = 2 * self.p - 2                   # degree of phi'' (_convex)
+        # fractions of the slot (_project): the start samples, and with them the 2p - 1 points
+        # whose phi'' values give its Bernstein coefficients
+        self._t_start = np.linspace(0.0, 1.0, self.nsamp)
+        self._t_check = np.concatenate([self._t_start, np.linspace(0.0, 1.0, 2 * self.p - 1)])
+        # their monomials and derivatives as rows (3 n, p+1), and the Taylor shift (_taylor)
+        self._T_start, self._T_check = (_powers(self.p, t, 2).reshape(-1, self.p + 1)
+                                        for t in (self._t_start, self._t_check))
+        kk = np.arange(self.p + 1)
+        self._kmj = np.maximum(kk[None, :] - kk[:, None], 0)
+        self._binom = np.array([[comb(k, j) for k in kk] for j in kk], dtype=float)
+        # coefficient k of d^j D / dxi^j is (k + j)! / k! Dc_{k+j} (_phi_rows)
+        self._row_index = np.minimum(kk[None, :] + np.arange(3)[:, None], self.p)   # (3, p+1)
+        self._row_factor = np.array([[np.prod(np.arange(k + 1, k + j + 1)) if k + j <= self.p
+                                      else 0.0 for k in kk] for j in range(3)])[:, :, None]
+        # phi'(xi) = sum_n c_n xi^n, c_n = sum_{i + j - 1 = n} j D_i . A_j  (_stationary_min)
+        nb = 2 * self.p - 2                   # degree of phi'' (_project)
         tb = np.linspace(0.0, 1.0, nb + 1)
         V = np.array([[comb(nb, k) * t ** k * (1 - t) ** (nb - k) for k in range(nb + 1)]
                       for t in tb])
@@ -514,22 +562,36 @@ class ContactKernel:
         s, m (M,) -> lo, hi (M, 2) in xi of the (at most two) intervals, valid (M, 2).
         Open: excluded (s - delta, s + delta).  Closed: the admissible arc [s + delta,
         s + L - delta] (mod L) intersected with the element arc (at most two pieces)."""
+        u = np.asarray(s, dtype=float) - np.asarray(m, dtype=float) * self.h
+        lo, hi, valid = self._slots(u)
+        return self._to_xi(lo), self._to_xi(hi), valid
+
+    def _slots(self, u):
+        """``admissible_slots`` of slave points at element-local arclength u (any shape) from
+        the element start: lo, hi (u.shape, 2) in arclength from the element start, valid."""
         h, L, dl = self.h, self.L, self.delta
-        u = np.asarray(s, dtype=float) - np.asarray(m, dtype=float) * h  # slave, element-local
+        lo = np.empty(u.shape + (2,))
         if not self.closed:
-            lo = np.stack([np.zeros_like(u), np.maximum(0.0, u + dl)], axis=1)
-            hi = np.stack([np.minimum(h, u - dl), np.full_like(u, h)], axis=1)
-            valid = np.stack([u - dl >= 0.0, u + dl <= h], axis=1)
+            lo[..., 0] = 0.0
+            lo[..., 1] = np.maximum(0.0, u + dl)
+            hi = np.full(u.shape + (2,), h)
+            hi[..., 0] = np.minimum(h, u - dl)
+            valid = np.empty(u.shape + (2,), dtype=bool)
+            valid[..., 0] = u - dl >= 0.0
+            valid[..., 1] = u + dl <= h
         else:
             lad = L - 2.0 * dl
-            a0 = np.mod(u + dl, L)
-            starts = np.stack([a0, a0 - L], axis=1)
-            lo = np.maximum(starts, 0.0)
-            hi = np.minimum(starts + lad, h)
+            lo[..., 0] = np.mod(u + dl, L)
+            lo[..., 1] = lo[..., 0] - L
+            hi = np.minimum(lo + lad, h)
+            np.maximum(lo, 0.0, out=lo)
             valid = (hi >= lo) & (lad >= 0.0)
         valid &= hi >= lo
-        to_xi = lambda t: np.clip(2.0 * t / h - 1.0, -1.0, 1.0)
-        return to_xi(lo), to_xi(hi), valid
+        return lo, hi, valid
+
+    def _to_xi(self, t):
+        """Element-local arclength t to xi, clamped to [-1, 1]."""
+        return np.minimum(np.maximum(2.0 * t / self.h - 1.0, -1.0), 1.0)
 
     # -- projection -------------------------------------------------------------------------
     def _fgh(self, x, A, P):
@@ -556,9 +618,9 @@ class ContactKernel:
         f_out = np.empty(M)
         for b0 in range(0, M, self.CHUNK):
             sl = slice(b0, min(M, b0 + self.CHUNK))
-            x, f = self._project_chunk(P[sl], A[sl], lo[sl], hi[sl])
+            x, f, nonconvex = self._project(P[sl], A[sl], lo[sl], hi[sl], True)
             # where phi may be non-convex on the slot, a minimum may hide between samples
-            flat = np.flatnonzero(~self._convex(P[sl], A[sl], lo[sl], hi[sl]))
+            flat = np.flatnonzero(nonconvex)
             if flat.size:
                 x2, f2 = self._stationary_min(P[sl][flat], A[sl][flat], lo[sl][flat], hi[sl][flat])
                 better = f2 < f[flat]
@@ -567,18 +629,152 @@ class ContactKernel:
             self.nonconvex += int(flat.size)
         return xi_out, f_out
 
-    def _convex(self, P, A, lo, hi):
-        """True where phi'' = |r'|^2 + D . r'' > 0 on the whole slot (then the minimum is
-        unique and the sampled Newton search finds it): phi'' is a polynomial of degree
-        2p - 2, and its Bernstein coefficients on [lo, hi] (from its values at 2p - 1
-        equispaced points) bound it from below."""
-        n = 2 * self.p - 1
-        if n == 1:
-            return np.ones(len(P), dtype=bool)
-        t = np.linspace(0.0, 1.0, n)
-        X = (lo[:, None] + (hi - lo)[:, None] * t[None, :]).ravel()
-        _, _, H = self._fgh(X, np.repeat(A, n, axis=0), np.repeat(P, n, axis=0))
-        return (H.reshape(-1, n) @ self._to_bernstein.T).min(axis=1) > 0.0
+    def _project_chunk(self, P, A, lo, hi):
+        """The sampled Newton search of ``project`` alone (no roots where phi is not convex)."""
+        return self._project(P, A, lo, hi, False)[:2]
+
+    def _taylor(self, Dc, lo, w):
+        """Coefficients B (S, p+1, 3) of D(lo + w t) = sum_j B_j t^j, from those of D(xi) =
+        sum_k Dc_k xi^k: B_j = sum_k C(k, j) lo^(k-j) w^j Dc_k."""
+        LW = _powers(self.p, np.stack([lo, w], axis=1), 0)                 # (S, 2, 1, p+1)
+        return (self._binom * LW[:, 0, 0, self._kmj] * LW[:, 1, 0, :, None]) @ Dc
+
+    def _project(self, P, A, lo, hi, check):
+        """Sampled Newton search for argmin phi, phi = |r(xi) - P|^2 / 2 on [lo, hi], S
+        problems (A (S, p+1, 3) monomial coefficients of r): phi at nsamp equispaced samples;
+        from every discrete local minimum a safeguarded Newton iteration (steps limited to one
+        sample spacing, clamped to the slot, backtracking on phi until phi does not rise by
+        more than 1e-14 phi; a Newton step below 1e-9 is always taken; converged when a step
+        moves xi by <= 1e-13), all starts at once; the best start per problem.  With ``check``
+        also whether phi may be non-convex on the slot: phi'' = |r'|^2 + D . r'' is a
+        polynomial of degree 2p - 2 whose Bernstein coefficients on [lo, hi] (from its values at
+        2p - 1 equispaced points) bound it from below; where one is not positive a minimum may
+        hide between two samples next to a maximum (``project`` then takes every stationary
+        point).  The samples of all problems are one matrix product: in the slot's own
+        coordinate t (xi = lo + (hi - lo) t) the monomials of the sample fractions are fixed
+        (``_taylor``).  Returns xi (S,), phi (S,), nonconvex (S,) bool or None."""
+        S, ns, n1 = len(P), self.nsamp, self.p + 1
+        Dc = np.array(A, dtype=float)
+        Dc[:, 0] -= P
+        w = hi - lo
+        t, T = (self._t_check, self._T_check) if check and self.p > 1 else \
+            (self._t_start, self._T_start)
+        n = len(t)
+        B = self._taylor(Dc, lo, w).transpose(1, 0, 2).reshape(n1, 3 * S)
+        R = (T @ B).reshape(n, 3, S, 3)                     # D and its t-derivatives
+        F = 0.5 * np.einsum("nsd,nsd->ns", R[:ns, 0], R[:ns, 0])     # phi at the samples
+        ws = np.where(w > 0.0, w, 1.0)                    # phi' = phi_t / w, phi'' = phi_tt / w^2
+        nonconvex = np.zeros(S, dtype=bool) if check else None     # (p = 1: phi'' constant)
+        if check and self.p > 1:
+            Rc = R[ns:]
+            Hc = (np.einsum("nsd,nsd->sn", Rc[:, 1], Rc[:, 1])
+                  + np.einsum("nsd,nsd->sn", Rc[:, 0], Rc[:, 2])) / (ws * ws)[:, None]
+            nonconvex = ~((Hc @ self._to_bernstein.T).min(axis=1) > 0.0) & (w > 0.0)
+        ismin = np.ones(F.shape, dtype=bool)
+        ismin[1:] &= F[1:] <= F[:-1]
+        ismin[:-1] &= F[:-1] <= F[1:]
+        # plateaus (e.g. degenerate slot hi == lo): keep only the first sample of a run
+        ismin[1:] &= ~(ismin[:-1] & (F[1:] == F[:-1]))
+        pid, sid = np.nonzero(ismin.T)                    # problem by problem
+        Rs = R[sid, :, pid]                               # (starts, 3, 3) at the starts
+        wp = ws[pid]
+        x = lo[pid] + w[pid] * t[sid]
+        f = F[sid, pid]
+        g = np.einsum("md,md->m", Rs[:, 0], Rs[:, 1]) / wp
+        h = (np.einsum("md,md->m", Rs[:, 1], Rs[:, 1])
+             + np.einsum("md,md->m", Rs[:, 0], Rs[:, 2])) / (wp * wp)
+        x, f = self._newton(Dc[pid], lo[pid], hi[pid], w[pid] / (ns - 1),
+                            (np.einsum("md,md->m", P, P)
+                             + np.einsum("mkd,mkd->m", A, A))[pid], x, f, g, h)
+        # best start per problem
+        order = np.lexsort((f, pid))
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = pid[order][1:] != pid[order][:-1]
+        best = order[first]
+        xi_out = np.empty(S)
+        f_out = np.full(S, np.inf)
+        xi_out[pid[best]] = x[best]
+        f_out[pid[best]] = f[best]
+        return xi_out, f_out, nonconvex
+
+    def _phi_rows(self, Dc):
+        """Per problem (S,), the monomial coefficients (S, p+1, 24) of the factors of the four
+        products D . D, D . r', r' . r', D . r'' (``_phi_at``): D = sum_k Dc_k xi^k, r' and
+        r'' its xi-derivatives."""
+        C3 = Dc[:, self._row_index] * self._row_factor                     # (S, 3, p+1, 3)
+        return C3[:, [0, 0, 1, 0, 0, 1, 1, 2]].transpose(0, 2, 1, 3).reshape(len(Dc), self.p + 1,
+                                                                             24)
+
+    def _phi_at(self, Q, x):
+        """phi = |D|^2 / 2, phi' = D . r', phi'' = |r'|^2 + D . r'' at x (S,) from ``_phi_rows``
+        (one matrix product and one contraction)."""
+        R = (_powers(self.p, x, 0) @ Q).reshape(len(x), 2, 4, 3)
+        s = np.einsum("skd,skd->sk", R[:, 0], R[:, 1])
+        return 0.5 * s[:, 0], s[:, 1], s[:, 2] + s[:, 3]
+
+    def _newton(self, Dc, lo, hi, dx, scale, x, f, g, h):
+        """The safeguarded Newton iteration of ``_project`` from the starts x with phi, phi',
+        phi'' = f, g, h there, all starts at once.  A start that has converged or given up is
+        frozen (its step bound dx set to 0: its later steps are 0 and leave it where it is);
+        the working rows are compacted when few remain.  Returns xi and phi of every start."""
+        n = len(x)
+        x_out, f_out = x.copy(), f.copy()
+        wid = np.arange(n)                   # the working rows' start indices
+        Q = self._phi_rows(Dc)
+        dx = dx.copy()
+        ndx = -dx
+        tiny = 1e-30 * scale
+        for _ in range(self.MAXIT):
+            newton = h > 0.0
+            step = np.sign(g)
+            step *= ndx
+            np.divide(-g, h, out=step, where=newton)
+            np.maximum(step, ndx, out=step)
+            np.minimum(step, dx, out=step)
+            xt = x + step
+            np.maximum(xt, lo, out=xt)
+            np.minimum(xt, hi, out=xt)
+            ft, gt, ht = self._phi_at(Q, xt)
+            ok = ft <= f + (1e-14 * f + tiny)
+            if not ok.all():
+                ok |= newton & (np.abs(step) < 1e-9)
+                if not ok.all():
+                    self._backtrack(Q, lo, hi, x, f, f + (1e-14 * f + tiny), newton, step,
+                                    np.flatnonzero(~ok), xt, ft, gt, ht, ok)
+            stop = (np.abs(xt - x) <= 1e-13) | ~ok       # converged, or gave up (x, f kept)
+            x, f, g, h = xt, ft, gt, ht
+            if not stop.any():
+                continue
+            dx[stop] = 0.0
+            ndx[stop] = 0.0
+            na = np.count_nonzero(dx)
+            if na == 0:
+                break
+            if na <= n // 4 and n > 64:                  # compact the working rows
+                x_out[wid], f_out[wid] = x, f
+                keep = np.flatnonzero(dx)
+                wid, Q, lo, hi, dx, ndx, tiny, x, f, g, h = (
+                    v[keep] for v in (wid, Q, lo, hi, dx, ndx, tiny, x, f, g, h))
+                n = na
+        x_out[wid], f_out[wid] = x, f
+        return x_out, f_out
+
+    def _backtrack(self, Q, lo, hi, x, f, limit, newton, step, rows, xt, ft, gt, ht, ok):
+        """Halve the Newton steps of the rows whose trial raised phi above ``limit`` until one
+        does not (at most MAXBT trials in all); fills xt, ft, gt, ht and ok of those accepted in
+        place, and puts back x and phi of those that gave up."""
+        st = step[rows]
+        for _bt in range(1, self.MAXBT):
+            st = 0.5 * st
+            xb = np.minimum(np.maximum(x[rows] + st, lo[rows]), hi[rows])
+            fb, gb, hb = self._phi_at(Q[rows], xb)
+            acc = (fb <= limit[rows]) | (newton[rows] & (np.abs(st) < 1e-9))
+            r = rows[acc]
+            xt[r], ft[r], gt[r], ht[r], ok[r] = xb[acc], fb[acc], gb[acc], hb[acc], True
+            rows, st = rows[~acc], st[~acc]
+            if rows.size == 0:
+                break
+        xt[rows], ft[rows] = x[rows], f[rows]
 
     def _stationary_min(self, P, A, lo, hi):
         """Every stationary point of phi: the real roots of the polynomial phi'(xi) = D(xi) .
@@ -630,69 +826,6 @@ class ContactKernel:
         x[ii[b][better]], f[ii[b][better]] = xr[b][better], fr[b][better]
         return x, f
 
-    def _project_chunk(self, P, A, lo, hi):
-        M = len(P)
-        ns = self.nsamp
-        tt = np.linspace(0.0, 1.0, ns)
-        X = lo[:, None] + (hi - lo)[:, None] * tt[None, :]
-        D = np.repeat(A[:, self.p][:, None, :], ns, axis=1)          # Horner
-        for j in range(self.p - 1, -1, -1):
-            D = D * X[:, :, None] + A[:, j][:, None, :]
-        D -= P[:, None, :]
-        F = 0.5 * np.einsum("msd,msd->ms", D, D)
-        left = np.concatenate([np.full((M, 1), np.inf), F[:, :-1]], axis=1)
-        right = np.concatenate([F[:, 1:], np.full((M, 1), np.inf)], axis=1)
-        ismin = (F <= left) & (F <= right)
-        # plateaus (e.g. degenerate slot hi == lo): keep only the first sample of a run
-        ismin[:, 1:] &= ~(ismin[:, :-1] & (F[:, 1:] == F[:, :-1]))
-        pid, sid = np.nonzero(ismin)
-        x = X[pid, sid].copy()
-        fx = F[pid, sid].copy()
-        Ap, Pp, lop, hip = A[pid], P[pid], lo[pid], hi[pid]
-        dx = (hip - lop) / (ns - 1)
-        scale = np.einsum("md,md->m", Pp, Pp) + np.einsum("mkd,mkd->m", Ap, Ap)
-        act = np.arange(len(x))
-        for _ in range(self.MAXIT):
-            if act.size == 0:
-                break
-            xa, Aa, Pa = x[act], Ap[act], Pp[act]
-            f0, g, H = self._fgh(xa, Aa, Pa)
-            newton = H > 0.0
-            step = np.where(newton, -g / np.where(newton, H, 1.0), -np.sign(g) * dx[act])
-            step = np.clip(step, -dx[act], dx[act])
-            xnew = xa.copy()
-            fnew = f0.copy()
-            done = np.zeros(len(act), dtype=bool)   # accepted a step (or gave up)
-            tol = 1e-14 * f0 + 1e-30 * scale[act]
-            pend = np.arange(len(act))
-            for _bt in range(self.MAXBT):
-                xt = np.clip(xa[pend] + step[pend], lop[act][pend], hip[act][pend])
-                ft = self._f(xt, Aa[pend], Pa[pend])
-                ok = (ft <= f0[pend] + tol[pend]) | (newton[pend] & (np.abs(step[pend]) < 1e-9))
-                acc = pend[ok]
-                xnew[acc] = xt[ok]
-                fnew[acc] = ft[ok]
-                done[acc] = True
-                pend = pend[~ok]
-                if pend.size == 0:
-                    break
-                step[pend] *= 0.5
-            moved = np.abs(xnew - xa)
-            x[act] = xnew
-            fx[act] = fnew
-            conv = (moved <= 1e-13) | ~done
-            act = act[~conv]
-        # best start per problem
-        order = np.lexsort((fx, pid))
-        first = np.ones(len(order), dtype=bool)
-        first[1:] = pid[order][1:] != pid[order][:-1]
-        best = order[first]
-        xi_out = np.empty(M)
-        f_out = np.full(M, np.inf)
-        xi_out[pid[best]] = x[best]
-        f_out[pid[best]] = fx[best]
-        return xi_out, f_out
-
     # -- main entry ---------------------------------------------------------------------------
     @logged("ContactEval")
     def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True, report=True):
@@ -718,33 +851,17 @@ class ContactKernel:
         what finds its zones: always made (``report`` is the interface of
         contact_potential.PotentialKernel).  Without ``tangent``, ``add_tangent`` makes mat,
         switch and switch_mat later from what the evaluation kept (``_deferred``).  ``depth``:
-        the deepest d over the Gauss and zone points (RodProblem.precheck's penetration limit)."""
+        the deepest d over the Gauss and zone points (RodProblem.precheck's penetration limit).
+
+        All strands are evaluated in one pass (``_evaluate``): strand k of own element e is the
+        virtual own element k no + e, whose candidates are the pairs of e in strand k, so
+        every closest-point search and root finding of all strands shares its calls; the
+        outputs are those of ``evaluate_strand`` strand by strand, in the same order."""
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         k = strand_index(pairs, self.nelem, self.closed,
                          int(np.ceil(self.delta / self.h)) + 1)
         nk = int(k.max()) + 1 if len(k) else 1
-        if nk == 1:
-            out = self.evaluate_strand(own_ids, x_own, other_ids, x_other, pairs, tangent)
-        else:
-            outs = [self.evaluate_strand(own_ids, x_own, other_ids, x_other, pairs[k == j],
-                                         tangent) for j in range(nk)]
-            out = outs[0]
-            for o in outs[1:]:
-                deeper = o["gap"] > out["gap"]
-                out["sbar"] = np.where(deeper, o["sbar"], out["sbar"])
-                out["gap"] = np.maximum(out["gap"], o["gap"])
-                out["force"] = out["force"] + o["force"]
-                for key in ("energy", "total_force", "complementarity", "zones"):
-                    out[key] += o[key]
-                for key in ("active", "vec", "qp", "xi", "xi_slave", "normal", "interior",
-                            "d_active", "switch"):
-                    out[key] = np.concatenate([out[key], o[key]])
-                if tangent:
-                    for key in ("mat", "switch_mat"):
-                        out[key] = np.concatenate([out[key], o[key]])
-                else:
-                    out["_deferred"] += o["_deferred"]
-        return self._depth(out)
+        return self._evaluate(own_ids, x_own, other_ids, x_other, pairs, k, nk, tangent)
 
     @staticmethod
     def _depth(out):
@@ -821,6 +938,12 @@ class ContactKernel:
           reported  True (the report is this law's own quadrature; ``report`` is ignored)
         Without ``tangent``: mat and switch_mat None, switch empty, made by ``add_tangent``.
         """
+        return self._evaluate(own_ids, x_own, other_ids, x_other, pairs, None, 1, tangent)
+
+    def _evaluate(self, own_ids, x_own, other_ids, x_other, pairs, strand, nk, tangent):
+        """``evaluate_strand`` of every strand (strand (npair,) the strand of every pair, None
+        for one), summed as ``evaluate`` describes, in one pass over the virtual own elements
+        k no + e (strand k of own element e; ``_context``)."""
         nqc, h = self.nqc, self.h
         own_ids, x_own, other_ids, x_other, pairs = self.as_inputs(own_ids, x_own, other_ids,
                                                                     x_other, pairs)
@@ -830,28 +953,43 @@ class ContactKernel:
             out["_deferred"] = []
         if no == 0 or len(pairs) == 0:
             return self._depth(out)
-        ctx = self._context(own_ids, x_own, other_ids, x_other, pairs)
+        ctx = self._context(own_ids, x_own, other_ids, x_other, pairs, strand, nk)
+        nv = no * nk
 
         # the Gauss points: reported gap and force, and the quadrature unless segments
-        cl, out["gap"], out["sbar"] = self.report_points(ctx, no)
-        out["force"] = self.mu * np.maximum(out["gap"], 0.0)
+        cl, gap, sbar = self.report_points(ctx, nv)
+        out["gap"], out["sbar"], out["force"] = self._merge_strands(gap, sbar, no, nk)
         cuts = None
         if self.segments:
-            o_q, xi_q, w_q, nz, cuts = self._zones(ctx, out["gap"])
+            o_q, xi_q, w_q, nz, cuts = self._zones(ctx, gap)
             cl = self._closest(ctx, o_q, xi_q)
             qp = np.full(len(o_q), -1, dtype=np.int64)
             out["zones"] = nz
             self._switch_terms(ctx, *cuts, tangent, out)
         else:
-            o_q = np.repeat(np.arange(no), nqc)
-            xi_q = np.tile(self.xq, no)
-            w_q = np.tile(self.wq * (0.5 * h), no)
-            qp = np.tile(np.arange(nqc), no)
+            o_q = np.repeat(np.arange(nv), nqc)
+            xi_q = np.tile(self.xq, nv)
+            w_q = np.tile(self.wq * (0.5 * h), nv)
+            qp = np.tile(np.arange(nqc), nv)
             out["zones"] = int(np.count_nonzero(cl["d"] > 0.0))
         self._terms(ctx, o_q, xi_q, w_q, qp, cl, tangent, out)
         if not tangent:             # what add_tangent needs, at the same positions
             out["_deferred"] = [(ctx, w_q, cl, cuts)]
         return self._depth(out)
+
+    def _merge_strands(self, gap, sbar, no, nk):
+        """The report of the own elements from that of the virtual ones (nk no, nqc): gap the
+        deepest d over the strands, sbar of the deepest (the first strand of a tie), force the
+        sum of mu <d> over the strands."""
+        gap, sbar = gap.reshape(nk, no, -1), sbar.reshape(nk, no, -1)
+        g, s = gap[0], sbar[0]
+        force = self.mu * np.maximum(g, 0.0)
+        for j in range(1, nk):
+            deeper = gap[j] > g
+            s = np.where(deeper, sbar[j], s)
+            g = np.maximum(g, gap[j])
+            force = force + self.mu * np.maximum(gap[j], 0.0)
+        return g, s, force
 
     # -- building blocks ----------------------------------------------------------------------
     def as_inputs(self, own_ids, x_own, other_ids, x_other, pairs):
@@ -897,19 +1035,32 @@ class ContactKernel:
         pool_ids, first = np.unique(pool_ids, return_index=True)
         return pool_ids, pool_x[first]
 
-    def _context(self, own_ids, x_own, other_ids, x_other, pairs):
+    def _context(self, own_ids, x_own, other_ids, x_other, pairs, strand=None, nk=1):
         """Master pool (other first, then own; first occurrence wins), monomial coefficients,
-        bounding spheres, and the candidate masters of every own element (CSR by own index)."""
+        bounding spheres, and the candidate masters of every own element (``cand``, a row per
+        own element in the order of the pairs, padded with -1).
+        With ``strand`` (the strand of every pair, ``strand_index``) and nk strands the own
+        elements are virtual: k no + e is strand k of own element e, with the candidates of e
+        in strand k (own_ids and x_own repeated nk times)."""
         pool_ids, pool_x = self.master_pool(own_ids, x_own, other_ids, x_other)
+        no = len(own_ids)
         oi = _lookup(own_ids, pairs[:, 0], "own")
+        if strand is not None and nk > 1:
+            oi = oi + no * np.asarray(strand, dtype=np.int64)
+            own_ids = np.tile(own_ids, nk)
+            x_own = np.tile(x_own, (nk, 1, 1))
         mi = _lookup(pool_ids, pairs[:, 1], "other")
         order = np.argsort(oi, kind="stable")
-        no = len(own_ids)
-        count = np.bincount(oi, minlength=no)
+        count = np.bincount(oi, minlength=no * nk)
+        # the candidates of every own element in the order of the pairs, padded with -1
+        cand = np.full((no * nk, int(count.max(initial=0))), -1, dtype=np.int64)
+        so = oi[order]
+        cand[so, np.arange(len(so)) - (np.cumsum(count) - count)[so]] = mi[order]
         cen, rad = element_bounds(pool_x)
         return {"own_ids": own_ids, "x_own": x_own, "pool_ids": pool_ids, "pool_x": pool_x,
                 "A_pool": np.einsum("ka,ead->ekd", self.C, pool_x), "cen": cen, "rad": rad,
-                "m_sorted": mi[order], "start": np.cumsum(count) - count, "count": count}
+                "cand": cand, "own_start": own_ids * self.h,
+                "pool_start": pool_ids.astype(float) * self.h, "no": no}
 
     def _closest(self, ctx, o, xi, rival=False):
         """Closest admissible point of the slave points (own index o, slave xi) (M,) among the
@@ -921,40 +1072,26 @@ class ContactKernel:
         rival_D, rival_kind, and kind (of the closest point)."""
         p, h = self.p, self.h
         M = len(o)
-        Ns, dNs, _ = (mm @ self.C for mm in _monomials(p, xi))
+        NN = (_powers(p, xi, 1).reshape(2 * M, p + 1) @ self.C).reshape(M, 2, p + 1)
+        Ns, dNs = NN[:, 0], NN[:, 1]
         P = np.einsum("na,nad->nd", Ns, ctx["x_own"][o])
-        s = ctx["own_ids"][o] * h + (xi + 1.0) * (0.5 * h)
+        s = ctx["own_start"][o] + (xi + 1.0) * (0.5 * h)
         res = {"d": np.full(M, -np.inf), "m": np.full(M, -1, dtype=np.int64), "xi_m": np.zeros(M),
                "interior": np.zeros(M, dtype=bool), "D": np.zeros((M, 3)), "g": np.full(M, np.inf),
                "N": Ns, "dN": dNs, "P": P}
-        cnt = ctx["count"][o]
-        tot = int(cnt.sum())
-        if tot == 0:
+        cand = ctx["cand"][o]                                        # (M, candidates)
+        lo, hi, valid = self._slots(s[:, None] - ctx["pool_start"][cand])
+        valid &= (cand >= 0)[:, :, None]
+        pr_pt, c, slot = np.nonzero(valid)
+        if pr_pt.size == 0:
             return res
-        pt = np.repeat(np.arange(M), cnt)
-        offs = np.arange(tot) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        pm = ctx["m_sorted"][np.repeat(ctx["start"][o], cnt) + offs]
-        lo, hi, valid = self.admissible_slots(s[pt], ctx["pool_ids"][pm])
-        sel, slot = np.nonzero(valid)
-        if sel.size == 0:
-            return res
-        pr_pt, pr_m = pt[sel], pm[sel]
-        pr_lo, pr_hi = lo[sel, slot], hi[sel, slot]
-        # prune (exactly): a slot whose element's bounding sphere is farther from the slave point
-        # than some admissible point (a slot end) of another slot cannot hold the minimum
+        pr_m = cand[pr_pt, c]
+        pr_lo, pr_hi = self._to_xi(lo[pr_pt, c, slot]), self._to_xi(hi[pr_pt, c, slot])
         A = ctx["A_pool"]
         Pp = P[pr_pt]
-        lb = np.linalg.norm(Pp - ctx["cen"][pr_m], axis=1) - ctx["rad"][pr_m]
-        kk = np.arange(p + 1)
-        ub = np.minimum(
-            np.linalg.norm(np.einsum("mk,mkd->md", pr_lo[:, None] ** kk, A[pr_m]) - Pp, axis=1),
-            np.linalg.norm(np.einsum("mk,mkd->md", pr_hi[:, None] ** kk, A[pr_m]) - Pp, axis=1))
-        best_ub = np.full(M, np.inf)
-        np.minimum.at(best_ub, pr_pt, ub)
-        keep = lb <= best_ub[pr_pt] * (1.0 + 1e-9) + 1e-300
-        if rival:
-            keep[:] = True
-        pr_pt, pr_m, pr_lo, pr_hi, Pp = (a[keep] for a in (pr_pt, pr_m, pr_lo, pr_hi, Pp))
+        if not rival and len(pr_pt) > self.PRUNE:
+            keep = self._prune(ctx, M, Pp, pr_pt, pr_m, pr_lo, pr_hi)
+            pr_pt, pr_m, pr_lo, pr_hi, Pp = (a[keep] for a in (pr_pt, pr_m, pr_lo, pr_hi, Pp))
         xm, f = self.project(Pp, A[pr_m], pr_lo, pr_hi)
         # global minimum per slave point (ties, e.g. a shared node: the first one only)
         best = _nearest_per_point(np.arange(len(f)), f, pr_pt)
@@ -963,13 +1100,28 @@ class ContactKernel:
         res["xi_m"][b] = xm[best]
         res["interior"][b] = (xm[best] > pr_lo[best]) & (xm[best] < pr_hi[best])
         Dv = self._offset(ctx, P[b], pr_m[best], xm[best])
-        g = np.linalg.norm(Dv, axis=1)
+        g = np.sqrt(np.einsum("nd,nd->n", Dv, Dv))
         res["D"][b] = Dv
         res["g"][b] = g
         res["d"][b] = 2.0 * self.eps - g
         if rival:
             self._rival(ctx, res, P, pr_pt, pr_m, pr_lo, pr_hi, xm, f, b, best)
         return res
+
+    def _prune(self, ctx, M, Pp, pr_pt, pr_m, pr_lo, pr_hi):
+        """The slots (pr_*, sorted by slave point pr_pt) that may hold the closest point of
+        their slave point Pp: a slot whose element's bounding sphere is farther from the slave
+        point than an admissible point (a slot end) of another slot cannot (exact: the
+        projection of the kept slots gives the same closest points; only worth its cost when
+        there are many slots)."""
+        A = ctx["A_pool"][pr_m]
+        lb = np.linalg.norm(Pp - ctx["cen"][pr_m], axis=1) - ctx["rad"][pr_m]
+        W = _powers(self.p, np.stack([pr_lo, pr_hi], axis=1), 0)[:, :, 0]     # (n, 2, p+1)
+        ends = W @ A - Pp[:, None, :]
+        ub = np.sqrt(np.einsum("nkd,nkd->nk", ends, ends).min(axis=1))
+        first = np.flatnonzero(np.r_[True, pr_pt[1:] != pr_pt[:-1]])
+        best_ub = np.minimum.reduceat(ub, first)
+        return lb <= np.repeat(best_ub, np.diff(np.r_[first, len(ub)])) * (1.0 + 1e-9) + 1e-300
 
     def _rival(self, ctx, res, P, pr_pt, pr_m, pr_lo, pr_hi, xm, f, b, best):
         """The runner-up of ``_closest`` (rival=True): among the per-element minima (pr_*, xm,
@@ -1010,15 +1162,10 @@ class ContactKernel:
             t[bound] -= np.einsum("nk,nkd->nd", dNm, ctx["A_pool"][cl["m"][bound]])
         return np.where(has, -np.einsum("nd,nd->n", cl["D"], t) / g, 0.0)
 
-    def _solve1d(self, ctx, o, a, b, fa, fb, which, iters=40, target=None, negate=None,
-                 bracket=False):
+    def _solve1d(self, ctx, o, a, b, fa, fb, which, iters=40):
         """Illinois (modified regula falsi) root of f on [a, b], f(a), f(b) of opposite signs,
-        vectorised; f = d (which 0) or d' (which 1) of the slave points of own index o, or (which
-        3, by bisection) +1 / -1 as the kind of closest point (``_kind``) is or is not target
-        (where ``negate``: is not target; kinds may be negative, so the flag is separate).
-        Bisection where a value is not finite.  Returns the
-        root (to 1e-13 in xi), and with ``bracket`` also the final bracket ends (a on the side
-        of the initial a)."""
+        vectorised; f = d (which 0) or d' (which 1) of the slave points of own index o.
+        Bisection where a value is not finite.  Returns the root (to 1e-13 in xi)."""
         a, b, fa, fb = (np.array(v, dtype=float) for v in (a, b, fa, fb))
         x = 0.5 * (a + b)
         dx_tol = 1e-13
@@ -1028,22 +1175,82 @@ class ContactKernel:
             if act.size == 0:
                 break
             A_, B_, FA, FB = a[act], b[act], fa[act], fb[act]
-            ok = np.isfinite(FA) & np.isfinite(FB) & (FA != FB) & (which != 3)
+            ok = np.isfinite(FA) & np.isfinite(FB) & (FA != FB)
             c = np.where(ok, (A_ * FB - B_ * FA) / np.where(ok, FB - FA, 1.0), 0.5 * (A_ + B_))
-            c = np.clip(c, np.minimum(A_, B_), np.maximum(A_, B_))
+            c = np.minimum(np.maximum(c, np.minimum(A_, B_)), np.maximum(A_, B_))
             cl = self._closest(ctx, o[act], c)
-            if which == 0:
-                fc = cl["d"]
-            elif which == 1:
-                fc = self._ddxi(ctx, o[act], cl)
-            else:
-                hit = self._kind(ctx, cl) == target[act]
-                fc = np.where(hit != negate[act], 1.0, -1.0)
+            fc = cl["d"] if which == 0 else self._ddxi(ctx, o[act], cl)
             x[act] = c
             _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc)
             done = (np.abs(b[act] - a[act]) <= dx_tol) | (fc == 0.0)
             act = act[~done]
-        return (x, a, b) if bracket else x
+        return x
+
+    def _bisect_kind(self, ctx, o, a, b, target, negate, iters=60):
+        """Bisection of [a, b] (a < b) for where the kind of closest point (``_kind``) of the
+        slave points of own index o stops being target (where ``negate``: starts being target;
+        kinds may be negative, so the flag is separate): a moves to the midpoint c where the
+        test holds at c, b otherwise, until b - a <= 1e-13 (at most ``iters`` steps).  Returns
+        the last midpoint and the final bracket ends.
+
+        The steps are the bisection's own, but several at once: the midpoints of the next
+        levels of every problem's bisection tree (2^levels - 1 points: every bracket that
+        ``levels`` steps can reach) are located in one ``_closest`` call, and the path the
+        bisection takes through them is read off; levels from the number of problems
+        (``BISECT_POINTS`` points per call at most)."""
+        a, b = np.array(a, dtype=float), np.array(b, dtype=float)
+        x = 0.5 * (a + b)
+        steps = np.zeros(len(a), dtype=np.int64)
+        act = np.arange(len(a))
+        while act.size:
+            na = len(act)
+            want = int(np.ceil(np.log2(max(float(np.max(b[act] - a[act])), 1e-300) / 1e-13)))
+            levels = int(max(1, min(np.log2(self.BISECT_POINTS / na + 1.0), want,
+                                    iters - steps[act].min())))
+            # the tree: brackets (lo, hi) of every node, level by level (node j's children:
+            # 2j with a moved to its midpoint, 2j + 1 with b moved)
+            los, his, mids = [a[act][:, None]], [b[act][:, None]], []
+            for lev in range(levels):
+                lo_, hi_ = los[lev], his[lev]
+                c = 0.5 * (lo_ + hi_)
+                mids.append(np.minimum(np.maximum(c, np.minimum(lo_, hi_)), np.maximum(lo_, hi_)))
+                if lev + 1 < levels:
+                    los.append(np.stack([mids[lev], lo_], axis=2).reshape(na, -1))
+                    his.append(np.stack([hi_, mids[lev]], axis=2).reshape(na, -1))
+            # the nodes bisection would visit: bracket still wider than 1e-13, steps left
+            need = [np.ones((na, 1), dtype=bool)] + \
+                [(his[lev] - los[lev] > 1e-13) & (steps[act] + lev < iters)[:, None]
+                 for lev in range(1, levels)]
+            nodes = [np.nonzero(nd) for nd in need]          # (problem, node) per level
+            pr = np.concatenate([p for p, _ in nodes])
+            pc = np.concatenate([mids[lev][p, j] for lev, (p, j) in enumerate(nodes)])
+            hit = self._kind(ctx, self._closest(ctx, o[act][pr], pc)) == target[act][pr]
+            moves_a = hit != negate[act][pr]
+            outcome, k0 = [], 0
+            for lev, (p, j) in enumerate(nodes):
+                out_lev = np.zeros(need[lev].shape, dtype=bool)
+                out_lev[p, j] = moves_a[k0:k0 + len(p)]
+                outcome.append(out_lev)
+                k0 += len(p)
+            # follow every problem's path down its tree
+            node = np.zeros(na, dtype=np.int64)
+            alive = np.arange(na)
+            for lev in range(levels):
+                nd = node[alive]
+                mid = mids[lev][alive, nd]
+                left = outcome[lev][alive, nd]
+                g = act[alive]
+                x[g] = mid
+                a[g] = np.where(left, mid, los[lev][alive, nd])
+                b[g] = np.where(left, his[lev][alive, nd], mid)
+                steps[g] += 1
+                node[alive] = 2 * nd + ~left
+                done = (b[g] - a[g] <= 1e-13) | (steps[g] >= iters)
+                alive = alive[~done]
+                if alive.size == 0:
+                    break
+            act = act[alive]
+        return x, a, b
 
     def _kind(self, ctx, cl):
         """Canonical kind of the closest points: 2 k at master node k (an element end; both
@@ -1103,12 +1310,10 @@ class ContactKernel:
         zs, cs, ls, rs = [], [], [], []
         for _ in range(8):
             nk = len(bz)
-            one = np.ones(nk)
-            cut, left, right = self._solve1d(ctx, np.concatenate([oz[bz], oz[bz]]),
-                                             np.tile(ba, 2), np.tile(bb, 2),
-                                             np.tile(one, 2), -np.tile(one, 2), 3, iters=60,
-                                             target=np.concatenate([ka, kb]),
-                                             negate=np.repeat([False, True], nk), bracket=True)
+            cut, left, right = self._bisect_kind(ctx, np.concatenate([oz[bz], oz[bz]]),
+                                                 np.tile(ba, 2), np.tile(bb, 2),
+                                                 np.concatenate([ka, kb]),
+                                                 np.repeat([False, True], nk))
             two = np.abs(cut[nk:] - cut[:nk]) > 1e-12
             distinct = np.r_[np.ones(nk, dtype=bool), two]
             zs.append(np.tile(bz, 2)[distinct])
@@ -1120,15 +1325,20 @@ class ContactKernel:
             # the inner sides: the first point past a's cut, the last point before b's
             inner_a, inner_b = right[:nk][two], left[nk:][two]
             oi = oz[bz[two]]
-            k1 = self._kind(ctx, self._closest(ctx, oi, inner_a))
-            k2 = self._kind(ctx, self._closest(ctx, oi, inner_b))
+            k1, k2 = np.split(self._kind(ctx, self._closest(ctx, np.r_[oi, oi],
+                                                            np.r_[inner_a, inner_b])), 2)
             more = k1 != k2
             if not np.any(more):
                 break
             bz, ba, bb, ka, kb = bz[two][more], inner_a[more], inner_b[more], k1[more], k2[more]
         cz, cut = np.concatenate(zs), np.concatenate(cs)
-        oc, left, right = oz[cz], np.concatenate(ls), np.concatenate(rs)
-        cuts = (oc, left, right, self._closest(ctx, oc, left), self._closest(ctx, oc, right))
+        left, right = np.concatenate(ls), np.concatenate(rs)
+        if len(ctx["own_ids"]) > ctx["no"]:          # strand by strand (_context)
+            srt = np.argsort(oz[cz] // ctx["no"], kind="stable")
+            cz, cut, left, right = cz[srt], cut[srt], left[srt], right[srt]
+        oc = oz[cz]
+        both = self._closest(ctx, np.r_[oc, oc], np.r_[left, right])
+        cuts = (oc, left, right) + _split_record(both, len(oc))
         level = self._cut_levels(ctx, *cuts)
         zid = np.concatenate([np.arange(len(za)), np.arange(len(za)), cz])
         pts = np.concatenate([za, zb, cut])
@@ -1338,18 +1548,17 @@ class ContactKernel:
         r1, c1 = np.nonzero(pos & ~nxt)           # zone ends (same row order: row-major)
         za = X[r0, c0].copy()
         zb = X[r1, c1].copy()
-        # roots of d between a start and the point before it (xi = -1 has no point before)
-        need = c0 > 0
-        if np.any(need):
-            rr, cc = r0[need], c0[need]
-            za[need] = self._solve1d(ctx, cand[rr], X[rr, cc - 1], X[rr, cc], D[rr, cc - 1],
-                                        D[rr, cc], 0)
-        need = (c1 + 1 < X.shape[1])
-        need[need] = X[r1[need], c1[need] + 1] <= 1.0
-        if np.any(need):
-            rr, cc = r1[need], c1[need]
-            zb[need] = self._solve1d(ctx, cand[rr], X[rr, cc], X[rr, cc + 1], D[rr, cc],
-                                        D[rr, cc + 1], 0)
+        # roots of d between a start and the point before it (xi = -1 has no point before),
+        # and between an end and the point after it, in one solve
+        at_start = c0 > 0
+        at_end = (c1 + 1 < X.shape[1])
+        at_end[at_end] = X[r1[at_end], c1[at_end] + 1] <= 1.0
+        if np.any(at_start) or np.any(at_end):
+            ra, ca, rb, cb = r0[at_start], c0[at_start], r1[at_end], c1[at_end]
+            root = self._solve1d(ctx, cand[np.r_[ra, rb]], np.r_[X[ra, ca - 1], X[rb, cb]],
+                                 np.r_[X[ra, ca], X[rb, cb + 1]], np.r_[D[ra, ca - 1], D[rb, cb]],
+                                 np.r_[D[ra, ca], D[rb, cb + 1]], 0)
+            za[at_start], zb[at_end] = root[:len(ra)], root[len(ra):]
         nz = len(za)
         oz, za, zb, cuts = self._split_zones(ctx, cand[r0], za, zb)
         oz = np.repeat(oz, self.nqz)

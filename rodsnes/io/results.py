@@ -264,7 +264,7 @@ class ResultWriter:
         is rewritten only while the rewrites so far took at most ``XDMF_SHARE`` (5 %) of the
         writer's wall time, and at :meth:`close` when steps were left out: a long run's view lags
         by a bounded share of its time instead of costing O(steps^2) (regenerate it at any moment
-        with ``python -m rodsnes.output DIR``).  With False call :func:`write_xdmf` at the end.
+        with ``python -m rodsnes.io.results DIR``).  With False call :func:`write_xdmf` at the end.
     parallel_io : bool or None
         None (default): collective MPI-IO (h5py ``mpio`` driver) when ``comm.size > 1`` and h5py is built
         with MPI, else gather to rank 0. False forces the gather (e.g. on file systems without MPI-IO).
@@ -464,7 +464,7 @@ class ResultWriter:
             self._xdmf_stale = False
         except Exception as exc:  # noqa: BLE001 - result.h5 is complete; the view is derived
             warnings.warn(f"rod.xdmf not updated after step {self.last_step}: {type(exc).__name__}: "
-                          f"{exc} (regenerate with: python -m rodsnes.output {self.outdir})")
+                          f"{exc} (regenerate with: python -m rodsnes.io.results {self.outdir})")
         self._xdmf_seconds += time.perf_counter() - t0
 
     def _group_setup(self, f, step, attrs):
@@ -949,7 +949,7 @@ def write_xdmf(outdir):
 
 
 def _main(argv=None):
-    """``python -m rodsnes.output DIR``: regenerate rod.xdmf/rod.h5 from result.h5."""
+    """``python -m rodsnes.io.results DIR``: regenerate rod.xdmf/rod.h5 from result.h5."""
     import argparse
 
     ap = argparse.ArgumentParser(description=_main.__doc__)

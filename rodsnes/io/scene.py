@@ -233,7 +233,9 @@ class O:
                     "equilibrium), newton (a zero of the residual, with cut-back; the only choice "
                     "for follower loads and 3-D end moments); auto: minimize where the loads are "
                     "conservative", "load", choices=("auto", "minimize", "newton"))
-    load_max_it = Opt(INT, 200, "-load_path minimize: most Newton iterations of one load step",
+    load_max_it = Opt(INT, 200, "-load_path minimize: Newton iterations after which a load step "
+                      "that has stopped lowering the energy fails (and is cut back); one still "
+                      "descending (a jump past a fold) goes on, up to 10 times as many",
                       "load", rng="[1,inf)", note="a number of Newton iterations")
     load_predictor = Opt(BOOL, True, "start each load step from the secant predictor through "
                          "the last two converged states", "load")

@@ -70,6 +70,10 @@ FREE_STEPS = True
 TARGET_ITS = 20
 PREDICTOR = True
 LINE_SEARCH_TRIES = 30
+# past -load_max_it, a minimisation goes on while the energy still falls by more than PROGRESS
+# of its scale per max_it / 4 iterations, up to MAX_IT_FACTOR x max_it (_descending)
+PROGRESS = 1e-9
+MAX_IT_FACTOR = 10
 
 
 class MinimizeResult:
@@ -211,6 +215,18 @@ class EnergyMinimizer:
         return self._same(self.comm.allreduce(t, op=MPI.MAX)), \
             self._same(self.comm.allreduce(r, op=MPI.MAX))
 
+    def _descending(self, energies, its):
+        """Past -load_max_it iterations, whether the minimisation is still going somewhere:
+        over the last quarter of max_it iterations the energy fell by more than PROGRESS of its
+        scale (a jump past a fold: the minimum the step started near is gone, and the descent to
+        the next one takes hundreds of iterations; cutting the increment back would only return
+        to the fold).  Never beyond MAX_IT_FACTOR x max_it."""
+        window = max(10, self.max_it // 4)
+        if its >= MAX_IT_FACTOR * self.max_it or len(energies) <= window:
+            return False
+        drop = energies[-window - 1] - energies[-1]
+        return bool(drop > PROGRESS * (abs(energies[-1]) + self.energy_scale))
+
     def _longest_step(self, d):
         """The largest multiple (<= 1) of d within the move limits (module docstring, 4.)."""
         p = self.problem
@@ -248,6 +264,7 @@ class EnergyMinimizer:
         d = X.duplicate()
         Xt = X.duplicate()
         hist = []
+        energies = []               # E at every iterate: is the minimisation still descending?
         its = shifts = cuts = escapes = free_steps = 0
         nneg, reason, prev = -1, "iteration limit", np.inf
         watch = None                # the watchdog's reference point (module docstring, 4.)
@@ -270,7 +287,7 @@ class EnergyMinimizer:
                 if small and nneg == 0:
                     reason = "converged"
                     break
-            if its >= self.max_it:
+            if its >= self.max_it and not self._descending(energies, its):
                 break
             prev = gnorm
             if not newton:
@@ -287,6 +304,7 @@ class EnergyMinimizer:
             slope = self._same(g.dot(d))
             alpha = self._longest_step(d)
             E0, depth0 = self.energy_at(X)
+            energies.append(E0)
             if watch is not None and E0 <= watch["E"] + ARMIJO * watch["alpha"] * watch["slope"]:
                 watch = None                    # the free steps have paid off
             if watch is not None and watch["steps"] >= WATCHDOG_STEPS:

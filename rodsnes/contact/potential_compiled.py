@@ -1,0 +1,119 @@
+"""Compiled pair-potential contact kernel: the couples in contact, energy, residual rows and
+tangent blocks of contact_potential.PotentialKernel, element pair by element pair in C.
+
+rodsnes/contact/_potential_kernel.c (plain C99, built by setup.py as the extension
+rodsnes.contact._potential_kernel and loaded here with ctypes) goes once over the nqp x (nqp + 2)
+point couples of every near element pair, keeps the admissible ones closer than 2 eps (the
+same floating-point operations as the numpy path: the same couples), and sums their energy
+k W psi(a) and their forces per slave and master point, contracted with the shape functions
+into the residual rows; the tangent sums the couples' Hessians (6 entries) per slave point,
+per master point and per slave point and master shape function, and contracts them into the
+blocks.  The numpy path of PotentialKernel stays the reference: equal to round-off
+(tests/test_contact_potential.py).
+
+C entry points (int64 indices, C-contiguous float64 arrays):
+
+    int64 rodsnes_potential_residual(nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem, h, delta,
+        L, closed, sq, sm, Np, Nm, wpJ, wm, two_eps, a_s, k, maxc, cp, cq, cj, cr, act, vec,
+        work, result)       -> number of couples in contact (-1: more than maxc)
+    int64 rodsnes_potential_tangent(nc, nqp, nm, n1, xs, xm, oi, mi, Np, Nm, wpJ, wm,
+        two_eps, a_s, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
+"""
+import ctypes
+import importlib.util
+import os
+
+import numpy as np
+
+_LIB = None             # (residual, tangent) ctypes functions, False once loading failed
+
+
+def library_path():
+    """Path of the built shared library (the extension module file), or None."""
+    try:
+        spec = importlib.util.find_spec("rodsnes.contact._potential_kernel")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or not spec.origin or not os.path.isfile(spec.origin):
+        return None
+    return spec.origin
+
+
+def _load():
+    global _LIB
+    if _LIB is None:
+        _LIB = False
+        path = library_path()
+        if path is not None:
+            try:
+                lib = ctypes.CDLL(path)
+            except OSError:
+                return _LIB
+            f64 = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
+            i64 = np.ctypeslib.ndpointer(dtype=np.int64, flags="C_CONTIGUOUS")
+            n, x = ctypes.c_int64, ctypes.c_double
+            res = lib.rodsnes_potential_residual
+            res.argtypes = [n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x, ctypes.c_int,
+                            f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
+                            f64, f64, f64]
+            res.restype = n
+            tan = lib.rodsnes_potential_tangent
+            tan.argtypes = [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, x, x,
+                            i64, i64, i64, f64, n, f64, f64]
+            tan.restype = n
+            _LIB = (res, tan)
+    return _LIB
+
+
+def available():
+    """True when the compiled kernel is built and loads."""
+    return bool(_load())
+
+
+def _c(a, dtype=np.float64):
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+def couples(kern, c, scratch):
+    """The couples in contact of the near pairs of ``c`` (PotentialKernel._near_pairs), with
+    the energy, the depth and the residual rows, into ``c``: couples (p, q, j, |D|) sorted by
+    (pair, q, j), act (the rows' pairs), vec (rows, 2(p+1), 3), energy, depth.  ``scratch``
+    (name, shape, dtype) -> array gives the kernel's reusable buffers."""
+    res, _ = _load()
+    oi, mi, e, m = (_c(c[v], np.int64) for v in ("oi", "mi", "e", "m"))
+    xs, xm = _c(c["xs"]), _c(c["xm"])
+    nn, nqp, nm, n1 = len(oi), kern.nqp, kern.nqp + 2, kern.p + 1
+    wm = _c(kern.master_weights(m))
+    maxc = nn * nqp * nm
+    cp, cq, cj = (scratch(v, (maxc,), np.int64) for v in ("cp", "cq", "cj"))
+    cr = scratch("cr", (maxc,), np.float64)
+    act = np.empty(nn, dtype=np.int64)
+    vec = np.empty((nn, 2 * n1, 3))
+    work = np.empty((nqp + nm) * 3)
+    result = np.empty(3)
+    nc = res(nn, nqp, nm, n1, xs, xm, oi, mi, e, m, kern.nelem, kern.h, kern.delta, kern.L,
+             int(bool(kern.closed)), kern._sq, kern._sm, kern._Npc, kern._Nmc, kern._wpJ, wm,
+             2.0 * kern.eps, kern.a_s, kern.k, maxc, cp, cq, cj, cr, act, vec, work, result)
+    if nc < 0:
+        raise RuntimeError("rodsnes_potential_residual: more couples than point couples")
+    nrow = int(result[2])
+    c.update(couples=(cp[:nc].copy(), cq[:nc].copy(), cj[:nc].copy(), cr[:nc].copy()),
+             act=act[:nrow], vec=vec[:nrow], energy=float(result[0]), wm_table=wm,
+             depth=2.0 * kern.eps - float(np.sqrt(result[1])) if nn else -np.inf)
+    return c
+
+
+def tangent(kern, c):
+    """(rows, 6(p+1), 6(p+1)): the tangent blocks of the rows of ``couples``."""
+    _, tan = _load()
+    nqp, nm, n1 = kern.nqp, kern.nqp + 2, kern.p + 1
+    nrow = len(c["act"])
+    mat = np.empty((nrow, 6 * n1, 6 * n1))
+    work = np.empty((nqp + nm + nqp * n1) * 6)
+    p, q, j, r = c["couples"]
+    got = tan(len(p), nqp, nm, n1, _c(c["xs"]), _c(c["xm"]), _c(c["oi"], np.int64),
+              _c(c["mi"], np.int64), kern._Npc, kern._Nmc, kern._wpJ, c["wm_table"],
+              2.0 * kern.eps, kern.a_s, kern.k, p, q, j, r, nrow, mat, work)
+    if got != nrow:
+        raise RuntimeError(f"rodsnes_potential_tangent: {got} rows, expected {nrow}")
+    return mat
