@@ -127,7 +127,7 @@ class Run:
         self.problem.set_load(self.lam0)
         # the steps the interrupted run would have taken next: its next increment, and the
         # secant predictor through the step before (none across a step flagged branch_switch:
-        # files written by earlier versions, e.g. cases/checkpoints)
+        # files written by earlier versions)
         dlam = last["attrs"].get("next_increment")
         self.dlam0 = None if dlam is None else float(dlam)
         arc = last["attrs"].get("arclength_from")

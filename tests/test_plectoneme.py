@@ -1,9 +1,9 @@
 """The twisted clamped rod of cases/plectoneme.opts (the PyElastica plectoneme scene: L = 1,
 radius 0.025, E = 1e6, G = E/1.5, end clamped in rotation and sliding along the axis under a
-small tension), here to 1.5 turns instead of 10 with 40 elements so that it fits the test budget (~3 min): the
-straight rod's loop formation is a fold of the stable path, which -stability passes by
-relaxation (jump_branch) into a loop in self-contact.  The full 10 turns are a batch run
-(README, Plectoneme)."""
+small tension), here to 1.5 turns instead of 10 with 40 elements so that it fits the test budget: the
+straight rod's loop formation is a descent of the energy minimisation into a loop in
+self-contact.  The full 10 turns (README, Plectoneme) are checked through their stored last
+state (tests/data/plectoneme_10)."""
 import os
 
 import numpy as np
@@ -38,66 +38,43 @@ def test_twisted_rod_snaps_into_a_loop_in_self_contact():
     assert np.isfinite(run.last_energy)
 
 
-CHECKPOINTS = os.path.join(ROOT, "cases", "checkpoints")
-# checkpoints that break the penetration promise (the stable branch at
-# 9.415 turns presses the rod 2.3 % into the start clamp's mount at the penalty of the switch;
-# the first load step from it raises the penalty): kept to go on from, with their measured
-# penetration held here
-OVER_PROMISE = {"plectoneme_9.415_switched": 0.0227}
-# the contact law of each checkpoint's path: the closest-point law up to session 24, the pair
-# potential of cases/plectoneme.opts since (docs/contact.md: contact law)
-PROJECTION = ("plectoneme_7.2", "plectoneme_7.54", "plectoneme_9.12", "plectoneme_9.19",
-              "plectoneme_9.41", "plectoneme_9.415_switched", "plectoneme_9.72")
-
-
-def law(name):
-    return "projection" if name in PROJECTION else "potential"
-
-
-def _checkpoints():
-    return sorted(d for d in os.listdir(CHECKPOINTS)
-                  if os.path.exists(os.path.join(CHECKPOINTS, d, "result.h5")))
-
-
-def test_the_plectoneme_checkpoints_are_kept():
-    """README (Plectoneme) resumes the 10-turn run from cases/checkpoints/: they must be there."""
-    assert len(_checkpoints()) >= 1
+# the plectoneme of cases/plectoneme.opts from the straight rod in one command (README,
+# Plectoneme): the step before 10 turns (9.98 turns), kept by tools/checkpoint.py
+TEN_TURNS = os.path.join(ROOT, "tests", "data", "plectoneme_10")
 
 
 @pytest.mark.slow
 @pytest.mark.mpi
-@pytest.mark.parametrize("name", _checkpoints() if os.path.isdir(CHECKPOINTS) else [])
-def test_a_plectoneme_checkpoint_is_an_equilibrium_of_the_current_code(name, tmp_path, monkeypatch):
-    """A checkpoint of the batch run (tools/checkpoint.py) read back by -restart, as the README's
-    resume command does, is still an equilibrium of this code's rod and contact terms: the
-    residual at the stored state within the load steps' tolerance (or twice the residual stored
-    with it), Lk = the imposed turns within 1e-2 and Tw + Wr = Lk, penetration within 1 % of
-    the diameter (OVER_PROMISE: within its measured value), the stored penalty and energy
-    restored.  A change to the energy, the contact
-    term or the result format that moves the plectoneme's equilibria fails here."""
-    from rodsnes.contact import potential as contact_potential
+def test_the_ten_turn_plectoneme_is_an_equilibrium_of_the_current_code(tmp_path):
+    """The stored state at 9.98 turns read back by -restart is still an equilibrium of this
+    code's rod and contact terms: the residual within the load steps' tolerance (or twice the
+    residual stored with it), the stored penalty and energy restored (1e-9), Lk = the imposed
+    turns within 1e-9 and Tw + Wr = Lk, penetration within 1 % of the diameter, stable.  The
+    last load step from there ends where the run from the straight rod ended: 10 turns, energy
+    356.8704 (1e-7), writhe 3.774, stable.  A change to the energy, the contact term or the
+    result format that moves the plectoneme's equilibria fails here."""
     from rodsnes.io import results as output
-    # the pair-potential checkpoints were made with the quadratic law (no onset layer,
-    # contact_potential.ONSET = 0), before the C2 onset became the default
-    monkeypatch.setattr(contact_potential, "ONSET", 0.0)
-    ckpt = os.path.join(CHECKPOINTS, name)
-    last = output.read_step(ckpt, -1)
-    run = build_run("plectoneme", outdir=tmp_path, restart=ckpt, contact_model=law(name))
+    last = output.read_step(TEN_TURNS, -1)
+    run = build_run("plectoneme", outdir=tmp_path, restart=TEN_TURNS)
     p = run.problem
     assert run.lam0 == last["attrs"]["load"] and run.step == last["step"]
     assert run.contact.mu == last["attrs"]["contact_penalty"]
     F = p.F.duplicate()
     p.residual(None, p.state.X, F)
-    fnorm = F.norm()
-    assert fnorm <= max(run.solver.tolerance(), 2 * last["attrs"]["residual_norm"])
+    assert F.norm() <= max(run.solver.tolerance(), 2 * last["attrs"]["residual_norm"])
     _, energy, cattrs, _, topo = run.observe()
     assert abs(energy - last["attrs"]["energy"]) <= 1e-9 * abs(energy)
-    turns = run.scene.bc.end_turns * run.lam0
-    assert abs(topo["link"] - turns) < 1e-2
+    assert abs(topo["link"] - 10.0 * run.lam0) < 1e-9
     assert abs(topo["twist"] + topo["writhe"] - topo["link"]) < 1e-9
-    assert 0.0 < cattrs["contact_max_penetration"] <= OVER_PROMISE.get(name, 0.01) * (1 + 1e-6)
-    if name in OVER_PROMISE:
-        assert last["attrs"]["negative_eigenvalues"] == 0 and last["attrs"]["branch_switch"]
+    assert 0.0 < cattrs["contact_max_penetration"] <= 0.01
+    assert last["attrs"]["negative_eigenvalues"] == 0
+    run.execute()
+    s = run.summary(converged=True)
+    assert run.problem.lam == 1.0 and s["stable"] is True
+    assert abs(s["energy"] - 356.87040390555586) <= 1e-7 * 356.9
+    assert abs(s["topology"]["link"] - 10.0) < 1e-9
+    assert abs(s["topology"]["writhe"] - 3.7742) < 1e-3
+    assert s["contact"]["max_penetration"] <= 0.01
 
 
 @pytest.mark.slow
@@ -105,15 +82,12 @@ def test_a_penalty_raise_whose_solve_fails_is_cut_back_to_a_smaller_one(tmp_path
     """-contact_penalty_adapt: a re-solve at the raised mu that fails (faked: the first solve of
     the raise reports failure without moving) is tried again with the
     geometric mean of the two penalties, and the raises go on from there until the promise
-    holds (the plectoneme's switched state at 9.415 turns: x 2.8 failed Newton, x 1.25
-    converged in 22 its).  The checkpoint at 7.2 turns held to 0.6 %.  Without the cut-back
-    the raise fails and the state keeps its penetration."""
+    holds: the 10-turn plectoneme (0.95 % of the diameter) held to 0.6 %.  Without the
+    cut-back the raise fails and the state keeps its penetration."""
     from rodsnes.solve.newton import StepResult
-    ckpt = os.path.join(CHECKPOINTS, "plectoneme_7.2")
     target = 0.006
-    run = build_run("plectoneme", outdir=tmp_path, restart=ckpt, load_path="newton",
-                    contact_penetration=target,
-                    contact_model=law("plectoneme_7.2"))
+    run = build_run("plectoneme", outdir=tmp_path, restart=TEN_TURNS, load_path="newton",
+                    contact_penetration=target)
     s, c = run.solver, run.contact
     newton, tried = s.solve_guarded, []
 

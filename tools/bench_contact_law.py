@@ -8,8 +8,8 @@ laws    one kernel evaluation under the two contact laws, on the plectoneme's st
         the closest-point law with contact zones (-contact_model projection) with its tangent,
         and the pair potential (-contact_model potential) with tangent and report, residual
         alone, tangent and report made afterwards (PotentialKernel.add_tangent, add_report);
-term    the contact term of the assembled problem (ContactTerm) at the stored 9.72-turn state
-        (cases/checkpoints/plectoneme_9.72 read by -restart, as tests/test_plectoneme.py does)
+term    the contact term of the assembled problem (ContactTerm) at the stored 10-turn state
+        (tests/data/plectoneme_10 read by -restart, as tests/test_plectoneme.py does)
         with the case's pair potential: a residual at new positions (a Newton iterate or a
         line-search trial), the Jacobian after it, the pattern check of a Newton step, the
         report of a converged step; the candidate searches made and reused;
@@ -82,7 +82,7 @@ def term():
             tok = line.split("#", 1)[0].split()
             if tok:
                 opts.setValue(tok[0].lstrip("-"), " ".join(tok[1:]))
-    for k, v in (("restart", os.path.join(ROOT, "cases", "checkpoints", "plectoneme_9.72")),
+    for k, v in (("restart", os.path.join(ROOT, "tests", "data", "plectoneme_10")),
                  ("output_dir", tempfile.mkdtemp(prefix="bench_contact_law_")), ("quiet", "")):
         opts.setValue(k, v)
     run = Run(read_scene(["rodsnes"], opts), PETSc.COMM_WORLD)
@@ -113,7 +113,7 @@ def term():
          "report (summary) after a residual": cpu_ms(
              lambda: (c.add_residual(new(), Floc), c.summary())) - cpu_ms(
              lambda: c.add_residual(new(), Floc))}
-    print(f"term (plectoneme 9.72 turns, {c.model}): searches {c.searches}, reused "
+    print(f"term (plectoneme 10 turns, {c.model}): searches {c.searches}, reused "
           f"{c.search_reuses}, cache hits {c.cache_hits}")
     for k, v in t.items():
         print(f"  {k:40s} {v:9.2f} ms")

@@ -8,8 +8,8 @@ its last ``--steps`` complete steps, 2 by default: the last state, and the step 
 secant predictor).  ``rodsnes ... -restart OUT -output_dir NEW`` then takes the steps the run
 in DIR would have taken next (its stored next increment, penalty and eigenvalue count), and
 ``NEW/result.h5`` goes on with the step numbers of DIR.  A long path (the plectoneme: hours of
-load steps) is kept this way between machines in ``cases/checkpoints/`` (about 50 kB a step,
-against megabytes for the whole path).
+load steps) can be kept this way between machines (about 50 kB a step, against megabytes for
+the whole path); tests/data/plectoneme_10 is the 10-turn plectoneme's last step.
 """
 import argparse
 import os
