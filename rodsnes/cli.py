@@ -26,10 +26,12 @@ import signal
 import sys
 import tempfile
 import time
-from rodsnes.io.scene import _suggest, _or_list
-from rodsnes.io import scene as scn
-from rodsnes.run import Run
-from rodsnes.io import results as output
+
+# Nothing here imports petsc4py.PETSc at module level, and neither may any rodsnes module this
+# file imports at its top: PETSc has to start with the command line's options (_start_petsc),
+# or options read only at PetscInitialize (-log_view: "Must use -log_view ... before calling
+# this routine" at PetscFinalize, exit 1 after a converged run) are lost.  The solver modules
+# are imported inside the functions that run after the start (tests/test_cli.py).
 
 EXIT_REFUSED, EXIT_FAILED = 2, 3
 
@@ -232,6 +234,7 @@ TYPE_OPTIONS = (("pc_factor_mat_solver_type", "MatSolver", "LU/Cholesky package"
 
 
 def _did_you_mean(word, names):
+    from rodsnes.io.scene import _suggest, _or_list
     close = _suggest(word.lower(), list(names), cutoff=0.7)
     return f"; did you mean {_or_list(list(close))}?" if close else ""
 
@@ -360,6 +363,7 @@ def unused_petsc_warnings(given, late):
     """Warnings for the options of ``given`` (the names the user set) that nothing has read:
     ``late`` False: before the solve, leaving out those read only at the end of a solve
     (LATE_READ); True: after the run, those.  Options read at PetscFinalize are left alone."""
+    from rodsnes.io import scene as scn
     left = options_left()
     if left is None:
         return []
@@ -384,6 +388,7 @@ def unused_petsc_warnings(given, late):
 
 def _closest(word, names):
     """'-a', '-a or -b' ...: the names closest to word (scene._suggest), or ''."""
+    from rodsnes.io.scene import _suggest, _or_list
     close = _suggest(word, list(names))
     return _or_list(["-" + c for c in close]) if close else ""
 
@@ -463,6 +468,7 @@ def main(argv=None):
         _say(rank, "error", failed)
         return EXIT_REFUSED
     from petsc4py import PETSc
+    from rodsnes.io import scene as scn
     comm = PETSc.COMM_WORLD
     rank = comm.getRank()
     opts = PETSc.Options()
@@ -500,6 +506,9 @@ def main(argv=None):
 def _prepare(argv, comm, opts, rank, given):
     """Everything before the solve: the scene, its checks, the output directory, the Run,
     its linear solver set up once, the scene record, the warnings.  Returns the Run."""
+    from rodsnes.io import results as output
+    from rodsnes.io import scene as scn
+    from rodsnes.run import Run
     scn.check_unknown_options(opts)
     scene = scn.read_scene(argv, opts)
     scn.check_solvable(scene)

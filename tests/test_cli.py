@@ -57,3 +57,14 @@ def test_failed_load_path_keeps_the_last_converged_step(tmp_path):
     with h5py.File(tmp_path / "result.h5", "r") as f:
         last = f.attrs["last_step"]
         assert f[f"steps/{last:05d}"].attrs["load"] == s["load"] < 1.0
+
+
+def test_log_view_prints_the_profile_and_a_converged_run_exits_0(tmp_path):
+    """-log_view is read only when PETSc starts, so PETSc must start with the command line:
+    no module the command line imports before that may start it.  The profile holds rodsnes'
+    own events beside PETSc's, and the run exits 0."""
+    p = rodsnes("-options_file", "cases/mattiasson.opts", "-load_steps", "1", "-log_view",
+                tmp=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "ElasticKernel" in p.stdout and "MinStep" in p.stdout
+    assert "PETSC ERROR" not in p.stderr
