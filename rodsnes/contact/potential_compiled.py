@@ -20,35 +20,25 @@ C entry points (int64 indices, C-contiguous float64 arrays):
         two_eps, a_s, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
 """
 import ctypes
-import importlib.util
-import os
 
 import numpy as np
+
+from rodsnes import compiled
 
 _LIB = None             # (residual, tangent) ctypes functions, False once loading failed
 
 
 def library_path():
     """Path of the built shared library (the extension module file), or None."""
-    try:
-        spec = importlib.util.find_spec("rodsnes.contact._potential_kernel")
-    except (ImportError, ValueError):
-        spec = None
-    if spec is None or not spec.origin or not os.path.isfile(spec.origin):
-        return None
-    return spec.origin
+    return compiled.library_path("rodsnes.contact._potential_kernel")
 
 
 def _load():
     global _LIB
     if _LIB is None:
         _LIB = False
-        path = library_path()
-        if path is not None:
-            try:
-                lib = ctypes.CDLL(path)
-            except OSError:
-                return _LIB
+        lib = compiled.open_library("rodsnes.contact._potential_kernel")
+        if lib is not None:
             f64 = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
             i64 = np.ctypeslib.ndpointer(dtype=np.int64, flags="C_CONTIGUOUS")
             n, x = ctypes.c_int64, ctypes.c_double

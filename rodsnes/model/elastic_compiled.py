@@ -21,10 +21,10 @@ C entry point:
                               double *energy, double *vec, double *H);
 """
 import ctypes
-import importlib.util
-import os
 
 import numpy as np
+
+from rodsnes import compiled
 
 _MAX_NODES = 8          # MAXNN in _elastic_kernel.c
 _LIB = None             # ctypes function, False once loading failed
@@ -41,25 +41,15 @@ def _optional(ptr):
 
 def library_path():
     """Path of the built shared library (the extension module file), or None."""
-    try:
-        spec = importlib.util.find_spec("rodsnes.model._elastic_kernel")
-    except (ImportError, ValueError):
-        spec = None
-    if spec is None or not spec.origin or not os.path.isfile(spec.origin):
-        return None
-    return spec.origin
+    return compiled.library_path("rodsnes.model._elastic_kernel")
 
 
 def _load():
     global _LIB
     if _LIB is None:
         _LIB = False
-        path = library_path()
-        if path is not None:
-            try:
-                lib = ctypes.CDLL(path)
-            except OSError:
-                return _LIB
+        lib = compiled.open_library("rodsnes.model._elastic_kernel")
+        if lib is not None:
             arr = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
             fn = lib.rodsnes_elastic_terms
             c_int, c_dbl = ctypes.c_int, ctypes.c_double
