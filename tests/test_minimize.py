@@ -79,7 +79,7 @@ def test_every_step_ends_stable_and_says_so():
     s = run.summary(converged=run.ok)
     assert run.ok and s["path"] == "minimize"
     assert _all_stable(run) and s["stable"] is True and s["negative_eigenvalues"] == 0
-    ref = run_case("euler", load_path="newton", outdir=run.outdir + "_newton")
+    ref = run_case("euler", load_path="newton", stability=True, outdir=run.outdir + "_newton")
     assert ref.ok
     assert np.allclose(s["tip_position"], ref.summary(converged=True)["tip_position"], atol=1e-8)
     assert run.solver.total_its < ref.solver.total_its

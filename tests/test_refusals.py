@@ -404,8 +404,8 @@ def test_options_that_act_are_not_reported(capsys, tmp_path):
 
 
 # ------------------------------------------------------------------------ unstable ends
-EULER_LOUD = ("-options_file", os.path.join(CASES, "euler.opts"), "-rod_imperfection", "0",
-              "-load_steps", "4")
+EULER_LOUD = ("-options_file", os.path.join(CASES, "euler.opts"), "-stability",
+              "-rod_imperfection", "0", "-load_steps", "4")
 
 
 @pytest.mark.parametrize("asked", [("-load_path", "newton"), ("-load_arclength",)],

@@ -1435,7 +1435,9 @@ def check_solvable(scene, memory="machine"):
 # Options that do nothing in this scene (warnings, as PETSc's -options_left)
 # ----------------------------------------------------------------------------
 _PATH_ONLY = {"load_max_it": "minimize", "load_predictor": "newton",
-              "load_stagnation_its": "newton"}
+              "load_stagnation_its": "newton",
+              # the minimisation counts the inertia of every step anyway
+              "stability": "newton"}
 """Options read by one load path only (-load_path, run.path)."""
 
 
