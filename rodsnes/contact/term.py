@@ -423,7 +423,7 @@ class ContactTerm:
     def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
         positions r_loc (local nodes), or of the last evaluation.  Collective.  With ``report``
-        (the penalty's promise: -contact_penalty_adapt, relax.py, the summary) at the report
+        (the penalty's promise: -contact_penalty_adapt, the summary) at the report
         points and the law's own points (deepest_local); without, at the law's own points
         alone (RodProblem.precheck compares it at the iterate and its trials, where the pair
         potential makes no report)."""

@@ -6,8 +6,8 @@ the exponential chart (elastic.py).  Its number of negative eigenvalues, from a 
 number of independent directions in which the energy decreases: 0 means a stable (local
 minimum) equilibrium.  Dirichlet rows hold 1 on the diagonal and count as positive.
 
-lowest_eigenpair gives the lowest eigenvalue of the same (unscaled) Hessian and its eigenvector,
-the direction along which NewtonSolver.switch_branch leaves an unstable equilibrium (relax.py):
+lowest_eigenpair gives the lowest eigenvalue of the same (unscaled) Hessian and its eigenvector
+(the buckling or writhing mode of an unstable equilibrium; tests/test_relax.py):
 the matrix is gathered to rank 0 (dense LAPACK up to DENSE_MAX dofs, sparse shift-invert beyond),
 the vector broadcast and scattered back to the owned rows of the SNES layout.
 """
@@ -169,7 +169,7 @@ def negative_eigenvalues_scaled(problem):
     return int(nneg)
 
 
-# -- the lowest eigenpair (branch switching, solver.NewtonSolver.switch_branch) --------------
+# -- the lowest eigenpair -------------------------------------------------------------------
 DENSE_MAX = 4000
 """Up to this many dofs the eigenpair comes from a dense LAPACK eigh (dsyevr, lowest few pairs
 only) on rank 0: O(n^3) flops and 8 n^2 bytes there.  Measured on the 2-core CI machine
