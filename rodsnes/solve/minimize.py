@@ -53,6 +53,7 @@ from rodsnes.model import so3
 from rodsnes.model.partition import NDOF
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
+from rodsnes.solve.linear import direct_solver_defaults
 from rodsnes.solve.stability import Inertia
 from rodsnes.model.mesh import lumped_weights
 
@@ -350,17 +351,10 @@ class EnergyMinimizer:
         p.jacobian(None, p.state.X, p.J, p.J)
         ksp = self.ksp
         if ksp is None:
-            # the Newton path's linear solver: preonly + LU by MUMPS unless -ksp_type, -pc_type,
-            # -pc_factor_mat_solver_type ... say otherwise
+            # the Newton path's linear solver (preonly + LU by MUMPS unless -ksp_type, -pc_type,
+            # -pc_factor_mat_solver_type ... say otherwise)
+            direct_solver_defaults(p)
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
-            ksp.setType("preonly")
-            pc = ksp.getPC()
-            pc.setType("lu")
-            pc.setFactorSolverType("mumps")
-            opts = PETSc.Options()
-            if p.contact is not None and not opts.hasName("mat_mumps_icntl_14"):
-                # contact pairs add fill the analysis did not see: room for it (INFOG(1) = -9)
-                opts.setValue("mat_mumps_icntl_14", "100")
             ksp.setFromOptions()
         ksp.setOperators(p.J)
         self.factorizations += 1

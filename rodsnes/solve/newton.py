@@ -27,6 +27,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.solve.arclength import Arclength
+from rodsnes.solve.linear import direct_solver_defaults, option_default
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.stability import negative_eigenvalues
@@ -42,30 +43,19 @@ MAX_TURN_STEP = 0.25
 __all__ = ["NewtonSolver", "StepResult", "MAX_TURN_STEP"]
 
 
-def _default(opts, name, value):
-    if not opts.hasName(name):
-        opts.setValue(name, value)
-
-
 class NewtonSolver:
     def __init__(self, problem, force_scale, check_stability=False):
         self.problem = problem
         comm = problem.layout.comm
-        opts = PETSc.Options()
-        _default(opts, "snes_linesearch_type", "basic")
+        option_default("snes_linesearch_type", "basic")
         # |F| is judged against rtol x force_scale (convergence_test), so the tolerance scales
         # with the problem; -snes_atol is an absolute test the user may add (0 by default:
         # PETSc's 1e-50 would accept at once a problem whose forces are all below it)
-        _default(opts, "snes_rtol", "1e-10")
-        _default(opts, "snes_atol", "0")
-        _default(opts, "snes_stol", "1e-16")
-        _default(opts, "snes_max_it", "40")
-        _default(opts, "ksp_type", "preonly")
-        _default(opts, "pc_type", "lu")
-        _default(opts, "pc_factor_mat_solver_type", "mumps")
-        if problem.contact is not None:
-            # contact pairs add fill the analysis did not see: room for it (else INFOG(1) = -9)
-            _default(opts, "mat_mumps_icntl_14", "100")
+        option_default("snes_rtol", "1e-10")
+        option_default("snes_atol", "0")
+        option_default("snes_stol", "1e-16")
+        option_default("snes_max_it", "40")
+        direct_solver_defaults(problem)
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)

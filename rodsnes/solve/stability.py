@@ -14,6 +14,8 @@ the vector broadcast and scattered back to the owned rows of the SNES layout.
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.solve.linear import mumps_fill_room, option_default
+
 
 def zero_shift(A):
     """tau = 1000 eps max|diag(A)|, the diagonal shift under which the inertia is counted:
@@ -60,12 +62,8 @@ class Inertia:
         pc.setOptionsPrefix("stability_")
         pc.setType(PETSc.PC.Type.CHOLESKY)
         pc.setFactorSolverType("mumps")
-        opts = PETSc.Options()
-        if not opts.hasName("stability_mat_mumps_icntl_13"):
-            opts.setValue("stability_mat_mumps_icntl_13", "1")
-        if p.contact is not None and not opts.hasName("stability_mat_mumps_icntl_14"):
-            # contact pairs add fill the analysis did not see: room for it (else INFOG(1) = -9)
-            opts.setValue("stability_mat_mumps_icntl_14", "100")
+        option_default("stability_mat_mumps_icntl_13", "1")
+        mumps_fill_room(p, "stability_")
         pc.setFromOptions()
         self.pc, self.pairs = pc, pairs
         self.builds += 1
@@ -156,10 +154,8 @@ def negative_eigenvalues_scaled(problem):
     pc.setOperators(A)
     pc.setType(PETSc.PC.Type.CHOLESKY)
     pc.setFactorSolverType("mumps")
-    opts = PETSc.Options()
     for icntl in ("13", "24"):     # 13: inertia over all ranks; 24: null pivots (MatGetInertia needs it)
-        if not opts.hasName("stability_check_mat_mumps_icntl_" + icntl):
-            opts.setValue("stability_check_mat_mumps_icntl_" + icntl, "1")
+        option_default("stability_check_mat_mumps_icntl_" + icntl, "1")
     pc.setFromOptions()
     pc.setUp()
     nneg, nzero, npos = pc.getFactorMatrix().getInertia()
