@@ -420,6 +420,17 @@ class ContactTerm:
                 "radius": self.eps, "exclusion": self.delta,
                 **(self.supports.summary(out["support"]) if self.supports is not None else {})}
 
+    def promised_penalty(self, r_loc):
+        """(pen, mu1) at the positions r_loc (collective): pen = max <d> / (2 eps) over all
+        ranks, the deepest penetration as a fraction of the diameter, and the penalty that keeps
+        the promise p* (-contact_penetration): None while pen <= p*, else 1.25 mu pen / p* (a
+        line contact has d ~ 1/mu, so it lands near 0.8 p*; a crossing, d ~ mu^(-2/3), may need
+        a second raise).  The rule of both load paths (-contact_penalty_adapt)."""
+        pen = self.deepest(r_loc) / (2.0 * self.eps)
+        if pen <= self.penetration:
+            return pen, None
+        return pen, 1.25 * self.mu * pen / self.penetration
+
     def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
         positions r_loc (local nodes), or of the last evaluation.  Collective.  With ``report``

@@ -476,19 +476,18 @@ class LoadPath:
     def keep_promise(self, res, max_raises=4):
         """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
         promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
-        mu <- 1.25 mu pen / p* and minimise again at the same load (mu never falls along a
+        (ContactTerm.promised_penalty) and minimise again at the same load (mu never falls along a
         path).  res takes the iterations; a re-solve that fails fails the step.  Collective."""
         p = self.problem
         ct = p.contact
         if ct is None or not ct.adapt:
             return
         for _ in range(max_raises):
-            r, _ = p.state.local_config()
-            pen = ct.deepest(r) / (2.0 * ct.eps)
-            if pen <= ct.penetration:
+            pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
+            if mu1 is None:
                 return
             mu0 = ct.mu
-            ct.set_penalty(1.25 * mu0 * pen / ct.penetration)
+            ct.set_penalty(mu1)
             again = self.minimizer.solve_at(res.lam)
             res.its += again.its
             res.seconds += again.seconds

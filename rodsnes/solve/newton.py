@@ -299,8 +299,7 @@ class NewtonSolver:
         """-contact_penalty_adapt: keep the penalty's promise at every converged load step.
 
         While the deepest penetration max <d> / (2 eps) of the converged state exceeds
-        -contact_penetration p*, raise mu <- 1.25 mu (pen / p*) (a line contact has d ~ 1/mu, so
-        it lands near 0.8 p*; a crossing, d ~ mu^(-2/3), may need a second raise) and solve the
+        -contact_penetration p*, raise mu (ContactTerm.promised_penalty) and solve the
         same load again from that state (at most ``max_raises`` times).  mu never falls, so a
         load path sees a non-decreasing penalty; each step records the mu it was solved with
         (result.h5 ``contact_penalty``).  A re-solve that fails is tried again with a smaller
@@ -313,12 +312,10 @@ class NewtonSolver:
             return
         raised = False
         for _ in range(max_raises):
-            r_loc, _ = p.state.local_config()
-            pen = ct.deepest(r_loc) / (2.0 * ct.eps)
-            if pen <= ct.penetration:
+            pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
+            if mu1 is None:
                 break
             mu0, snap = ct.mu, p.state.snapshot()
-            mu1 = 1.25 * mu0 * pen / ct.penetration
             while True:
                 ct.set_penalty(mu1)
                 r = self.solve_guarded(res.lam)
