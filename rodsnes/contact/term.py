@@ -192,9 +192,7 @@ class ContactTerm:
         (cen, rad) of the own elements: the spheres of all ranks allgathered, a cKDTree
         (contact.candidate_pairs).  With ``bounds`` also the spheres of all elements, by
         element id.  Collective."""
-        if self._all_ids is None:
-            self._all_ids = np.concatenate(self.comm.allgather(self.own_ids))
-        all_ids = self._all_ids
+        all_ids = self._gathered_ids()
         cens = np.concatenate(self.comm.allgather(cen))
         rads = np.concatenate(self.comm.allgather(rad))
         pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, cens, rads, reach,
@@ -326,10 +324,17 @@ class ContactTerm:
             pairs = np.unique(np.sort(pairs, axis=1), axis=0)
         return pairs.reshape(-1, 2).astype(np.int64)
 
+    def _gathered_ids(self):
+        """Every rank's owned elements, in allgather order (gathered once).  Collective the
+        first time."""
+        if self._all_ids is None:
+            self._all_ids = np.concatenate(self.comm.allgather(self.own_ids))
+        return self._all_ids
+
     def _element_slots(self):
         """Row of every element id in arrays allgathered from the owned elements."""
         if self._slots is None:
-            ids = np.concatenate(self.comm.allgather(self.own_ids))
+            ids = self._gathered_ids()
             self._slots = np.empty(self.mesh.nelem, dtype=np.int64)
             self._slots[ids] = np.arange(len(ids))
         return self._slots
