@@ -24,6 +24,7 @@ from rodsnes.model.problem import RodProblem
 from rodsnes.solve.minimize import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.contact.term import ContactTerm
+from rodsnes.solve import estimate
 from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative
 from rodsnes.errors import SceneError
@@ -32,6 +33,8 @@ from rodsnes.io.scene import scene_record
 
 
 class Run:
+    tolerance_trial = False     # set by estimate.to_tolerance on the runs it makes
+
     def __init__(self, scene, comm):
         self.t_start = time.perf_counter()
         self.scene, self.comm = scene, comm
@@ -71,6 +74,8 @@ class Run:
         self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
+        self.estimator = estimate.ErrorEstimator.of(scene, comm)
+        self.last_estimate = None
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}
         append = False
@@ -198,11 +203,20 @@ class Run:
                      for k, v in self._step_record(res).items()}
         fields, energy, cattrs, qp, topo = self.observe()
         attrs = {"load": self.problem.lam, "energy": energy, "newton_iterations": 0,
-                 "residual_norm": 0.0, **extra, **cattrs, **(topo or {})}
+                 "residual_norm": 0.0, **extra, **cattrs, **(topo or {}), **self._estimate(res)}
         self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
                                qp_owned=qp.get("ids"), qp_fields=qp.get("fields"),
                                n_qp=qp.get("n"))
         return energy
+
+    def _estimate(self, res):
+        """The converged step's a-posteriori error estimate (solve/estimate.py) as step
+        attributes ({} for the start, for a step before the last with -rod_error_estimate last,
+        and with -rod_error_estimate off)."""
+        if res is None or not estimate.wanted(self.estimator, self.scene, self.problem.lam):
+            return {}
+        self.last_estimate = self.estimator.estimate(self.problem)
+        return estimate.step_attrs(self.last_estimate)
 
     def summary(self, converged, failed_reason=None):
         s = {"case": self.scene.output.case_name, "converged": bool(converged),
@@ -221,6 +235,9 @@ class Run:
         tip = self._tip(self.last_fields)
         if tip is not None:
             s["tip_position"] = tip.tolist()
+        if self.last_estimate is not None:
+            s["error_estimate"] = estimate.summary_entry(self.last_estimate, self.estimator,
+                                                         s["wall_time_s"])
         if failed_reason is not None:
             s["failure"] = failed_reason
         if self.contact is not None:
@@ -250,6 +267,8 @@ class Run:
               f"E {energy:+.6e}{extra}  {res.seconds:7.2f} s", flush=True)
 
     def execute(self):
+        if self.scene.rod.tolerance is not None and not self.tolerance_trial:
+            return estimate.to_tolerance(self)      # the mesh chosen from the estimate
         if not self.scene.output.restart:
             self.problem.set_load(0.0)
             self._write(None)
@@ -300,7 +319,8 @@ class Run:
                         f"({nneg} negative eigenvalues of the energy Hessian)")
             else:
                 last = "converged"
-            print(last + f"; results in {self.outdir}", flush=True)
+            print(last + estimate.progress_text(self.last_estimate) + f"; results in {self.outdir}",
+                  flush=True)
         return ok
 
     def unstable_asked(self):

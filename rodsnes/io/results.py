@@ -35,7 +35,8 @@ Everything a run leaves in its output directory ``DIR``:
         for the fields listed above).
         group attributes: ``load`` (load factor lambda), ``energy`` (total potential energy [force*length]),
         ``newton_iterations``, ``residual_norm`` (2-norm of the final residual), plus any extra attribute
-        the solver passes (``writhe``, ``twist``, ``link``, ...).
+        the solver passes (``writhe``, ``twist``, ``link``, ``error_estimate_tip`` and
+        ``error_estimate_centreline`` [length]: the a-posteriori estimate, solve/estimate.py, ...).
 
 ``DIR/rod.xdmf`` + ``DIR/rod.h5``
     The same steps as a ParaView/VisIt time series (meshio's XDMF TimeSeriesWriter); see :func:`write_xdmf`.

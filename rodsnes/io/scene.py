@@ -207,6 +207,16 @@ class O:
                      "install), numpy (batched arrays), reference (einsum transcription, slow), "
                      "auto (compiled if built, else numpy); all agree to 1e-12", "disc",
                      choices=("auto", "compiled", "numpy", "reference"))
+    rod_error_estimate = Opt(CHOICE, "last", "estimate the discretisation error (tip and "
+                             "centreline, length units; summary.json error_estimate, result.h5 "
+                             "per step): the solution of order p+1 on the same elements, a Newton "
+                             "solve from this one, against it; at the last step (last), at every "
+                             "converged step (every, ~10-20 % more time) or not at all (off)",
+                             "disc", choices=("last", "every", "off"))
+    rod_tolerance = Opt(REAL, None, "choose the mesh: from a coarse one, refine (and pick the "
+                        "order unless -rod_order is given) until the estimated centreline error "
+                        "is below this, at the least predicted cost", "disc", rng="(0,inf)",
+                        shown="none", note="an error in length units, e.g. 1e-6")
     # --- boundary conditions ----------------------------------------------------
     bc_start = Opt(CHOICE, "clamped", "support of the end s = 0", "bc",
                    choices=("clamped", "pinned", "free"), shown="clamped (free on a closed rod)")
@@ -392,6 +402,8 @@ class Rod:
     shear_coefficient: Optional[float]
     closed_gauge: bool = True
     kernel: str = "auto"
+    error_estimate: str = "last"      # -rod_error_estimate last|every|off (solve/estimate.py)
+    tolerance: Optional[float] = None  # -rod_tolerance: the mesh is chosen (solve/estimate.py)
 
     @property
     def area(self):
@@ -722,9 +734,9 @@ def read_scene(argv=None, options=None):
     output = _output(c, argv)
     c.raise_if_any()
     rod = Rod(**rod, **material)
-    return Scene(rod=rod, bc=bc, loads=loads, contact=contact, output=output,
-                 stability=bool(c[O.stability]),
-                 given=tuple(sorted(o.name for o in reader.raw)))
+    return tolerance_start(Scene(rod=rod, bc=bc, loads=loads, contact=contact, output=output,
+                                 stability=bool(c[O.stability]),
+                                 given=tuple(sorted(o.name for o in reader.raw))))
 
 
 def _snes_rtol(options):
@@ -897,8 +909,51 @@ def _rod(c):
                twist_turns=float(twist), imperfection=float(c[O.rod_imperfection]),
                nelem=int(c[O.rod_nelem]), order=int(c[O.rod_order]),
                quadrature=c[O.rod_quadrature], closed_gauge=bool(c[O.rod_closed_gauge]),
-               kernel=c[O.rod_kernel])
+               kernel=c[O.rod_kernel], error_estimate=c[O.rod_error_estimate],
+               tolerance=_f(c[O.rod_tolerance]))
+    _check_tolerance(c, L)
     return rod, material
+
+
+TOLERANCE_START_NELEM = 4
+"""-rod_tolerance without -rod_nelem: the first (coarse) mesh, raised until the mesh checks pass."""
+
+
+def _check_tolerance(c, L):
+    """-rod_tolerance needs the estimate, a fresh start, and an error double precision resolves."""
+    if not c.given(O.rod_tolerance):
+        return
+    tol = c[O.rod_tolerance]
+    if c[O.rod_error_estimate] == "off":
+        c.fail("%s with %s: the mesh is chosen from the error estimate; drop %s off"
+               % (c.show(O.rod_tolerance), c.show(O.rod_error_estimate),
+                  O.rod_error_estimate.flag), O.rod_tolerance, O.rod_error_estimate)
+    if tol < 1e-10 * L:
+        c.fail("%s: below what double precision resolves on a rod of length %g (1e-10 L = %.1e); "
+               "use -rod_tolerance %.0e or more" % (c.show(O.rod_tolerance), L, 1e-10 * L,
+                                                   1e-10 * L), O.rod_tolerance)
+    if c.given(O.restart):
+        c.fail("%s with %s: a restart goes on on the mesh of the run it resumes; drop one of them"
+               % (c.show(O.rod_tolerance), c.show(O.restart)), O.rod_tolerance, O.restart)
+
+
+def tolerance_start(scene):
+    """The coarse first mesh of -rod_tolerance when -rod_nelem is not given: TOLERANCE_START_NELEM
+    elements, doubled until contact (_check_contact_mesh) and the element turns
+    (_check_element_turns) allow it.  Returns the scene with that mesh."""
+    from dataclasses import replace
+    from rodsnes.model.mesh import build_mesh
+    if scene.rod.tolerance is None or "rod_nelem" in scene.given:
+        return scene
+    n = TOLERANCE_START_NELEM
+    while True:
+        trial = replace(scene, rod=replace(scene.rod, nelem=n))
+        msgs = []
+        _check_contact_mesh(trial, lambda m, *o: msgs.append(m))
+        _check_element_turns(trial, build_mesh(trial.rod, trial.bc), lambda m, *o: msgs.append(m))
+        if not msgs or n >= 1 << 16:
+            return trial
+        n *= 2
 
 
 def _f(x):

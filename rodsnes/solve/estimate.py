@@ -1,0 +1,450 @@
+"""A-posteriori error estimate of a converged load step, and the mesh a tolerance asks for.
+
+Estimate (docs/error_estimate.md).  The discrete equilibrium u_p of order p on N elements is
+carried onto the mesh of order p+1 on the same elements (model/refine.py: positions by their
+Lagrange interpolant, rotations by the elements' projection-based quaternion interpolation, so
+the carried state is the same rod, node for node), and Newton's method on that enriched problem,
+started there, gives u_{p+1}.  Its error is O(h^(p+2)) against O(h^(p+1)), so
+
+    eta_tip = |x_{p+1}(L) - x_p(L)|,    eta_centreline = max_s |x_{p+1}(s) - x_p(s)|
+
+(s: 8 points per element of the fine sampling, refine.sample_points) estimate the true errors
+|x_p(L) - x(L)| and max_s |x_p(s) - x(s)| in length units, with
+(1 - r) e <= eta <= (1 + r) e for r = e_{p+1} / e_p (within a factor 3 whenever r <= 2/3).
+The carried state differs from u_{p+1} by about the error itself, so Newton takes one
+factorisation of the enriched tangent; the corrections after it reuse that factorisation
+(chord steps, a new one only when a chord step fails to halve the correction) until one is
+below 1 % of the distance travelled from the carried state (the estimate is then good to ~1 %).
+Why p+1 rather than h/2: h/2 doubles the unknowns (cost x2 per estimate) and its error ratio
+2^-(p+1) is what p+1 gives at (p+1)/p times the unknowns; p+1 keeps the same elements, so the
+contact pairs, the partition and the element turn limits of the run carry over unchanged.
+
+Tolerance (-rod_tolerance TOL, to_tolerance): runs the whole load path on a coarse mesh, then
+on meshes chosen from the estimate (eta ~ C h^(p+1), the rate measured between the last two
+meshes when there are two) aiming at TOL/2, until eta_centreline <= TOL; without -rod_order the
+order of the least predicted cost (tangent blocks N (p+1)^2) is picked from estimates of every
+order 2..4 made on the coarse mesh's final state.  Every trial writes into the output directory
+(the last one stays); summary.json ``tolerance`` lists them with their cost.
+"""
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from rodsnes.model import mesh as rodmesh
+from rodsnes.model import partition, refine
+from rodsnes.model.partition import NDOF
+from rodsnes.model.problem import RodProblem
+from rodsnes.solve.linear import mumps_fill_room, option_default
+
+PREFIX = "estimate_"          # options prefix of the enriched problem's SNES (-estimate_snes_*)
+
+
+def gathered_state(problem):
+    """Natural-ordered positions (n,3) and unit quaternions (n,4) of the problem's state, on
+    every rank (collective)."""
+    r, q = problem.state.local_config()
+    no = problem.layout.n_owned
+    lay = problem.layout
+    return lay.allgather_nodes(r[:no]), lay.allgather_nodes(q[:no])
+
+
+class EnrichedProblem:
+    """The scene of a run on another discretisation (order, nelem), solved by Newton (PETSc SNES,
+    options prefix -estimate_) from a state carried over from the run's mesh.  Built once and
+    reused at every step.
+
+    Two stages (docs/error_estimate.md "Why two stages"): first the new nodes alone, the carried
+    nodes held (``interior``: element-local problems, stiff and well conditioned), then the whole
+    problem (``whole``).  Newton on the whole problem straight from the carried state fails on
+    slender rods: the carried state's residual sits in the stiff extension and shear of the new
+    nodes (the helix on 32 quadratic elements: |F| = 23, 7.7e-3 once they are relaxed), and the
+    quadratic part of that stiff correction, projected on the soft global bending modes (singular
+    values 1e-5 of a tangent whose largest is 3e4), makes the first Newton step 100 times longer
+    than the distance to the solution (2.2e-2 against 2.5e-4); no line search on |F| recovers."""
+
+    MAX_IT_INTERIOR = 10
+    INTERIOR_SHARE = 1e-2       # the interior stage ends when its |F| < this x the whole |F|
+
+    def __init__(self, scene, comm, order, nelem):
+        from rodsnes.contact.term import ContactTerm
+        self.scene = replace(scene, rod=refine.enriched_rod(scene.rod, order, nelem))
+        self.mesh = rodmesh.build_mesh(self.scene.rod, scene.bc)
+        self.layout = partition.Layout(comm, self.mesh)
+        self.contact = (ContactTerm(self.scene, self.mesh, self.layout)
+                        if scene.contact.enabled else None)
+        self.problem = RodProblem(self.scene, self.mesh, self.layout, contact=self.contact)
+        self.comm = comm.tompi4py()
+        self.floor = 1e-13 * self.mesh.length
+        self.stage = "whole"
+        self.held_from = None           # the mesh whose nodes the interior stage holds
+        self.X0 = self.problem.state.X.duplicate()     # the carried state
+        self.snes = self._snes()
+        self.problem.on_pattern_change = self._set_matrix
+
+    # -- SNES --------------------------------------------------------------------------
+    def _snes(self):
+        """newtonls with a backtracking line search on |F| (-estimate_snes_linesearch_type bt),
+        LU by MUMPS, at most 25 iterations of the whole stage, defaults a user's
+        -estimate_* options override; the problem's residual and tangent (masked in the interior
+        stage), its rotation update before every step, and the convergence test _converged."""
+        p = self.problem
+        for name, value in (("snes_linesearch_type", "basic"), ("snes_max_it", "25"),
+                            ("ksp_type", "preonly"), ("pc_type", "lu"),
+                            ("pc_factor_mat_solver_type", "mumps")):
+            option_default(PREFIX + name, value)
+        mumps_fill_room(p, PREFIX)
+        snes = PETSc.SNES().create(comm=self.layout.comm)
+        snes.setOptionsPrefix(PREFIX)
+        snes.setType("newtonls")
+        snes.setFunction(self._residual, p.F)
+        snes.setJacobian(self._jacobian, p.J)
+        snes.setUpdate(p.update)
+        snes.setConvergenceTest(self._converged)
+        snes.setLineSearchPreCheck(self._precheck)
+        snes.setFromOptions()
+        return snes
+
+    def _set_matrix(self, J):
+        """A new contact pattern (RodProblem._new_matrix): the new matrix, no old factorisation."""
+        self.snes.setJacobian(None, J)
+        self.snes.getKSP().reset()
+
+    def _hold(self, mesh):
+        """The rows the interior stage holds: every dof of this rank's nodes that are nodes of
+        ``mesh`` (refine.kept_nodes), as local rows of F and a global IS."""
+        if self.held_from is mesh:
+            return
+        lay = self.layout
+        kept = refine.kept_nodes(mesh, self.mesh)[lay.owned_nodes]
+        rows = (np.flatnonzero(kept)[:, None] * NDOF + np.arange(NDOF)).ravel()
+        lo, _ = self.problem.F.getOwnershipRange()
+        self.held_rows = rows
+        self.held_is = PETSc.IS().createGeneral((lo + rows).astype(PETSc.IntType),
+                                                comm=self.layout.comm)
+        self.held_from = mesh
+
+    def _residual(self, snes, X, F):
+        """The problem's residual; in the interior stage zero on the held rows (whose whole norm
+        is kept: the interior stage's convergence test compares with it)."""
+        self.problem.residual(snes, X, F)
+        if self.stage == "interior":
+            self.whole_fnorm = F.norm()
+            with F as a:
+                a[self.held_rows] = 0.0
+
+    def _jacobian(self, snes, X, J, P):
+        """The problem's tangent; in the interior stage the held rows and columns identity."""
+        self.problem.jacobian(snes, X, J, P)
+        if self.stage == "interior":
+            P.zeroRowsColumns(self.held_is, 1.0)
+        self.factorisations += 1
+
+    def _precheck(self, X, Y):
+        """Keeps the length of the Newton correction (its largest position part) for the
+        convergence test; in the whole stage of a contact scene the step limits of
+        RodProblem.precheck."""
+        self.newton_move = self.comm.allreduce(_largest_move(Y), op=MPI.MAX)
+        p = self.problem
+        if self.stage == "whole" and p.step_limit:
+            return p.precheck(X, Y, self.snes.getFunction()[0])
+        return False
+
+    def _travelled(self):
+        """max over the nodes of |x - x_carried| (collective)."""
+        W = self.problem.state.X.copy()
+        W.axpy(-1.0, self.X0)
+        out = self.comm.allreduce(_largest_move(W), op=MPI.MAX)
+        W.destroy()
+        return out
+
+    def _converged(self, snes, it, norms):
+        """interior stage: |F| of the new nodes below INTERIOR_SHARE x the whole |F| (the rest is
+        the whole stage's), or 1e-10 of its start; whole stage: the last Newton correction below
+        rtol (1e-2) times the way travelled from the carried state, or below 1e-13 L (round-off):
+        the state is then within about rtol of the error of the solution, and so the estimate.
+        Not finite, or max_it (the interior stage at most MAX_IT_INTERIOR): diverged."""
+        R = PETSc.SNES.ConvergedReason
+        fnorm = norms[2]
+        if not np.isfinite(fnorm):
+            return R.DIVERGED_FNORM_NAN
+        if it == 0:
+            self.f0 = fnorm
+            return R.CONVERGED_FNORM_ABS if fnorm == 0.0 else R.CONVERGED_ITERATING
+        maxit = snes.getTolerances()[3]
+        if self.stage == "interior":
+            if (fnorm <= self.INTERIOR_SHARE * self.whole_fnorm or fnorm <= 1e-10 * self.f0
+                    or self.newton_move <= self.floor):
+                return R.CONVERGED_FNORM_RELATIVE
+            maxit = min(maxit, self.MAX_IT_INTERIOR)
+        elif self.newton_move <= max(self.rtol * self._travelled(), self.floor):
+            return R.CONVERGED_SNORM_RELATIVE
+        if it >= maxit:
+            return R.DIVERGED_MAX_IT
+        return R.CONVERGED_ITERATING
+
+    def _solve(self, stage):
+        """One SNES solve of the stage from the current state: (iterations, converged)."""
+        self.stage = stage
+        try:
+            self.snes.solve(None, self.problem.state.X)
+            ok = self.snes.getConvergedReason() > 0
+        except PETSc.Error:               # e.g. MUMPS failing after a failed factorisation
+            self.snes.getKSP().reset()
+            ok = False
+        return self.snes.getIterationNumber(), ok
+
+    # -- the carried state and the solve ---------------------------------------------
+    def place(self, mesh, x_nodes, q_nodes):
+        """Put the state (x_nodes, q_nodes) of ``mesh`` (natural order, all nodes) onto this
+        discretisation (refine.transfer), rotation increments zero."""
+        x, q = refine.transfer(mesh, x_nodes, q_nodes, self.mesh)
+        st, lay = self.problem.state, self.layout
+        st.q_ref[:] = q[lay.local_nodes]
+        with st.X as a:
+            a = a.reshape(-1, NDOF)
+            a[:, 0:3] = x[lay.owned_nodes]
+            a[:, 3:6] = 0.0
+
+    def solve_from(self, mesh, x_nodes, q_nodes, lam, mu=None, gauge=False, rtol=1e-2):
+        """Newton on this discretisation at load lam from the carried state (place), penalty mu
+        (the run's current one): the interior stage, the nodes of ``mesh`` held, then the whole
+        problem (class docstring), until a Newton correction is below rtol times the way
+        travelled from the carried state: the estimate is then good to about rtol.  An interior
+        stage that fails is dropped (the whole stage starts from the carried state).  Returns
+        (x (n,3), q (n,4), iterations, factorisations, converged).  Collective."""
+        p = self.problem
+        self.rtol, self.factorisations = rtol, 0
+        self._hold(mesh)
+        self.place(mesh, x_nodes, q_nodes)
+        if self.contact is not None and mu is not None:
+            self.contact.set_penalty(mu)
+        p.set_load(lam)
+        if gauge:
+            p.hold_sliding()
+        p.state.X.copy(self.X0)
+        its, ok = self._solve("interior")
+        if not ok:
+            self.place(mesh, x_nodes, q_nodes)
+        more, converged = self._solve("whole")
+        x, q = gathered_state(p)
+        return x, q, its + more, self.factorisations, converged
+
+    def destroy(self):
+        self.snes.destroy()
+        self.X0.destroy()
+
+
+def _largest_move(V):
+    """max over this rank's nodes of |position part| of the vector V (r, theta per node)."""
+    d = V.getArray(readonly=True).reshape(-1, NDOF)[:, 0:3]
+    return float(np.sqrt((d * d).sum(axis=1)).max()) if len(d) else 0.0
+
+
+def differences(mesh_a, xa, qa, mesh_b, xb, qb):
+    """(tip, centreline): |x_b(L) - x_a(L)| (None for a closed rod) and max over the fine
+    sampling of the finer mesh (refine.sample_points) of |x_b(s) - x_a(s)|, length units."""
+    fine = mesh_a if mesh_a.nelem * mesh_a.order >= mesh_b.nelem * mesh_b.order else mesh_b
+    s = refine.sample_points(fine)
+    d = refine.positions_at(mesh_b, xb, s) - refine.positions_at(mesh_a, xa, s)
+    tip = None if mesh_a.closed else float(np.linalg.norm(xb[-1] - xa[-1]))
+    return tip, float(np.sqrt((d * d).sum(axis=1)).max())
+
+
+class ErrorEstimator:
+    """The estimate of every converged step of a run (module docstring): the order p+1 problem
+    on the run's elements, made at the first step and kept."""
+
+    @classmethod
+    def of(cls, scene, comm):
+        """The estimator a scene asks for (-rod_error_estimate), None for off."""
+        return None if scene.rod.error_estimate == "off" else cls(scene, comm)
+
+    def __init__(self, scene, comm):
+        self.scene, self.comm = scene, comm
+        self.enriched = None
+        self.seconds = 0.0              # spent estimating, all steps
+        self.count = 0
+
+    def estimate(self, problem):
+        """{tip, centreline, order, nelem, newton_iterations, factorisations, seconds} of the
+        problem's current (converged) state.  Collective."""
+        t0 = time.perf_counter()
+        rod = self.scene.rod
+        if self.enriched is None:
+            self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem)
+        x, q = gathered_state(problem)
+        mu = problem.contact.mu if problem.contact is not None else None
+        e = self.enriched
+        xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, mu=mu,
+                                           gauge=problem.gauge is not None)
+        tip, line = differences(problem.mesh, x, q, e.mesh, xe, qe)
+        dt = time.perf_counter() - t0
+        self.seconds += dt
+        self.count += 1
+        return {"tip": tip, "centreline": line, "order": rod.order + 1, "nelem": rod.nelem,
+                "load": problem.lam,
+                "newton_iterations": its, "factorisations": nf, "converged": ok, "seconds": dt}
+
+
+def wanted(estimator, scene, lam):
+    """Whether the step converged at load lam gets an estimate: every step with
+    -rod_error_estimate every, the step at -load_stop with last, none with off."""
+    if estimator is None:
+        return False
+    return scene.rod.error_estimate == "every" or lam >= scene.loads.stop - 1e-12
+
+
+def step_attrs(est):
+    """The estimate as result.h5 step attributes (error_estimate_tip, _centreline)."""
+    if est is None:
+        return {}
+    out = {"error_estimate_centreline": est["centreline"]}
+    if est["tip"] is not None:
+        out["error_estimate_tip"] = est["tip"]
+    return out
+
+
+def summary_entry(est, estimator, wall_time):
+    """summary.json ``error_estimate``: the last step's estimate, how it was made, and the time
+    all the steps' estimates took (seconds and share of the run)."""
+    if est is None:
+        return None
+    return {"tip": est["tip"], "centreline": est["centreline"], "units": "length",
+            "method": f"order {est['order']} on the same {est['nelem']} elements",
+            "converged": est["converged"], "load": est["load"], "steps_estimated": estimator.count,
+            "seconds": estimator.seconds,
+            "share_of_run": estimator.seconds / wall_time if wall_time > 0 else None}
+
+
+def progress_text(est):
+    """The estimate for the last progress line."""
+    if est is None:
+        return ""
+    tip = "" if est["tip"] is None else f"tip {est['tip']:.1e}, "
+    warn = "" if est["converged"] else " (unreliable: the order p+1 solve did not converge)"
+    return f"; estimated error {tip}centreline {est['centreline']:.1e}{warn}"
+
+
+# ------------------------------------------------------------------------------------------------
+# -rod_tolerance
+# ------------------------------------------------------------------------------------------------
+ORDERS = (2, 3, 4)          # candidates when -rod_order is not given
+MAX_NELEM = 4096
+AIM = 0.5                   # refine towards AIM x TOL
+
+
+def predicted_cost(order, nelem):
+    """Work of a mesh, in tangent blocks: N (p+1)^2 (assembly, storage and the banded
+    factorisation all grow with it)."""
+    return nelem * (order + 1) ** 2
+
+
+def elements_for(eta, nelem, rate, target, at_least):
+    """Element count at which eta ~ C h^rate falls to target (at least at_least)."""
+    if eta <= 0.0:
+        return at_least
+    need = nelem * (eta / target) ** (1.0 / rate)
+    return max(at_least, int(math.ceil(need * 1.05)))
+
+
+def order_estimates(run):
+    """eta_centreline of every candidate order on the run's (coarse) elements at its final state:
+    the order p and p+1 problems each solved from the run's state.  Collective."""
+    x, q = gathered_state(run.problem)
+    mu = run.contact.mu if run.contact is not None else None
+    mesh, lam = run.mesh, run.problem.lam
+    out = {}
+    sols = {run.mesh.order: (mesh, x, q)}
+    for p in sorted(set(ORDERS) | {o + 1 for o in ORDERS}):
+        if p in sols:
+            continue
+        e = EnrichedProblem(run.scene, run.comm, p, mesh.nelem)
+        xe, qe, _, _, _ = e.solve_from(mesh, x, q, lam, mu=mu, gauge=run.problem.gauge is not None)
+        sols[p] = (e.mesh, xe, qe)
+        e.destroy()
+    for p in ORDERS:
+        out[p] = differences(*sols[p], *sols[p + 1])[1]
+    return out
+
+
+def next_mesh(trials, tol, order_fixed, run):
+    """(order, nelem) of the next trial, or None when the prediction passes MAX_NELEM."""
+    last = trials[-1]
+    p, n, eta = last["order"], last["nelem"], last["estimate_centreline"]
+    target = AIM * tol
+    if not order_fixed and len(trials) == 1:
+        etas = order_estimates(run)
+        last["order_estimates"] = {str(k): v for k, v in etas.items()}
+        picks = {o: elements_for(etas[o], n, o + 1, target, n) for o in ORDERS}
+        p = min(ORDERS, key=lambda o: predicted_cost(o, picks[o]))
+        nelem = picks[p] if p != last["order"] else elements_for(eta, n, p + 1, target, n + 1)
+    else:
+        same = [t for t in trials[:-1] if t["order"] == p and t["nelem"] != n
+                and t["estimate_centreline"] > 0]
+        rate = p + 1
+        if same:
+            t = same[-1]
+            observed = math.log(t["estimate_centreline"] / eta) / math.log(n / t["nelem"])
+            rate = min(max(observed, 1.0), p + 2)
+        nelem = elements_for(eta, n, rate, target, n + 1)
+    return None if nelem > MAX_NELEM else (p, nelem)
+
+
+def to_tolerance(run):
+    """-rod_tolerance: trials from the run's coarse mesh until eta_centreline <= TOL (module
+    docstring).  Every trial is a whole run into the output directory; returns whether the last
+    one converged and met the tolerance, and leaves summary.json with ``tolerance``."""
+    from rodsnes.io import results as output
+    from rodsnes.run import Run
+    scene, tol = run.scene, run.scene.rod.tolerance
+    order_fixed = "rod_order" in scene.given
+    t0 = time.perf_counter()
+    trials, cur, reason = [], run, None
+    while True:
+        cur.tolerance_trial = True
+        ok = cur.execute()
+        est = cur.last_estimate
+        trials.append({"order": cur.mesh.order, "nelem": cur.mesh.nelem, "dofs": cur.dofs,
+                       "converged": bool(ok), "wall_time_s": time.perf_counter() - cur.t_start,
+                       "newton_iterations": cur.solver.total_its,
+                       "estimate_tip": None if est is None else est["tip"],
+                       "estimate_centreline": None if est is None else est["centreline"]})
+        if not ok or est is None:
+            reason = f"the trial on {cur.mesh.nelem} elements of order {cur.mesh.order} failed"
+            break
+        if est["centreline"] <= tol and est["converged"]:
+            break
+        # an estimate whose order p+1 solve did not converge: too coarse to tell, twice the elements
+        nxt = (next_mesh(trials, tol, order_fixed, cur) if est["converged"]
+               else (cur.mesh.order, 2 * cur.mesh.nelem))
+        if nxt is None:
+            reason = (f"-rod_tolerance {tol:g}: the estimate {est['centreline']:.2e} on "
+                      f"{cur.mesh.nelem} elements asks for more than {MAX_NELEM}; raise "
+                      f"-rod_tolerance")
+            break
+        p, n = nxt
+        cur = Run(replace(scene, rod=refine.enriched_rod(scene.rod, p, n)), run.comm)
+        cur.record_scene()
+    met = reason is None
+    last = trials[-1]
+    block = {"tolerance": tol, "met": met, "order": last["order"], "nelem": last["nelem"],
+             "estimate_centreline": last["estimate_centreline"],
+             "estimate_tip": last["estimate_tip"], "trials": trials,
+             "wall_time_s": time.perf_counter() - t0,
+             "last_trial_share": last["wall_time_s"] / max(time.perf_counter() - t0, 1e-300)}
+    s = cur.summary(converged=met, failed_reason=reason)
+    s["tolerance"] = block
+    s["wall_time_s"] = block["wall_time_s"]
+    output.write_summary(cur.outdir, cur.mpi, s)
+    run.tolerance_result = (cur, block)
+    if cur.rank == 0 and not cur.quiet:
+        what = (f"{last['nelem']} elements of order {last['order']}: estimated error "
+                f"{last['estimate_centreline']:.1e} <= {tol:g}" if met else "FAILED: " + reason)
+        print(f"-rod_tolerance {tol:g}: {what} after {len(trials)} mesh(es), "
+              f"{block['wall_time_s']:.1f} s in all ({100 * block['last_trial_share']:.0f} % "
+              f"in the last)", flush=True)
+    return met
