@@ -147,12 +147,8 @@ class EnergyMinimizer:
         """(total energy, deepest penetration or None) at the chart point X.  Collective."""
         p = self.problem
         r, q = p.state.local_config(X)
-        Ec, depth = 0.0, None
-        if p.contact is not None:
-            out = p.contact.evaluate(r, tangent=False)
-            Ec = out["energy"]
-            depth = self.comm.allreduce(p.contact.deepest_local(out), op=MPI.MAX)
-        E = self.comm.allreduce(p.energy_local(r, q, Ec))
+        shares, depth = p.trial(r, q)
+        E = self.comm.allreduce(p.energy_local(r, q, shares))
         return self._same(E, depth)
 
     @logged("MinHessian")
@@ -235,14 +231,13 @@ class EnergyMinimizer:
         alpha = 1.0
         if rot > MAX_ROTATION:
             alpha = MAX_ROTATION / rot
-        c = p.contact
-        if c is not None:
+        limit = p.step_limit                  # the terms' (contact: half its radius; 0: none)
+        if limit:
             r, _ = p.state.local_config()
-            c.evaluate(r)
-            t_near, _ = self._move(d, c.near_local)
-            if t_near * alpha > c.step_limit:
-                alpha = c.step_limit / t_near
-            room = max(0.5 * c.clearance(r), c.step_limit)
+            t_near, _ = self._move(d, p.watched_nodes(r))
+            if t_near * alpha > limit:
+                alpha = limit / t_near
+            room = max(0.5 * p.clearance(r), limit)
             if t * alpha > room:
                 alpha = room / t
         return alpha
@@ -271,8 +266,7 @@ class EnergyMinimizer:
         watch = None                # the watchdog's reference point (module docstring, 4.)
         while True:
             p.state.recentre()
-            if p.contact is not None:
-                p.ensure_pattern()
+            p.ensure_pattern()
             gnorm = self.gradient()
             hist.append(gnorm)
             if not np.isfinite(gnorm):
@@ -282,7 +276,7 @@ class EnergyMinimizer:
             newton = not small and self._newton_step(g, d)
             if not newton:
                 with timed("MinHessian"):
-                    self.factor.assemble(p.contact_pairs if p.contact is not None else None)
+                    self.factor.assemble(p.patterns)
                     nneg = self._same(self.factor.factor())
                 self.factorizations += 1
                 if small and nneg == 0:
@@ -374,8 +368,8 @@ class EnergyMinimizer:
         no node by a tenth of that.  Returns (step, 1 if added)."""
         p = self.problem
         reach = 0.01 * p.mesh.length
-        if p.contact is not None:
-            reach = min(reach, p.contact.step_limit)
+        if p.step_limit:
+            reach = min(reach, p.step_limit)
         t, _ = self._move(d)
         if t >= 0.1 * reach:
             return d, 0
@@ -395,7 +389,7 @@ class EnergyMinimizer:
         p = self.problem
         allow = None
         if depth0 is not None:
-            allow = p.contact.depth_allowed(depth0)
+            allow = p.depth_allowed(depth0)
         slack = self.roundoff * (abs(E0) + self.energy_scale)
         for k in range(LINE_SEARCH_TRIES):
             X.copy(Xt)
@@ -478,14 +472,17 @@ class LoadPath:
         promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
         (ContactTerm.promised_penalty) and minimise again at the same load (mu never falls along a
         path).  res takes the iterations; a re-solve that fails fails the step.  Collective."""
+        for term in self.problem.adaptive_terms():
+            if not self._keep_promise_of(term, res, max_raises):
+                return
+
+    def _keep_promise_of(self, ct, res, max_raises):
+        """keep_promise for one term; False when a re-solve failed (the step fails)."""
         p = self.problem
-        ct = p.contact
-        if ct is None or not ct.adapt:
-            return
         for _ in range(max_raises):
             pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
             if mu1 is None:
-                return
+                return True
             mu0 = ct.mu
             ct.set_penalty(mu1)
             again = self.minimizer.solve_at(res.lam)
@@ -500,7 +497,8 @@ class LoadPath:
             if not again.converged:
                 res.converged, res.reason = False, f"after a penalty raise: {again.reason}"
                 ct.set_penalty(mu0)
-                return
+                return False
+        return True
 
     def predict(self, prev, lam, dl):
         """The start of the step lam -> lam + dl: the secant through the last two converged
@@ -509,15 +507,16 @@ class LoadPath:
         state with the end turns spread as twist (twist_predictor).  Collective."""
         p = self.problem
         if prev is not None and PREDICTOR:
-            c, same = p.contact, self.minimizer._same
-            if c is not None:
-                allow = c.depth_allowed(same(c.deepest(p.state.local_config()[0], report=False)))
+            same = self.minimizer._same
+            depth0 = p.deepest(p.state.local_config()[0], report=False)   # None: no such term
+            if depth0 is not None:
+                allow = p.depth_allowed(same(depth0))
             snap = p.state.snapshot()
             p.state.predict(prev[0], dl / (lam - prev[1]))
             p.state.recentre()
-            if c is None:
+            if depth0 is None:
                 return
-            if same(c.deepest(p.state.local_config()[0], report=False)) <= allow:
+            if same(p.deepest(p.state.local_config()[0], report=False)) <= allow:
                 return
             p.state.restore(snap)
         self.twist_predictor(dl)
@@ -541,7 +540,7 @@ class LoadPath:
         """The link is what the load imposes (to 0.01): with contact exactly, without contact up
         to an even number (a phantom rod may pass through itself, each crossing changes the
         link by 2; an odd change is a rotation taken the short way round)."""
-        if self.problem.contact is not None:
+        if self.problem.keeps_link:
             return err <= 1e-2
         return abs(err - 2.0 * np.round(err / 2.0)) <= 1e-2
 
