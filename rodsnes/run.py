@@ -21,7 +21,7 @@ from rodsnes.io import results as output
 from rodsnes.model import partition
 from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
-from rodsnes.solve.minimize import LoadPath
+from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.contact.term import ContactTerm
 from rodsnes.model.scales import force_scale
