@@ -16,20 +16,30 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from rodsnes.model import mesh as rodmesh
+from rodsnes.model import fe, mesh as rodmesh
 from rodsnes.io import results as output
 from rodsnes.model import partition
 from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
-from rodsnes.solve.minimize import LoadPath
+from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.contact.term import ContactTerm
 from rodsnes.solve import estimate
 from rodsnes.model.scales import force_scale
-from rodsnes.model.loads import nonconservative
+from rodsnes.model.loads import Loads, nonconservative
 from rodsnes.errors import SceneError
 from rodsnes.io.scene import scene_record, record_mismatches
-from rodsnes.io.scene import scene_record
+
+
+def scene_terms(scene, mesh, layout):
+    """The terms (model/term.Term) the scene asks for, in the order the problem sums them: the
+    external loads, then with -contact the self-contact term (which holds the clamps' mounts,
+    -contact_supports)."""
+    rod = scene.rod
+    terms = [Loads(scene.loads, mesh, layout, fe.quadrature_points(rod.quadrature, rod.order))]
+    if scene.contact.enabled:
+        terms.append(ContactTerm(scene, mesh, layout))
+    return terms
 
 
 class Run:
@@ -42,10 +52,10 @@ class Run:
         self.rank = comm.getRank()
         self.mesh = rodmesh.build_mesh(scene.rod, scene.bc)
         self.layout = partition.Layout(comm, self.mesh)
-        self.contact = None
-        if scene.contact.enabled:
-            self.contact = ContactTerm(scene, self.mesh, self.layout)
-        self.problem = RodProblem(scene, self.mesh, self.layout, contact=self.contact)
+        terms = scene_terms(scene, self.mesh, self.layout)
+        # the self-contact term, or None (for tools and tests that look into it)
+        self.contact = next((t for t in terms if isinstance(t, ContactTerm)), None)
+        self.problem = RodProblem(scene, self.mesh, self.layout, terms)
         rod = scene.rod
         L = rod.length
         ld = scene.loads
@@ -122,10 +132,8 @@ class Run:
             raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
                              f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
         st.restore(st.snapshot_of(pos, dirs))
-        mu = last["attrs"].get("contact_penalty")
-        if self.contact is not None and self.contact.adapt and mu is not None:
-            # the adapted penalty of the interrupted run (it never falls along a path)
-            self.contact.set_penalty(max(self.contact.mu, float(mu)))
+        for term in self.problem.terms:
+            term.restart(last["attrs"])            # e.g. the adapted penalty
         self.lam0 = float(last["attrs"]["load"])
         self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
         self.step = int(last["step"])
@@ -168,25 +176,22 @@ class Run:
         return rec
 
     def observe(self):
-        """The current state's fields, energy, contact report and topology (collective); sets
-        the last_* attributes that summary.json is made from.  Returns (fields, energy, contact
-        attrs, quadrature-point fields, topology)."""
+        """The current state's fields, energy, the terms' reports and topology (collective);
+        sets the last_* attributes that summary.json is made from.  Returns (fields, energy,
+        the reports as result.h5 attributes (<term>_<key>), quadrature-point fields,
+        topology)."""
         p = self.problem
         fields = p.owned_fields()
         energy = p.energy()
-        cattrs, qp, contact = {}, {}, None
-        if self.contact is not None:
-            r_loc, _ = p.state.local_config()
-            self.contact.evaluate(r_loc, tangent=False)
-            contact = self.contact.summary()
-            kappa = p.max_curvature()
-            if kappa is not None:
-                contact["max_curvature"] = kappa
-            cattrs = {"contact_" + k: v for k, v in contact.items()}
-            qp = self.contact.qp_fields()
+        reports = p.report()
+        kappa = p.max_curvature()
+        if kappa is not None:
+            # the thickness bound on bending completes the contact model (-contact_curvature)
+            reports["contact"]["max_curvature"] = kappa
+        cattrs = {f"{name}_{k}": v for name, rep in reports.items() for k, v in rep.items()}
+        qp = p.qp_fields()
         topo = p.topology()
-        if contact is not None:
-            self.last_contact = contact
+        self.last_reports = reports
         if topo is not None:
             self.last_topology = topo
         self.last_fields = fields
@@ -240,16 +245,10 @@ class Run:
                                                          s["wall_time_s"])
         if failed_reason is not None:
             s["failure"] = failed_reason
-        if self.contact is not None:
-            s["contact"] = self.last_contact
-            s["contact"]["sf_builds"] = self.contact.sf_builds
-            s["contact"]["pattern_refreshes"] = self.problem.stats.get("pattern_refreshes", 0)
-            for key in ("limited_steps", "penetration_limited_steps", "energy_limited_steps"):
-                s["contact"][key] = self.problem.stats.get(key, 0)      # precheck's scalings
-            s["contact"]["penetration_promised"] = self.contact.penetration
-            s["contact"]["penalty_adapt"] = self.contact.adapt
-            s["contact"]["penalty_raises"] = self.contact.penalty_raises
-            s["contact"]["penalty_raise_failures"] = self.contact.penalty_failures
+        for term in self.problem.terms:          # a section per reporting term
+            if term.name in self.last_reports:
+                s[term.name] = self.last_reports[term.name]
+                s[term.name].update(term.run_summary(self.problem.stats))
         if getattr(self, "last_topology", None) is not None:
             s["topology"] = self.last_topology
         gauge = self.problem.gauge_report()
@@ -260,9 +259,7 @@ class Run:
     def _log(self, res, energy):
         if self.quiet or self.rank != 0:
             return
-        extra = ""
-        if self.contact is not None:
-            extra = f"  min_gap {self.contact.last_min_gap:+.3e}"
+        extra = "".join(term.log_text() for term in self.problem.terms)
         print(f"step {self.step:4d}  load {res.lam:.6f}  its {res.its:3d}  |F| {res.fnorm:9.3e}  "
               f"E {energy:+.6e}{extra}  {res.seconds:7.2f} s", flush=True)
 

@@ -33,7 +33,7 @@ def test_assembled_tangent_matches_finite_differences_in_contact():
     F = X.duplicate()
     p.residual(None, X, F)
     assert run.contact.summary()["active_points"] > 0
-    J = p.layout.create_matrix(p.contact.extra_pattern(p.state.local_config()[0]))
+    J = p.layout.create_matrix(run.contact.extra_pattern(p.state.local_config()[0]))
     p.jacobian(None, X, J, J)
     fd, Jv, _ = tangent_against_finite_differences(p, J, seed=3)
     assert (fd - Jv).norm() / Jv.norm() < 1e-6
@@ -58,9 +58,9 @@ def test_kkt_report_and_action_reaction():
     run = coiled()
     p = run.problem
     F = p.F.duplicate()
-    r, _ = p.state.local_config()
+    r, q = p.state.local_config()
     Floc = np.zeros((len(r), NDOF))
-    run.contact.add_residual(r, Floc)
+    run.contact.add_residual(p.lam, r, q, Floc)
     c = run.contact.summary()
     assert c["active_points"] > 0 and c["total_force"] > 0
     assert c["min_gap"] < 0 and c["max_penetration"] == pytest.approx(-c["min_gap"] / (2 * run.contact.eps))
@@ -140,8 +140,8 @@ def test_first_contact_solve_same_on_two_ranks():
 def _energy_at(p, X):
     """Total energy at the vector X (all ranks), as RodProblem.precheck measures it."""
     r, q = p.state.local_config(X)
-    out = p.contact.evaluate(r, tangent=False)
-    return p.layout.comm.tompi4py().allreduce(p.energy_local(r, q, out["energy"]))
+    shares, _ = p.trial(r, q)
+    return p.layout.comm.tompi4py().allreduce(p.energy_local(r, q, shares))
 
 
 @pytest.mark.mpi
@@ -261,7 +261,7 @@ def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
     the Jacobian after the residual at the same positions makes no new evaluation."""
     run = coiled(**LAW[model])
     c, p = run.contact, run.problem
-    r, _ = p.state.local_config()
+    r, q = p.state.local_config()
 
     def fresh(**kw):
         c.kept_evaluation = None
@@ -269,7 +269,7 @@ def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
 
     def assembled():
         Floc = np.zeros((len(r), NDOF))
-        c.add_residual(r, Floc)
+        c.add_residual(p.lam, r, q, Floc)
         return Floc
 
     alone = fresh()
@@ -309,7 +309,7 @@ def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
     skin searches again.  The same decisions and the same residual on every rank."""
     run = coiled(**LAW[model])
     c, p = run.contact, run.problem
-    r0, _ = p.state.local_config()
+    r0, q0 = p.state.local_config()
     c.evaluate(r0)
     n0, pairs0 = c.searches, c.kept_evaluation["pairs"]
     assert np.array_equal(pairs0, _fresh_search_pairs(c, r0))
@@ -325,10 +325,10 @@ def test_candidate_search_is_reused_within_its_skin_and_repeated_beyond(model):
     assert grown > 0                                 # new pairs within reach, none missed
     # the residual is the one of an evaluation with a search of its own
     Floc = np.zeros((len(r1), NDOF))
-    c.add_residual(r1, Floc)
+    c.add_residual(p.lam, r1, q0, Floc)
     c.verlet_list, c.kept_evaluation = None, None
     Fnew = np.zeros((len(r1), NDOF))
-    c.add_residual(r1, Fnew)
+    c.add_residual(p.lam, r1, q0, Fnew)
     assert c.searches == n0 + 1 and np.array_equal(Floc, Fnew)
     # a rigid move by 0.6 skin: beyond half the skin, a new search
     r2 = r1 + np.array([0.6 * c.skin, 0.0, 0.0])
@@ -351,10 +351,10 @@ def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
     run = coiled(**LAW[model])
     c, p = run.contact, run.problem
     r, _ = p.state.local_config()
-    assert not c.pattern_covers(r, p.contact_pairs)     # made for the straight rod
+    assert not c.pattern_covers(r, p.pattern_of(c))     # made for the straight rod
     p.refresh_pattern()                                   # as at the start of a load step
     need = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
-    have = p.contact_pairs
+    have = p.pattern_of(c)
     n = run.mesh.nelem
     assert len(need) and np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all()
     assert c.pattern_covers(r, have)
@@ -368,7 +368,7 @@ def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
     assert len(less) == len(have) - 1
     assert not c.pattern_covers(r, less)
     p.ensure_pattern()                                     # and a step there gets a new one
-    assert c.pattern_covers(r, p.contact_pairs)
+    assert c.pattern_covers(r, p.pattern_of(c))
 
 
 @pytest.mark.parametrize("model", ["projection", "potential"])

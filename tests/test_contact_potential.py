@@ -353,7 +353,7 @@ def test_assembled_tangent_and_two_ranks_with_the_potential():
     F = p.state.X.duplicate()
     p.residual(None, p.state.X, F)
     assert par.contact.summary()["active_points"] > 0
-    J = p.layout.create_matrix(p.contact.extra_pattern(p.state.local_config()[0]))
+    J = p.layout.create_matrix(par.contact.extra_pattern(p.state.local_config()[0]))
     p.jacobian(None, p.state.X, J, J)
     fd, Jv, _ = tangent_against_finite_differences(p, J, seed=3)
     assert (fd - Jv).norm() / Jv.norm() < 1e-6

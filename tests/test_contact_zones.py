@@ -415,7 +415,7 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
     run = build_run("plectoneme", restart=src, stability=True,
                     load_path="newton",
                     contact_model="projection")
-    c = run.problem.contact
+    c = run.contact
     K = c.kernel
     # the slides' single closest point over all strands (evaluate_strand on every candidate),
     # not the per-strand sum: the three changes lie on two strands, and only the single
@@ -429,7 +429,7 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
         seen.append((ctx, out))
         return out
     K._zones = spy
-    r, _ = run.problem.state.local_config()
+    r, q = run.problem.state.local_config()
     r = np.array(r)
     c.evaluate(r, tangent=False)
     pieces = 0
@@ -449,7 +449,7 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
         rp = r.copy()
         rp[128, 0] += t
         F = np.zeros((len(r), NDOF))
-        c.add_residual(rp, F)
+        c.add_residual(run.problem.lam, rp, q, F)
         force.append(F[128, 0])
     step = np.diff(force)
     assert np.all(np.abs(np.diff(step)) < 0.05 * np.abs(step).max()), step

@@ -100,7 +100,7 @@ def test_the_kept_ldlt_follows_a_new_contact_pattern():
     40 % of the time: fewer cut-backs and long Newton solves at the first touch.)"""
     from rodsnes.solve import stability
     run = run_case("rollup_contact", rod_nelem=16, load_steps=40, stability=True)
-    assert run.ok and run.problem.contact.summary()["active_points"] > 0
+    assert run.ok and run.contact.summary()["active_points"] > 0
     p = run.problem
     builds = p.inertia.builds
     assert stability.negative_eigenvalues(p) == stability.negative_eigenvalues_scaled(p)

@@ -1,4 +1,4 @@
-"""The energy-minimisation load path (rodsnes/solve/minimize.py, -load_path minimize, the default for
+"""The energy-minimisation load path (rodsnes/solve/load_path.py and minimize.py, -load_path minimize, the default for
 conservative loads): every converged step is a stable equilibrium, saddles are left along
 negative curvature, the Hessian is the derivative of the gradient, Newton's end game is
 quadratic, prescribed turns arrive as link whatever the step, and the plectoneme forms from
@@ -8,7 +8,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import build_run, run_case
-from rodsnes.solve import minimize
+from rodsnes.solve import load_path
 
 TWISTED = dict(rod_length=1, rod_radius=0.025, rod_youngs=1e6, rod_shear=666666.6666666666,
                bc_start="clamped", bc_end="sliding")
@@ -103,7 +103,7 @@ def test_a_saddle_is_left_along_negative_curvature():
 @pytest.mark.parametrize("turns,steps", [(3.0, 1), (-2.6, 1), (0.6, 1)])
 def test_turns_arrive_in_one_step(turns, steps):
     """Prescribed end turns in one load step: the path splits it to at most
-    minimize.MAX_TURN_STEP turns a step and spreads each as twist along the rod; the link is
+    load_path.MAX_TURN_STEP turns a step and spreads each as twist along the rod; the link is
     the imposed turns.  (Tension 300: the twisted straight rod is stable up to about 7 turns;
     under the plectoneme's tension 3 a rod without contact writhes past 1.1 turns and passes
     through itself, test_phantom_ring_may_pass_through_itself.)"""
@@ -112,7 +112,7 @@ def test_turns_arrive_in_one_step(turns, steps):
     assert run.ok and run.path == "minimize"
     assert abs(run.last_topology["link"] - turns) < 1e-9
     loads = np.r_[0.0, [h["load"] for h in run.history]]
-    assert np.diff(loads).max() * abs(turns) <= minimize.MAX_TURN_STEP + 1e-12
+    assert np.diff(loads).max() * abs(turns) <= load_path.MAX_TURN_STEP + 1e-12
     assert _all_stable(run)
 
 

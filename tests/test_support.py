@@ -83,14 +83,14 @@ def test_assembled_tangent_matches_finite_differences_on_the_mounts():
     tot = np.empty_like(loc)
     run.contact.comm.Allreduce(loc, tot, op=MPI.MAX)
     assert tot[0] > 0 and tot[1] > 0
-    J = p.layout.create_matrix(p.contact.extra_pattern(p.state.local_config()[0]))
+    J = p.layout.create_matrix(run.contact.extra_pattern(p.state.local_config()[0]))
     p.jacobian(None, X, J, J)
     assert J.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["mallocs"] == 0
     fd, Jv, v = tangent_against_finite_differences(p, J, seed=5)
     assert (fd - Jv).norm() / Jv.norm() < 1e-6
     # the same with the mounts' part alone: without it the error is that part
     off = pressed(contact_supports="false")
-    Joff = off.problem.layout.create_matrix(off.problem.contact.extra_pattern(
+    Joff = off.problem.layout.create_matrix(off.contact.extra_pattern(
         off.problem.state.local_config()[0]))
     off.problem.jacobian(None, off.problem.state.X, Joff, Joff)
     Jv2 = X.duplicate()

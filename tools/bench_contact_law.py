@@ -87,7 +87,7 @@ def term():
         opts.setValue(k, v)
     run = Run(read_scene(["rodsnes"], opts), PETSc.COMM_WORLD)
     p, c = run.problem, run.contact
-    r0, _ = p.state.local_config()
+    r0, q0 = p.state.local_config()
     rng = np.random.default_rng(0)
     Floc = np.zeros((len(r0), NDOF))
     moved = []
@@ -97,22 +97,22 @@ def term():
         return moved[-1]
 
     def jacobian_after_residual():
-        c.add_residual(new(), Floc)
+        c.add_residual(p.lam, new(), q0, Floc)
         t = time.process_time()
-        c.add_jacobian(moved[-1], p.J)
+        c.add_jacobian(p.lam, moved[-1], q0, p.J)
         dt = time.process_time() - t
         p.J.assemble()
         p.J.zeroEntries()
         return dt
 
-    t = {"residual at new positions": cpu_ms(lambda: c.add_residual(new(), Floc)),
+    t = {"residual at new positions": cpu_ms(lambda: c.add_residual(p.lam, new(), q0, Floc)),
          "Jacobian after the residual": 1e3 * min(jacobian_after_residual() for _ in range(7)),
          "line-search trial (energy, depth)": cpu_ms(
              lambda: c.deepest_local(c.evaluate(new()))),
          "pattern check (ensure_pattern)": cpu_ms(p.ensure_pattern),
          "report (summary) after a residual": cpu_ms(
-             lambda: (c.add_residual(new(), Floc), c.summary())) - cpu_ms(
-             lambda: c.add_residual(new(), Floc))}
+             lambda: (c.add_residual(p.lam, new(), q0, Floc), c.summary())) - cpu_ms(
+             lambda: c.add_residual(p.lam, new(), q0, Floc))}
     print(f"term (plectoneme 10 turns, {c.model}): searches {c.searches}, reused "
           f"{c.search_reuses}, cache hits {c.cache_hits}")
     for k, v in t.items():

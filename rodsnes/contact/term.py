@@ -29,6 +29,10 @@ value is set.  Entries
 are never inserted beyond the preallocation: on PETSc 3.18, a new off-diagonal block inserted
 into an assembled MPIBAIJ lands in a wrong column, and MUMPS reuses a symbolic analysis that no
 longer fits (a segfault).
+
+ContactTerm implements the problem's term interface (model/term.Term): energy, residual,
+tangent, the moving pattern of element pairs, the step limits (nodes near contact, the
+deepest penetration, the clearance), the penalty's promise and the KKT report.
 """
 import numpy as np
 from mpi4py import MPI
@@ -38,11 +42,17 @@ from rodsnes.profiling import logged
 from rodsnes.contact import projection as ck
 from rodsnes.model import so3
 from rodsnes.model.partition import add_position_blocks
+from rodsnes.model.term import Term
 from rodsnes.contact.potential import PotentialKernel
 from rodsnes.contact.mounts import SupportTerm
 
 
-class ContactTerm:
+class ContactTerm(Term):
+    """Self-contact (and the clamps' mounts) as a term of the problem (module docstring)."""
+
+    name = "contact"
+    moving_pattern = True
+    keeps_link = True
     SKIN = 1.0          # Verlet skin of the candidate search, in eps (module docstring, 2.)
     PATTERN_MARGIN = 0.0    # the Jacobian's pattern: pairs within 2 eps + this, in eps
 
@@ -71,6 +81,7 @@ class ContactTerm:
                                            mesh.length, mesh.nelem, mesh.closed,
                                            segments=c.zones)
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
+        self.length_scale = self.eps
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
         self.skin = self.SKIN * self.eps                         # Verlet skin of the search
         self._slots = None              # row of every element in the allgathered arrays
@@ -254,7 +265,9 @@ class ContactTerm:
             st["near"] = near[near < self.layout.n_owned]
         return st["near"]
 
-    def add_residual(self, r_loc, Floc):
+    def add_residual(self, lam, r_loc, q_loc, Floc):
+        """Slave-side rows into Floc; master-side rows sent back to their owners (module
+        docstring, 6.).  Collective."""
         out = self.evaluate(r_loc)
         n1 = self.p + 1
         act = out["active"]
@@ -269,9 +282,10 @@ class ContactTerm:
         if self.supports is not None:
             self.supports.add_residual(out["support"], Floc)
 
-    def add_jacobian(self, r_loc, P):
+    def add_jacobian(self, lam, r_loc, q_loc, P, symmetric=False):
         """The kernel's tangent blocks: [slave, master] per active point, [slave, A, B] per
-        switch point, positions only (rotations do not enter the contact energy)."""
+        switch point, positions only (rotations do not enter the contact energy); the same in
+        the energy's Hessian (``symmetric``)."""
         out = self.evaluate(r_loc, tangent=True)
         for elems, mat in ((out["active"], out["mat"]), (out["switch"], out["switch_mat"])):
             if len(elems):
@@ -286,8 +300,30 @@ class ContactTerm:
                                 for j in range(elems.shape[1])], axis=1)
         add_position_blocks(P, self.layout, nodes, mat)
 
-    def energy(self, r_loc):
+    def energy_local(self, lam, r_loc, q_loc):
+        """This rank's share of the contact (and mounts') energy.  Collective."""
         return self.evaluate(r_loc)["energy"]
+
+    def trial(self, lam, r_loc, q_loc):
+        """(energy share, deepest penetration on this rank at the law's own points) from one
+        evaluation without tangent.  Collective."""
+        out = self.evaluate(r_loc, tangent=False)
+        return out["energy"], self.deepest_local(out)
+
+    def pattern(self, r_loc):
+        return self.pattern_pairs(r_loc)
+
+    def grown_pattern(self, r_loc, have):
+        """The pairs ``have``, the pairs the tangent at r_loc couples on any rank and the
+        pairs that can touch there (pattern_pairs).  Collective."""
+        coupled = np.concatenate(self.comm.allgather(self.coupled_pairs(r_loc)))
+        return np.unique(np.concatenate([self.pattern_pairs(r_loc), coupled, have]), axis=0)
+
+    def watched_nodes(self, r_loc=None):
+        """near_local, evaluated at r_loc first when given.  Collective then."""
+        if r_loc is not None:
+            self.evaluate(r_loc)
+        return self.near_local
 
     def pattern_pairs(self, r_loc, margin=None):
         """All ranks' element pairs that the Jacobian may couple near the positions r_loc, as
@@ -469,6 +505,31 @@ class ContactTerm:
         if "support" in out:            # the tube pressing into a clamp's mount (support.py)
             deep = max(deep, SupportTerm.deepest_local(out["support"]))
         return deep
+
+    def restart(self, attrs):
+        """The adapted penalty of the interrupted run (it never falls along a path)."""
+        mu = attrs.get("contact_penalty")
+        if self.adapt and mu is not None:
+            self.set_penalty(max(self.mu, float(mu)))
+
+    def report(self, r_loc):
+        """The KKT picture (summary) at the local positions r_loc.  Collective."""
+        self.evaluate(r_loc, tangent=False)
+        return self.summary()
+
+    def run_summary(self, stats):
+        """The halo exchange's star forests built, the problem's pattern refreshes and step
+        scalings (RodProblem.precheck), the penalty's promise and its raises."""
+        s = {"sf_builds": self.sf_builds, "pattern_refreshes": stats.get("pattern_refreshes", 0)}
+        for key in ("limited_steps", "penetration_limited_steps", "energy_limited_steps"):
+            s[key] = stats.get(key, 0)
+        s.update({"penetration_promised": self.penetration, "penalty_adapt": self.adapt,
+                  "penalty_raises": self.penalty_raises,
+                  "penalty_raise_failures": self.penalty_failures})
+        return s
+
+    def log_text(self):
+        return f"  min_gap {self.last_min_gap:+.3e}"
 
     def qp_fields(self):
         out = self.kernel.add_report(self.last)

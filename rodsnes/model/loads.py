@@ -7,14 +7,24 @@ Sign convention: residual = internal - external, so an applied force f enters as
   end moment          -lambda m                 (spatial, dead) on the end node's theta row
   gravity             -lambda int N_a g ds      (force per unit length, consistent nodal forces)
 Potential energy of the conservative ones: -lambda f . r_end - lambda int g . r ds.
+Loads is a term of the problem (model/term.Term): residual, the follower force's tangent block,
+the potential as its energy share.
 """
 import numpy as np
+from petsc4py import PETSc
 
 from rodsnes.model import fe, so3
+from rodsnes.model.term import Term
 
 
-class Loads:
+class Loads(Term):
+    """The external loads of the scene (``loads``: scene.loads) as a term; ``nq`` Gauss points
+    per element for gravity."""
+
+    depends_on_load = True
+
     def __init__(self, loads, mesh, layout, nq):
+        self.conservative = nonconservative(loads) is None
         self.f = np.asarray(loads.end_force, float)
         self.follower = bool(loads.end_force_follower)
         self.m = np.asarray(loads.end_moment, float)
@@ -33,6 +43,7 @@ class Loads:
         else:
             self.gravity_weights = None
         self.lconn = layout.lconn
+        self.layout = layout
 
     def end_force(self, q_end):
         if self.follower:
@@ -48,6 +59,20 @@ class Loads:
             Floc[i, 3:6] -= lam * self.m
         if self.gravity_weights is not None:
             np.add.at(Floc[:, 0:3], self.lconn, -lam * self.gravity_weights[None, :, None] * self.g)
+
+    def add_jacobian(self, lam, r_loc, q_loc, P, symmetric=False):
+        """The follower force's blocks into P (none in the energy's Hessian: no potential)."""
+        if symmetric:
+            return
+        lg = self.layout.nat2petsc[self.layout.local_nodes]
+        for i, j, B in self.add_jacobian_blocks(lam, q_loc):
+            P.setValuesBlockedRCV(np.array([[lg[i]]], dtype=PETSc.IntType),
+                                  np.array([[lg[j]]], dtype=PETSc.IntType), B[None],
+                                  addv=PETSc.InsertMode.ADD)
+
+    def energy_local(self, lam, r_loc, q_loc):
+        """The potential of the conservative loads on this rank (potential)."""
+        return self.potential(lam, r_loc)
 
     def add_jacobian_blocks(self, lam, q_loc):
         """Extra blocks (local node row, local node col, 6x6) of non-conservative loads."""

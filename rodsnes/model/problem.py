@@ -15,10 +15,10 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.model import elastic, fe, so3
-from rodsnes.model.loads import Loads, nonconservative
 from rodsnes.model.partition import NDOF, DirichletRows
 from rodsnes.errors import SceneError
 from rodsnes.model import topology
+from rodsnes.model.term import same_patterns
 
 
 def reference_strains(rod, mesh, conn, strains):
@@ -171,9 +171,12 @@ class Constraints:
 
 
 class RodProblem:
-    """Residual, Jacobian and energy of the rod at load factor ``lam`` (set by the solver)."""
+    """Residual, Jacobian and energy of the rod at load factor ``lam`` (set by the solver): the
+    rod's strain energy plus the ``terms`` (model/term.Term: the loads, contact, ...) that the
+    run builds from the scene (run.scene_terms), summed in their order.  The problem knows the
+    terms only through that interface."""
 
-    def __init__(self, scene, mesh, layout, contact=None):
+    def __init__(self, scene, mesh, layout, terms=()):
         self.scene, self.mesh, self.layout = scene, mesh, layout
         rod = scene.rod
         nq = fe.quadrature_points(rod.quadrature, rod.order)
@@ -192,7 +195,6 @@ class RodProblem:
             self.elastic.set_curvature_limit(1.0 / scene.contact_radius,
                                              max(rod.EI1, rod.EI2) / c.penetration)
         self.load_twist = getattr(scene.loads, "twist_turns", 0.0) or 0.0
-        self.loads = Loads(scene.loads, mesh, layout, nq)
         self.constraints = Constraints(scene.bc, mesh, layout)
         X = layout.create_vec()
         q_local = mesh.q_init[layout.local_nodes]
@@ -201,14 +203,12 @@ class RodProblem:
             a[:, 0:3] = mesh.x_init[layout.owned_nodes]
             a[:, 3:6] = 0.0
         self.state = RodState(layout, q_local, X)
-        self.contact = contact
+        self.terms = list(terms)
         self.lam = 0.0
-        self.contact_pairs = None          # contact element pairs preallocated in J
         self._topology = None              # (state key, topology) of the last topology()
-        if contact is not None:
-            self.contact_pairs = contact.pattern_pairs(mesh.x_init[layout.local_nodes])
-        self.J = layout.create_matrix(contact.node_groups(self.contact_pairs)
-                                      if contact is not None else None)
+        # every term's pattern (Term.pattern) the Jacobian J is preallocated for
+        self.patterns = self.patterns_at(mesh.x_init[layout.local_nodes])
+        self.J = layout.create_matrix(self.node_groups(self.patterns))
         self.F = layout.create_vec()
         self.lconn = lconn
         # element node rows -> local nodes: F_loc = S vec (the assembly sum as one sparse product)
@@ -219,10 +219,12 @@ class RodProblem:
         self.inertia = None                 # stability.Inertia, made at the first count
         self._e0_nodes = None
         self.on_pattern_change = None
-        self.step_limit = contact.step_limit if contact is not None else 0.0
-        # energy as the line search's merit function (precheck, limit 3): only where the loads
-        # have a potential (loads.nonconservative)
-        self.energy_descent = contact is not None and nonconservative(scene.loads) is None
+        # the largest move per Newton step of a node a term watches (precheck, limit 1; 0: none)
+        limits = [t.step_limit for t in self.terms if t.step_limit]
+        self.step_limit = min(limits) if limits else 0.0
+        # energy as the line search's merit function (precheck, limit 3): only where every
+        # term has a potential (loads.nonconservative)
+        self.energy_descent = bool(limits) and all(t.conservative for t in self.terms)
         self.gauge = None                   # (node, component, global row) of hold_sliding
         # uniform stress-free strains of the perfect rod (the imperfection, a device to pick a
         # branch, only weakly breaks the sliding symmetry: hold_sliding's reaction shows how much)
@@ -276,49 +278,150 @@ class RodProblem:
         return {"node": int(self.gauge[0]), "component": "xyz"[self.gauge[1]],
                 "reaction": float(reaction)}
 
+    # -- the terms, as the solvers ask for them -----------------------------------------
+    @property
+    def moving_pattern(self):
+        """Some term couples dofs beyond the elements in a pattern that follows the state."""
+        return any(t.moving_pattern for t in self.terms)
+
+    @property
+    def keeps_link(self):
+        """Some term keeps strands from passing through each other (the link is conserved)."""
+        return any(t.keeps_link for t in self.terms)
+
+    @property
+    def length_scale(self):
+        """The smallest length a term resolves (the contact radius), or None."""
+        scales = [t.length_scale for t in self.terms if t.length_scale is not None]
+        return min(scales) if scales else None
+
+    def adaptive_terms(self):
+        """The terms that raise their penalty to keep a promise (-contact_penalty_adapt)."""
+        return [t for t in self.terms if t.adapt]
+
+    def limiting_terms(self):
+        """The terms that limit a Newton step's move (Term.step_limit)."""
+        return [t for t in self.terms if t.step_limit]
+
+    def load_terms(self):
+        """The terms whose residual changes with lambda (arclength's dF/dlambda)."""
+        return [t for t in self.terms if t.depends_on_load]
+
+    def watched_nodes(self, r=None):
+        """Owned nodes whose move the step limit bounds (Term.watched_nodes of the limiting
+        terms; at r: evaluated there, None: at their last evaluation)."""
+        nodes = [t.watched_nodes(r) for t in self.limiting_terms()]
+        if len(nodes) == 1:
+            return nodes[0]
+        return np.unique(np.concatenate(nodes)) if nodes else np.zeros(0, dtype=np.int64)
+
+    def clearance(self, r):
+        """The least free space between strands at r over the limiting terms (Term.clearance;
+        inf without one).  Collective."""
+        return min([t.clearance(r) for t in self.limiting_terms()], default=np.inf)
+
+    def deepest(self, r=None, report=True):
+        """The deepest penetration over the terms that measure one (Term.deepest) at the local
+        positions r (None: their last evaluation), or None where none does.  Collective."""
+        depths = [d for d in (t.deepest(r, report) for t in self.terms) if d is not None]
+        return max(depths) if depths else None
+
+    def depth_allowed(self, depth):
+        """The deepest penetration a step may reach from ``depth`` (Term.depth_allowed: the
+        least over the terms)."""
+        return min(t.depth_allowed(depth) for t in self.terms)
+
+    def trial(self, r, q):
+        """At a line-search trial (local positions r, rotations q): every term's share of the
+        energy on this rank, from one evaluation each (Term.trial), and the deepest
+        penetration over all ranks (None where no term measures one).  Collective."""
+        shares, deep = [], None
+        for t in self.terms:
+            e, d = t.trial(self.lam, r, q)
+            shares.append(e)
+            if d is not None:
+                deep = d if deep is None else max(deep, d)
+        if deep is not None:
+            from mpi4py import MPI
+            deep = self.layout.comm.tompi4py().allreduce(deep, op=MPI.MAX)
+        return shares, deep
+
+    def report(self):
+        """{term name: its section of summary.json} at the current state (Term.report; the
+        terms without a name report nothing).  Collective."""
+        r, _ = self.state.local_config()
+        return {t.name: t.report(r) for t in self.terms if t.name is not None}
+
+    def qp_fields(self):
+        """The quadrature-point fields of the last report (Term.qp_fields; the first term
+        that has them), {} for none."""
+        return next((f for f in (t.qp_fields() for t in self.terms) if f is not None), {})
+
     # -- load factor ------------------------------------------------------------------
     def set_load(self, lam, refresh=True):
         """Set lambda: prescribed motions into the state, intrinsic twist ramp into e0; with
-        refresh, the contact pattern follows the state (the start of a load step)."""
+        refresh, the terms' patterns follow the state (the start of a load step)."""
         self.lam = float(lam)
         self.constraints.apply(self.lam, self.state)
-        if self.contact is not None and refresh:
+        if refresh:
             self.refresh_pattern()
         if self.load_twist:
             self.elastic.set_reference(self.twisted_reference(self.e0_base))
 
+    # -- matrix pattern -----------------------------------------------------------------
+    def patterns_at(self, r=None):
+        """Every term's pattern (Term.pattern) at the local positions r (None: the current
+        state's, taken only when some pattern moves).  Collective."""
+        if r is None and self.moving_pattern:
+            r, _ = self.state.local_config()
+        return [t.pattern(r) for t in self.terms]
+
+    def pattern_of(self, term):
+        """The pattern J is preallocated for, of one of the terms."""
+        return self.patterns[self.terms.index(term)]
+
+    def node_groups(self, patterns):
+        """The node groups (partition.Layout.create_matrix) of the terms' ``patterns``: None
+        for none, else one array."""
+        groups = [g for g in (t.node_groups(pat) for t, pat in zip(self.terms, patterns)
+                              if pat is not None) if g is not None]
+        if not groups:
+            return None
+        return groups[0] if len(groups) == 1 else np.concatenate(groups)
+
     def refresh_pattern(self):
-        """At the start of a load step: the Jacobian's pattern follows the contact pairs that
-        can touch at the current state (ContactTerm.pattern_pairs); a new matrix when they
-        changed."""
-        r, _ = self.state.local_config()
-        want = self.contact.pattern_pairs(r)
-        if not np.array_equal(want, self.contact_pairs):
+        """At the start of a load step: the Jacobian's pattern follows what the terms couple
+        at the current state (Term.pattern: the contact pairs that can touch); a new matrix
+        when it changed."""
+        if not self.moving_pattern:
+            return
+        want = self.patterns_at()
+        if not same_patterns(want, self.patterns):
             self._new_matrix(want)
 
     def ensure_pattern(self):
-        """Before every Jacobian: every pair that the iterate's contact tangent couples must be
-        preallocated (ContactTerm.pattern_covers), else a new matrix with those pairs, the
-        pairs that can touch at the iterate (pattern_pairs) and the old pattern is made before
-        the Jacobian is assembled.  No entry is ever inserted beyond the preallocation (see
-        contact_term: PETSc 3.18 MPIBAIJ puts such an entry in a wrong column)."""
-        c = self.contact
-        r, _ = self.state.local_config()
-        if c.pattern_covers(r, self.contact_pairs):
+        """Before every Jacobian: every coupling of the iterate's tangent must be preallocated
+        (Term.pattern_covers), else a new matrix with the grown patterns (Term.grown_pattern:
+        the contact pairs the iterate couples, the pairs that can touch there and the old
+        pattern) is made before the Jacobian is assembled.  No entry is ever inserted beyond
+        the preallocation (see contact/term.py: PETSc 3.18 MPIBAIJ puts such an entry in a
+        wrong column)."""
+        if not self.moving_pattern:
             return
-        coupled = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
-        want = np.unique(np.concatenate([c.pattern_pairs(r), coupled, self.contact_pairs]),
-                         axis=0)
+        r, _ = self.state.local_config()
+        if all(t.pattern_covers(r, pat) for t, pat in zip(self.terms, self.patterns)):
+            return
+        want = [t.grown_pattern(r, pat) for t, pat in zip(self.terms, self.patterns)]
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
 
-    def _new_matrix(self, pairs):
-        """A fresh matrix preallocated for the elements + the contact pairs.  Not an in-place
+    def _new_matrix(self, patterns):
+        """A fresh matrix preallocated for the elements + the terms' patterns.  Not an in-place
         re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
         (on_pattern_change) takes the new matrix and drops its factorisation."""
         old = self.J
-        self.J = self.layout.create_matrix(self.contact.node_groups(pairs))
-        self.contact_pairs = pairs
+        self.J = self.layout.create_matrix(self.node_groups(patterns))
+        self.patterns = patterns
         if self.on_pattern_change is not None:
             self.on_pattern_change(self.J)
         old.destroy()
@@ -333,13 +436,14 @@ class RodProblem:
         return e0
 
     # -- SNES callbacks ---------------------------------------------------------------
-    def residual(self, snes, X, F):
+    def residual(self, snes, X, F, terms=None):
+        """The residual at X into F: the rod's, then every term's (``terms``: these only, e.g.
+        load_terms), Dirichlet rows x - target."""
         r, q = self.state.local_config(X)
         energy, vec, _ = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=False)
         Floc = self._scatter @ vec.reshape(-1, NDOF)        # sum of element rows per local node
-        self.loads.add_residual(self.lam, r, q, Floc)
-        if self.contact is not None:
-            self.contact.add_residual(r, Floc)
+        for t in (self.terms if terms is None else terms):
+            t.add_residual(self.lam, r, q, Floc)
         F.set(0.0)
         self.layout.add_to_global(Floc, F)
         xa = X.getArray(readonly=True)
@@ -364,13 +468,8 @@ class RodProblem:
         T = DirichletRows(P, self.constraints.block_mask) if masked else P
         g = self.layout.gconn.astype(PETSc.IntType)
         T.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
-        lg = self.layout.nat2petsc[self.layout.local_nodes]
-        for i, j, B in ([] if symmetric else self.loads.add_jacobian_blocks(self.lam, q)):
-            T.setValuesBlockedRCV(np.array([[lg[i]]], dtype=PETSc.IntType),
-                                  np.array([[lg[j]]], dtype=PETSc.IntType), B[None],
-                                  addv=PETSc.InsertMode.ADD)
-        if self.contact is not None:
-            self.contact.add_jacobian(r, T)
+        for t in self.terms:
+            t.add_jacobian(self.lam, r, q, T, symmetric=symmetric)
         if masked:
             T.finish(self.constraints.rows_global)
         P.assemble()
@@ -384,20 +483,21 @@ class RodProblem:
         """Safety net for ensure_pattern: an entry beyond the preallocation would be wrong in
         parallel (PETSc 3.18 MPIBAIJ) and would break the reused factorisation, so it is an
         error, not a slowdown."""
-        if self.contact is None:
+        if not self.moving_pattern:
             return
         mallocs = int(P.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["mallocs"])
         if mallocs:
             raise RuntimeError(f"rodsnes: {mallocs} Jacobian entries fell outside the preallocated "
-                               "contact pattern (RodProblem.ensure_pattern missed a pair)")
+                               "pattern (RodProblem.ensure_pattern missed a coupling)")
 
     ARMIJO = 0.1        # sufficient decrease of the energy line search (precheck, limit 3)
 
     def precheck(self, X, Y, F=None):
-        """Line-search pre-check for contact scenes; returns True when the step was changed
-        (scaled: the direction is kept).  Three limits:
+        """Line-search pre-check for scenes with a term that limits steps (Term.step_limit:
+        contact); returns True when the step was changed (scaled: the direction is kept).
+        Three limits:
 
-        1. no node near a possible contact (a node of an element with contact candidates) moves
+        1. no node a term watches (Term.watched_nodes: a node near a possible contact) moves
            by more than ``step_limit`` (half the contact radius), so one step cannot carry a
            strand through another before the penalty sees it;
         2. the step may not deepen the deepest penetration d_max = max (2 eps - distance) beyond
@@ -427,19 +527,19 @@ class RodProblem:
         from mpi4py import MPI
         comm = self.layout.comm.tompi4py()
         changed = False
-        y = Y.getArray(readonly=True).reshape(-1, NDOF)[self.contact.near_local]
+        y = Y.getArray(readonly=True).reshape(-1, NDOF)[self.watched_nodes()]
         move = float(np.sqrt((y[:, 0:3] ** 2).sum(axis=1)).max()) if len(y) else 0.0
         move = comm.allreduce(move, op=MPI.MAX)
         if move > self.step_limit:
             Y.scale(self.step_limit / move)
             self.stats["limited_steps"] = self.stats.get("limited_steps", 0) + 1
             changed = True
-        c = self.contact
-        d_allow = c.depth_allowed(c.deepest(report=False))     # as at the trials
+        d0 = self.deepest(report=False)                  # as at the trials
+        d_allow = None if d0 is None else self.depth_allowed(d0)
         use_energy = self.energy_descent_applies(Y)
         if use_energy:
             r0, q0 = self.state.local_config(X)
-            E0 = self.energy_local(r0, q0, c.last["energy"])
+            E0 = self.energy_local(r0, q0)
             E0 = comm.allreduce(E0)
             slack = 1e-11 * abs(E0) + 1e-300
         # slope of the energy along the step X - s Y at s = 0: -F . Y (F: the residual at X,
@@ -452,14 +552,13 @@ class RodProblem:
             X.copy(Xt)
             Xt.axpy(-scale, Y)                         # X_new = X - Y (line search basic)
             r, q = self.state.local_config(Xt)
-            out = c.evaluate(r, tangent=False)
-            d_trial = comm.allreduce(c.deepest_local(out), op=MPI.MAX)   # the same on all ranks
-            if d_trial <= d_allow:
+            shares, d_trial = self.trial(r, q)         # d_trial: the same on all ranks
+            if d_allow is None or d_trial <= d_allow:
                 if first_ok is None:
                     first_ok = scale
                 if not use_energy:
                     break
-                E = comm.allreduce(self.energy_local(r, q, out["energy"]))
+                E = comm.allreduce(self.energy_local(r, q, shares))
                 if E <= E0 + self.ARMIJO * scale * min(slope, 0.0) + slack:
                     break
                 if descent:      # minimiser of the quadratic through E0, slope, E(scale)
@@ -488,24 +587,28 @@ class RodProblem:
         moves = bool(np.any(Y.getArray(readonly=True)[rows] != 0.0))
         return not self.layout.comm.tompi4py().allreduce(moves, op=MPI.LOR)
 
-    def energy_local(self, r, q, contact_energy):
-        """This rank's share of the total energy (elastic + conservative loads + contact) at
-        local positions r and rotations q, with the contact term's share given (the expensive
-        part: precheck takes it from the evaluation it makes anyway)."""
-        E = self.elastic.energy(q[self.lconn], r[self.lconn]) + self.loads.potential(self.lam, r)
-        return E + contact_energy
+    def energy_local(self, r, q, shares=None):
+        """This rank's share of the total energy (elastic, then every term in its order: the
+        loads' potential, contact) at local positions r and rotations q; ``shares``: the terms'
+        shares when known (trial: precheck and the minimiser take them from the evaluation
+        they make anyway)."""
+        E = self.elastic.energy(q[self.lconn], r[self.lconn])
+        if shares is None:
+            shares = [t.energy_local(self.lam, r, q) for t in self.terms]
+        for e in shares:
+            E += e
+        return E
 
     def update(self, snes, its):
         self.state.recentre()
-        if self.contact is not None:
-            self.ensure_pattern()
+        self.ensure_pattern()
 
     # -- diagnostics --------------------------------------------------------------------
     def energy(self):
-        """Total potential energy (elastic + conservative loads + contact), all ranks."""
+        """Total potential energy (elastic + the terms: conservative loads, contact), all
+        ranks."""
         r, q = self.state.local_config()
-        Ec = self.contact.energy(r) if self.contact is not None else 0.0
-        return self.layout.comm.tompi4py().allreduce(self.energy_local(r, q, Ec))
+        return self.layout.comm.tompi4py().allreduce(self.energy_local(r, q))
 
     def max_curvature(self):
         """Largest flexure |(u1, u2)| at the quadrature points times the contact radius eps,

@@ -68,9 +68,8 @@ class Arclength:
             a[:, 0:3] = 1.0 / n
             a[:, 3:6] = ell ** 2 / n
         self.w_lam = L ** 2
-        c = p.contact
         # a step moves no node by more than the contact radius (RMS), and first by a quarter
-        self.ds_max = c.eps if c is not None else 0.05 * L
+        self.ds_max = p.length_scale if p.length_scale is not None else 0.05 * L
         self.comm = p.layout.comm.tompi4py()
         self.steps = 0
 
@@ -84,18 +83,18 @@ class Arclength:
         return v
 
     def dF_dlambda(self, h=1e-5):
-        """F_lambda at the current X and lambda: central differences of the residual without the
-        contact term (contact does not depend on lambda).  A new Vec."""
+        """F_lambda at the current X and lambda: central differences of the residual of the
+        rod and the terms that depend on lambda (RodProblem.load_terms: not contact).  A new
+        Vec."""
         p = self.p
         lam = p.lam
-        contact, p.contact = p.contact, None
+        terms = p.load_terms()
         Fp, Fm = p.layout.create_vec(), p.layout.create_vec()
         try:
             for sign, F in ((1.0, Fp), (-1.0, Fm)):
-                p.set_load(lam + sign * h)
-                p.residual(None, p.state.X, F)
+                p.set_load(lam + sign * h, refresh=False)
+                p.residual(None, p.state.X, F, terms=terms)
         finally:
-            p.contact = contact
             p.set_load(lam, refresh=False)
         Fp.axpy(-1.0, Fm)
         Fp.scale(0.5 / h)

@@ -11,9 +11,10 @@ def option_default(name, value):
 
 
 def mumps_fill_room(problem, prefix=""):
-    """With contact, room for the fill MUMPS's analysis did not see (contact pairs come and go
-    between factorisations; without it INFOG(1) = -9): -<prefix>mat_mumps_icntl_14 100."""
-    if problem.contact is not None:
+    """With a term whose pattern follows the state (contact), room for the fill MUMPS's
+    analysis did not see (contact pairs come and go between factorisations; without it
+    INFOG(1) = -9): -<prefix>mat_mumps_icntl_14 100."""
+    if problem.moving_pattern:
         option_default(prefix + "mat_mumps_icntl_14", "100")
 
 

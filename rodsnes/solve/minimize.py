@@ -1,4 +1,5 @@
-"""Load steps as energy minimisations: inertia-controlled Newton on the total energy.
+"""One load step as an energy minimisation: inertia-controlled Newton on the total energy
+(the load stepping around it: load_path.py).
 
 For conservative loads (dead forces, gravity, prescribed end positions and rotations, an
 intrinsic twist ramp, contact) an equilibrium a user wants is a local minimum of the total
@@ -34,14 +35,6 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
    with no negative pivot: every converged step is a stable equilibrium, its inertia known
    from the factorisation the iteration makes anyway.  A near-zero positive eigenvalue (a ply
    sliding, a ring turning) is not an instability: convergence is judged on |g| only.
-
-LoadPath steps the load from lam0 to the stop: each increment starts from the last
-converged state, with the prescribed end turns spread along the rod as material twist
-(twist predictor: a rotation increment of the end arrives at every node in proportion to its
-arclength, so no element sees a relative rotation near half a turn and a step of many turns
-stays on the right sheet of SO(3)); the increment grows when a step took few iterations and
-shrinks when it took many, and is halved on genuine failure (iteration limit, line search
-failure, a link that differs from the imposed turns).
 """
 import time
 
@@ -49,7 +42,6 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from rodsnes.model import so3
 from rodsnes.model.partition import NDOF
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
@@ -60,16 +52,10 @@ from rodsnes.model.mesh import lumped_weights
 # the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
 # angle, but a step that turns a node by more than this is far outside its quadratic model
 MAX_ROTATION = 1.0
-# the largest prescribed end turn per load step once the twist predictor spreads it
-MAX_TURN_STEP = 1.0
 ARMIJO = 1e-4
 # full Newton steps the watchdog lets the energy rise over before it goes back and searches
 WATCHDOG_STEPS = 4
 FREE_STEPS = True
-# Newton iterations a load step is aimed at: longer steps cost more iterations each but fewer
-# per unit of load (the plectoneme: 8 its for 0.01 turn, 33 for 0.1, 75 for 0.5)
-TARGET_ITS = 20
-PREDICTOR = True
 LINE_SEARCH_TRIES = 30
 # past -load_max_it, a minimisation goes on while the energy still falls by more than PROGRESS
 # of its scale per max_it / 4 iterations, up to MAX_IT_FACTOR x max_it (_descending)
@@ -147,12 +133,8 @@ class EnergyMinimizer:
         """(total energy, deepest penetration or None) at the chart point X.  Collective."""
         p = self.problem
         r, q = p.state.local_config(X)
-        Ec, depth = 0.0, None
-        if p.contact is not None:
-            out = p.contact.evaluate(r, tangent=False)
-            Ec = out["energy"]
-            depth = self.comm.allreduce(p.contact.deepest_local(out), op=MPI.MAX)
-        E = self.comm.allreduce(p.energy_local(r, q, Ec))
+        shares, depth = p.trial(r, q)
+        E = self.comm.allreduce(p.energy_local(r, q, shares))
         return self._same(E, depth)
 
     @logged("MinHessian")
@@ -235,14 +217,13 @@ class EnergyMinimizer:
         alpha = 1.0
         if rot > MAX_ROTATION:
             alpha = MAX_ROTATION / rot
-        c = p.contact
-        if c is not None:
+        limit = p.step_limit                  # the terms' (contact: half its radius; 0: none)
+        if limit:
             r, _ = p.state.local_config()
-            c.evaluate(r)
-            t_near, _ = self._move(d, c.near_local)
-            if t_near * alpha > c.step_limit:
-                alpha = c.step_limit / t_near
-            room = max(0.5 * c.clearance(r), c.step_limit)
+            t_near, _ = self._move(d, p.watched_nodes(r))
+            if t_near * alpha > limit:
+                alpha = limit / t_near
+            room = max(0.5 * p.clearance(r), limit)
             if t * alpha > room:
                 alpha = room / t
         return alpha
@@ -271,8 +252,7 @@ class EnergyMinimizer:
         watch = None                # the watchdog's reference point (module docstring, 4.)
         while True:
             p.state.recentre()
-            if p.contact is not None:
-                p.ensure_pattern()
+            p.ensure_pattern()
             gnorm = self.gradient()
             hist.append(gnorm)
             if not np.isfinite(gnorm):
@@ -282,7 +262,7 @@ class EnergyMinimizer:
             newton = not small and self._newton_step(g, d)
             if not newton:
                 with timed("MinHessian"):
-                    self.factor.assemble(p.contact_pairs if p.contact is not None else None)
+                    self.factor.assemble(p.patterns)
                     nneg = self._same(self.factor.factor())
                 self.factorizations += 1
                 if small and nneg == 0:
@@ -374,8 +354,8 @@ class EnergyMinimizer:
         no node by a tenth of that.  Returns (step, 1 if added)."""
         p = self.problem
         reach = 0.01 * p.mesh.length
-        if p.contact is not None:
-            reach = min(reach, p.contact.step_limit)
+        if p.step_limit:
+            reach = min(reach, p.step_limit)
         t, _ = self._move(d)
         if t >= 0.1 * reach:
             return d, 0
@@ -395,7 +375,7 @@ class EnergyMinimizer:
         p = self.problem
         allow = None
         if depth0 is not None:
-            allow = p.contact.depth_allowed(depth0)
+            allow = p.depth_allowed(depth0)
         slack = self.roundoff * (abs(E0) + self.energy_scale)
         for k in range(LINE_SEARCH_TRIES):
             X.copy(Xt)
@@ -422,178 +402,3 @@ class EnergyMinimizer:
             else:
                 alpha *= 0.5
         return False, alpha, LINE_SEARCH_TRIES
-
-
-class LoadPath:
-    """Load stepping by minimisation (module docstring): the same contract as
-    solver.NewtonSolver.run."""
-
-    def __init__(self, problem, force_scale, rtol=1e-10, max_it=200, quiet=True,
-                 max_increment=None):
-        self.problem = problem
-        self.minimizer = EnergyMinimizer(problem, force_scale, rtol=rtol, max_it=max_it,
-                                         quiet=quiet)
-        self.quiet = quiet
-        c = problem.constraints
-        self.turn_cap = c.max_load_increment(MAX_TURN_STEP)
-        self.max_increment = max_increment
-        self.fail_reason = None
-        self.results = []
-        self.link0 = None
-        self.lam_link0 = 0.0
-        self.floor = self.minimizer.floor
-
-    def tolerance(self):
-        """The gradient norm every step is held to: max(rtol x force scale, round-off floor)."""
-        return max(self.minimizer.tol, self.floor)
-
-    def solve_at(self, lam):
-        """Minimise at load lam from the current state (one step, no predictor)."""
-        return self.minimizer.solve_at(lam)
-
-    @property
-    def total_its(self):
-        return self.minimizer.total_its
-
-    def _say(self, text):
-        if not self.quiet and self.problem.layout.comm.getRank() == 0:
-            print(text, flush=True)
-
-    def twist_predictor(self, dlam):
-        """Spread the end rotation's increment 2 pi T dlam (-bc_end_turns T) along the rod as
-        material twist: R_i <- R_i exp(phi_i e3^x), phi_i = 2 pi T dlam s_i / L."""
-        p = self.problem
-        T = p.constraints.end_turns
-        if not T or p.mesh.closed:
-            return
-        s = p.mesh.s_nodes[p.layout.local_nodes] / p.mesh.length
-        phi = 2.0 * np.pi * T * dlam * s
-        e3 = np.zeros((len(s), 3))
-        e3[:, 2] = phi
-        q = p.state.q_ref
-        q[:] = so3.qmul(q, so3.qexp(e3))
-
-    def keep_promise(self, res, max_raises=4):
-        """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
-        promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
-        (ContactTerm.promised_penalty) and minimise again at the same load (mu never falls along a
-        path).  res takes the iterations; a re-solve that fails fails the step.  Collective."""
-        p = self.problem
-        ct = p.contact
-        if ct is None or not ct.adapt:
-            return
-        for _ in range(max_raises):
-            pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
-            if mu1 is None:
-                return
-            mu0 = ct.mu
-            ct.set_penalty(mu1)
-            again = self.minimizer.solve_at(res.lam)
-            res.its += again.its
-            res.seconds += again.seconds
-            res.history = np.concatenate([res.history, again.history])
-            res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
-            ct.penalty_raises += 1
-            self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter > "
-                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> "
-                      f"{ct.mu:.4g}, minimised again in {again.its} its")
-            if not again.converged:
-                res.converged, res.reason = False, f"after a penalty raise: {again.reason}"
-                ct.set_penalty(mu0)
-                return
-
-    def predict(self, prev, lam, dl):
-        """The start of the step lam -> lam + dl: the secant through the last two converged
-        states (positions and rotations, problem.RodState.predict) when there is a step before
-        and the predicted state penetrates no deeper than the line search allows, else the last
-        state with the end turns spread as twist (twist_predictor).  Collective."""
-        p = self.problem
-        if prev is not None and PREDICTOR:
-            c, same = p.contact, self.minimizer._same
-            if c is not None:
-                allow = c.depth_allowed(same(c.deepest(p.state.local_config()[0], report=False)))
-            snap = p.state.snapshot()
-            p.state.predict(prev[0], dl / (lam - prev[1]))
-            p.state.recentre()
-            if c is None:
-                return
-            if same(c.deepest(p.state.local_config()[0], report=False)) <= allow:
-                return
-            p.state.restore(snap)
-        self.twist_predictor(dl)
-
-    def link_error(self, lam):
-        """|link - the link the load imposes| (the link at the first load, plus the end turns
-        since), or None where the rod has no link (topology) or is too long to count it."""
-        p = self.problem
-        if p.mesh.n_nodes > 20000:
-            return None
-        topo = p.topology()
-        if topo is None or not np.isfinite(topo["link"]):
-            return None
-        if self.link0 is None:
-            self.link0, self.lam_link0 = topo["link"], lam
-            return 0.0
-        want = self.link0 + p.constraints.end_turns * (lam - self.lam_link0)
-        return abs(topo["link"] - want)
-
-    def link_kept(self, err):
-        """The link is what the load imposes (to 0.01): with contact exactly, without contact up
-        to an even number (a phantom rod may pass through itself, each crossing changes the
-        link by 2; an odd change is a rotation taken the short way round)."""
-        if self.problem.contact is not None:
-            return err <= 1e-2
-        return abs(err - 2.0 * np.round(err / 2.0)) <= 1e-2
-
-    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, dlam0=None,
-            prev0=None, stop=1.0, **ignored):
-        p = self.problem
-        st = p.state
-        nominal = 1.0 / steps
-        dlam = min(dlam0 or nominal, self.turn_cap)
-        largest = min(self.max_increment or 1.0, self.turn_cap)
-        lam = lam0
-        p.set_load(lam)
-        self.link_error(lam)                 # the link at the start
-        # a ring of uniform stress-free strains may slide along itself: hold that symmetry
-        # (it carries no force; problem.hold_sliding) so that no valley of equal energy is left
-        p.hold_sliding()
-        cutbacks = 0
-        prev = prev0                         # (snapshot, load) of the step before
-        while lam < stop - 1e-14:
-            dl = min(dlam, stop - lam)
-            snap = st.snapshot()
-            self.predict(prev, lam, dl)
-            res = self.minimizer.solve_at(lam + dl)
-            if res.converged:
-                self.keep_promise(res)
-            err = self.link_error(lam + dl) if res.converged else None
-            if res.converged and err is not None and not self.link_kept(err):
-                res.converged, res.reason = False, f"link off by {err:.3g}"
-            if res.converged:
-                prev = (snap, lam)
-                lam += dl
-                cutbacks = 0
-                res.link_error = err
-                # the next increment from the work this one took (Crisfield's rule: a step
-                # of I iterations is scaled by sqrt(I_target / I), between x1/2 and x2)
-                work = max(res.its + res.line_search_cuts / 4.0, 1.0)
-                dlam = min(dl * min(max(np.sqrt(TARGET_ITS / work), 0.5), 2.0), largest)
-                res.next_increment = dlam
-                self.results.append(res)
-                if on_step is not None:
-                    on_step(res)
-                continue
-            st.restore(snap)
-            prev = None
-            p.set_load(lam)
-            if on_fail is not None:
-                on_fail(res, dl)
-            cutbacks += 1
-            dlam = 0.5 * dl
-            if cutbacks > max_cutbacks or dlam < min_step:
-                self.fail_reason = (f"load path stopped at load {lam:.6f}: the minimisation at "
-                                    f"{lam + dl:.6f} failed ({res.reason}) after {cutbacks - 1} "
-                                    f"cut-backs; the last converged step is in result.h5")
-                return self.results, False
-        return self.results, True

@@ -267,7 +267,7 @@ class NewtonSolver:
         Collective (allgathered positions)."""
         p = self.problem
         r = p.layout.allgather_nodes(p.state.local_config()[0][:p.layout.n_owned])
-        near = p.contact.eps if p.contact is not None else 0.01 * p.mesh.length
+        near = p.length_scale if p.length_scale is not None else 0.01 * p.mesh.length
         seen = any(abs(p.lam - lam) <= 1e-4 and np.linalg.norm(r - r0, axis=1).max() <= near
                    for lam, r0 in self._folds)
         if seen:
@@ -306,10 +306,17 @@ class NewtonSolver:
         raise (the geometric mean of the two mu, down to RAISE_MIN x mu); below that the state
         and mu are put back and it is reported (the step stays, with its penetration).
         Updates res (its, seconds, fnorm, negative eigenvalues) in place."""
-        p = self.problem
-        ct = p.contact
-        if ct is None or not ct.adapt or not res.converged:
+        if not res.converged:
             return
+        raised = False
+        for term in self.problem.adaptive_terms():
+            raised = self._keep_penetration_of(term, res, max_raises) or raised
+        if raised and self.check_stability:
+            res.negative_eigenvalues = self.negative_eigenvalues()
+
+    def _keep_penetration_of(self, ct, res, max_raises):
+        """keep_penetration for one term; True when its penalty was raised."""
+        p = self.problem
         raised = False
         for _ in range(max_raises):
             pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
@@ -346,8 +353,7 @@ class NewtonSolver:
             self.say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter > "
                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> {mu1:.4g}, "
                      f"solved again in {r.its} its")
-        if raised and self.check_stability:
-            res.negative_eigenvalues = self.negative_eigenvalues()
+        return raised
 
     def solve_guarded(self, lam):
         """solve_at(lam); after a PETSc error inside the solve (e.g. MUMPS failing in its solve

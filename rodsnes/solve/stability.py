@@ -14,6 +14,7 @@ the vector broadcast and scattered back to the owned rows of the SNES layout.
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import mumps_fill_room, option_default
 
 
@@ -40,24 +41,16 @@ class Inertia:
 
     def __init__(self, problem):
         self.problem = problem
-        self.pairs = None
+        self.patterns = None
         self.H = None
         self.pc = None
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
 
-    def _pattern(self):
-        p = self.problem
-        if p.contact is None:
-            return np.zeros((0, 2), dtype=np.int64)
-        r_loc, _ = p.state.local_config()
-        return p.contact.pattern_pairs(r_loc)
-
-    def _build(self, pairs):
+    def _build(self, patterns):
         p = self.problem
         self.destroy()
-        groups = p.contact.node_groups(pairs) if p.contact is not None and len(pairs) else None
-        self.H = p.layout.create_matrix(groups, symmetric=True)
+        self.H = p.layout.create_matrix(p.node_groups(patterns), symmetric=True)
         pc = PETSc.PC().create(comm=p.layout.comm)
         pc.setOptionsPrefix("stability_")
         pc.setType(PETSc.PC.Type.CHOLESKY)
@@ -65,19 +58,19 @@ class Inertia:
         option_default("stability_mat_mumps_icntl_13", "1")
         mumps_fill_room(p, "stability_")
         pc.setFromOptions()
-        self.pc, self.pairs = pc, pairs
+        self.pc, self.patterns = pc, patterns
         self.builds += 1
 
-    def assemble(self, pairs=None):
+    def assemble(self, patterns=None):
         """The symmetric Hessian of the problem's current state into H (kept; a new matrix and
-        symbolic analysis when the contact pattern changed).  ``pairs``: the contact element
-        pairs to preallocate (default: a search within the preallocation margin).
-        Collective."""
+        symbolic analysis when the terms' patterns changed).  ``patterns``: the terms' patterns
+        to preallocate (RodProblem.patterns; default: the terms' at the current state, e.g. a
+        contact search within the preallocation margin).  Collective."""
         p = self.problem
-        if pairs is None:
-            pairs = self._pattern()
-        if self.pairs is None or not np.array_equal(pairs, self.pairs):
-            self._build(pairs)
+        if patterns is None:
+            patterns = p.patterns_at()
+        if not same_patterns(patterns, self.patterns):
+            self._build(patterns)
         p.jacobian(None, p.state.X, self.H, self.H, symmetric=True)
         self.diagonal = self.H.getDiagonal()
         return self.H
@@ -179,11 +172,7 @@ at 3960 and 0.5 s at 7200 dofs."""
 def hessian(problem):
     """The symmetric energy Hessian at the current state, in a new BAIJ matrix of the problem's
     layout (Dirichlet rows and columns: identity).  Collective."""
-    groups = None
-    if problem.contact is not None:
-        r_loc, _ = problem.state.local_config()
-        groups = problem.contact.extra_pattern(r_loc)
-    H = problem.layout.create_matrix(groups)
+    H = problem.layout.create_matrix(problem.node_groups(problem.patterns_at()))
     problem.jacobian(None, problem.state.X, H, H, symmetric=True)
     return H
 

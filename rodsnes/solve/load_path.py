@@ -1,0 +1,202 @@
+"""Load stepping by energy minimisation (-load_path minimize): LoadPath.
+
+LoadPath steps the load from lam0 to the stop: each increment starts from the last
+converged state, with the prescribed end turns spread along the rod as material twist
+(twist predictor: a rotation increment of the end arrives at every node in proportion to its
+arclength, so no element sees a relative rotation near half a turn and a step of many turns
+stays on the right sheet of SO(3)); the increment grows when a step took few iterations and
+shrinks when it took many, and is halved on genuine failure (iteration limit, line search
+failure, a link that differs from the imposed turns).
+Each step's minimisation is minimize.EnergyMinimizer.
+"""
+import numpy as np
+
+from rodsnes.model import so3
+from rodsnes.solve.minimize import EnergyMinimizer
+
+# the largest prescribed end turn per load step once the twist predictor spreads it
+MAX_TURN_STEP = 1.0
+# Newton iterations a load step is aimed at: longer steps cost more iterations each but fewer
+# per unit of load (the plectoneme: 8 its for 0.01 turn, 33 for 0.1, 75 for 0.5)
+TARGET_ITS = 20
+PREDICTOR = True
+
+
+class LoadPath:
+    """Load stepping by minimisation (module docstring): the same contract as
+    newton.NewtonSolver.run."""
+
+    def __init__(self, problem, force_scale, rtol=1e-10, max_it=200, quiet=True,
+                 max_increment=None):
+        self.problem = problem
+        self.minimizer = EnergyMinimizer(problem, force_scale, rtol=rtol, max_it=max_it,
+                                         quiet=quiet)
+        self.quiet = quiet
+        c = problem.constraints
+        self.turn_cap = c.max_load_increment(MAX_TURN_STEP)
+        self.max_increment = max_increment
+        self.fail_reason = None
+        self.results = []
+        self.link0 = None
+        self.lam_link0 = 0.0
+        self.floor = self.minimizer.floor
+
+    def tolerance(self):
+        """The gradient norm every step is held to: max(rtol x force scale, round-off floor)."""
+        return max(self.minimizer.tol, self.floor)
+
+    def solve_at(self, lam):
+        """Minimise at load lam from the current state (one step, no predictor)."""
+        return self.minimizer.solve_at(lam)
+
+    @property
+    def total_its(self):
+        return self.minimizer.total_its
+
+    def _say(self, text):
+        if not self.quiet and self.problem.layout.comm.getRank() == 0:
+            print(text, flush=True)
+
+    def twist_predictor(self, dlam):
+        """Spread the end rotation's increment 2 pi T dlam (-bc_end_turns T) along the rod as
+        material twist: R_i <- R_i exp(phi_i e3^x), phi_i = 2 pi T dlam s_i / L."""
+        p = self.problem
+        T = p.constraints.end_turns
+        if not T or p.mesh.closed:
+            return
+        s = p.mesh.s_nodes[p.layout.local_nodes] / p.mesh.length
+        phi = 2.0 * np.pi * T * dlam * s
+        e3 = np.zeros((len(s), 3))
+        e3[:, 2] = phi
+        q = p.state.q_ref
+        q[:] = so3.qmul(q, so3.qexp(e3))
+
+    def keep_promise(self, res, max_raises=4):
+        """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
+        promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
+        (ContactTerm.promised_penalty) and minimise again at the same load (mu never falls along a
+        path).  res takes the iterations; a re-solve that fails fails the step.  Collective."""
+        for term in self.problem.adaptive_terms():
+            if not self._keep_promise_of(term, res, max_raises):
+                return
+
+    def _keep_promise_of(self, ct, res, max_raises):
+        """keep_promise for one term; False when a re-solve failed (the step fails)."""
+        p = self.problem
+        for _ in range(max_raises):
+            pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
+            if mu1 is None:
+                return True
+            mu0 = ct.mu
+            ct.set_penalty(mu1)
+            again = self.minimizer.solve_at(res.lam)
+            res.its += again.its
+            res.seconds += again.seconds
+            res.history = np.concatenate([res.history, again.history])
+            res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
+            ct.penalty_raises += 1
+            self._say(f"  load {res.lam:.6f}: penetration {pen:.2%} of the diameter > "
+                      f"-contact_penetration {ct.penetration:g}: penalty {mu0:.4g} -> "
+                      f"{ct.mu:.4g}, minimised again in {again.its} its")
+            if not again.converged:
+                res.converged, res.reason = False, f"after a penalty raise: {again.reason}"
+                ct.set_penalty(mu0)
+                return False
+        return True
+
+    def predict(self, prev, lam, dl):
+        """The start of the step lam -> lam + dl: the secant through the last two converged
+        states (positions and rotations, problem.RodState.predict) when there is a step before
+        and the predicted state penetrates no deeper than the line search allows, else the last
+        state with the end turns spread as twist (twist_predictor).  Collective."""
+        p = self.problem
+        if prev is not None and PREDICTOR:
+            same = self.minimizer._same
+            depth0 = p.deepest(p.state.local_config()[0], report=False)   # None: no such term
+            if depth0 is not None:
+                allow = p.depth_allowed(same(depth0))
+            snap = p.state.snapshot()
+            p.state.predict(prev[0], dl / (lam - prev[1]))
+            p.state.recentre()
+            if depth0 is None:
+                return
+            if same(p.deepest(p.state.local_config()[0], report=False)) <= allow:
+                return
+            p.state.restore(snap)
+        self.twist_predictor(dl)
+
+    def link_error(self, lam):
+        """|link - the link the load imposes| (the link at the first load, plus the end turns
+        since), or None where the rod has no link (topology) or is too long to count it."""
+        p = self.problem
+        if p.mesh.n_nodes > 20000:
+            return None
+        topo = p.topology()
+        if topo is None or not np.isfinite(topo["link"]):
+            return None
+        if self.link0 is None:
+            self.link0, self.lam_link0 = topo["link"], lam
+            return 0.0
+        want = self.link0 + p.constraints.end_turns * (lam - self.lam_link0)
+        return abs(topo["link"] - want)
+
+    def link_kept(self, err):
+        """The link is what the load imposes (to 0.01): with contact exactly, without contact up
+        to an even number (a phantom rod may pass through itself, each crossing changes the
+        link by 2; an odd change is a rotation taken the short way round)."""
+        if self.problem.keeps_link:
+            return err <= 1e-2
+        return abs(err - 2.0 * np.round(err / 2.0)) <= 1e-2
+
+    def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, dlam0=None,
+            prev0=None, stop=1.0, **ignored):
+        p = self.problem
+        st = p.state
+        nominal = 1.0 / steps
+        dlam = min(dlam0 or nominal, self.turn_cap)
+        largest = min(self.max_increment or 1.0, self.turn_cap)
+        lam = lam0
+        p.set_load(lam)
+        self.link_error(lam)                 # the link at the start
+        # a ring of uniform stress-free strains may slide along itself: hold that symmetry
+        # (it carries no force; problem.hold_sliding) so that no valley of equal energy is left
+        p.hold_sliding()
+        cutbacks = 0
+        prev = prev0                         # (snapshot, load) of the step before
+        while lam < stop - 1e-14:
+            dl = min(dlam, stop - lam)
+            snap = st.snapshot()
+            self.predict(prev, lam, dl)
+            res = self.minimizer.solve_at(lam + dl)
+            if res.converged:
+                self.keep_promise(res)
+            err = self.link_error(lam + dl) if res.converged else None
+            if res.converged and err is not None and not self.link_kept(err):
+                res.converged, res.reason = False, f"link off by {err:.3g}"
+            if res.converged:
+                prev = (snap, lam)
+                lam += dl
+                cutbacks = 0
+                res.link_error = err
+                # the next increment from the work this one took (Crisfield's rule: a step
+                # of I iterations is scaled by sqrt(I_target / I), between x1/2 and x2)
+                work = max(res.its + res.line_search_cuts / 4.0, 1.0)
+                dlam = min(dl * min(max(np.sqrt(TARGET_ITS / work), 0.5), 2.0), largest)
+                res.next_increment = dlam
+                self.results.append(res)
+                if on_step is not None:
+                    on_step(res)
+                continue
+            st.restore(snap)
+            prev = None
+            p.set_load(lam)
+            if on_fail is not None:
+                on_fail(res, dl)
+            cutbacks += 1
+            dlam = 0.5 * dl
+            if cutbacks > max_cutbacks or dlam < min_step:
+                self.fail_reason = (f"load path stopped at load {lam:.6f}: the minimisation at "
+                                    f"{lam + dl:.6f} failed ({res.reason}) after {cutbacks - 1} "
+                                    f"cut-backs; the last converged step is in result.h5")
+                return self.results, False
+        return self.results, True
