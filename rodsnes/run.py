@@ -23,23 +23,12 @@ from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
 from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
-from rodsnes.contact.term import ContactTerm
+from rodsnes.terms import scene_terms, contact_term
 from rodsnes.solve import estimate
 from rodsnes.model.scales import force_scale
-from rodsnes.model.loads import Loads, nonconservative
+from rodsnes.model.loads import nonconservative
 from rodsnes.errors import SceneError
 from rodsnes.io.scene import scene_record, record_mismatches
-
-
-def scene_terms(scene, mesh, layout):
-    """The terms (model/term.Term) the scene asks for, in the order the problem sums them: the
-    external loads, then with -contact the self-contact term (which holds the clamps' mounts,
-    -contact_supports)."""
-    rod = scene.rod
-    terms = [Loads(scene.loads, mesh, layout, fe.quadrature_points(rod.quadrature, rod.order))]
-    if scene.contact.enabled:
-        terms.append(ContactTerm(scene, mesh, layout))
-    return terms
 
 
 class Run:
@@ -54,7 +43,7 @@ class Run:
         self.layout = partition.Layout(comm, self.mesh)
         terms = scene_terms(scene, self.mesh, self.layout)
         # the self-contact term, or None (for tools and tests that look into it)
-        self.contact = next((t for t in terms if isinstance(t, ContactTerm)), None)
+        self.contact = contact_term(terms)
         self.problem = RodProblem(scene, self.mesh, self.layout, terms)
         rod = scene.rod
         L = rod.length

@@ -176,7 +176,7 @@ class RodProblem:
     run builds from the scene (run.scene_terms), summed in their order.  The problem knows the
     terms only through that interface."""
 
-    def __init__(self, scene, mesh, layout, terms=()):
+    def __init__(self, scene, mesh, layout, terms):
         self.scene, self.mesh, self.layout = scene, mesh, layout
         rod = scene.rod
         nq = fe.quadrature_points(rod.quadrature, rod.order)

@@ -38,6 +38,7 @@ from rodsnes.model import mesh as rodmesh
 from rodsnes.model import partition, refine
 from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
+from rodsnes.terms import contact_term, scene_terms
 from rodsnes.solve.linear import mumps_fill_room, option_default
 
 PREFIX = "estimate_"          # options prefix of the enriched problem's SNES (-estimate_snes_*)
@@ -70,13 +71,12 @@ class EnrichedProblem:
     INTERIOR_SHARE = 1e-2       # the interior stage ends when its |F| < this x the whole |F|
 
     def __init__(self, scene, comm, order, nelem):
-        from rodsnes.contact.term import ContactTerm
         self.scene = replace(scene, rod=refine.enriched_rod(scene.rod, order, nelem))
         self.mesh = rodmesh.build_mesh(self.scene.rod, scene.bc)
         self.layout = partition.Layout(comm, self.mesh)
-        self.contact = (ContactTerm(self.scene, self.mesh, self.layout)
-                        if scene.contact.enabled else None)
-        self.problem = RodProblem(self.scene, self.mesh, self.layout, contact=self.contact)
+        terms = scene_terms(self.scene, self.mesh, self.layout)
+        self.contact = contact_term(terms)
+        self.problem = RodProblem(self.scene, self.mesh, self.layout, terms)
         self.comm = comm.tompi4py()
         self.floor = 1e-13 * self.mesh.length
         self.stage = "whole"
@@ -277,7 +277,7 @@ class ErrorEstimator:
         if self.enriched is None:
             self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem)
         x, q = gathered_state(problem)
-        mu = problem.contact.mu if problem.contact is not None else None
+        mu = contact_term(problem.terms).mu if contact_term(problem.terms) is not None else None
         e = self.enriched
         xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, mu=mu,
                                            gauge=problem.gauge is not None)
