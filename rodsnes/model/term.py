@@ -114,6 +114,10 @@ class Term:
         """What the step's log line adds ("" for nothing)."""
         return ""
 
+    def describe(self):
+        """What the run's first line says of it, e.g. the law it uses ("" for nothing)."""
+        return ""
+
 
 def same_patterns(a, b):
     """Whether two lists of the terms' patterns (RodProblem.patterns; b may be None: none yet)
