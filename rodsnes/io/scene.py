@@ -358,8 +358,9 @@ PETSC_PREFIXES = (
     "memory_", "saws", "python", "use_gpu", "device", "citations", "skip_petscrc", "history",
     "viewer", "tao_", "ts_", "is_", "ao_", "pf_", "random_", "matload_", "matmatmult_",
     "matptap_", "bv_", "eps_", "st_", "svd_", "nep_", "pep_", "mfn_", "ds_", "fn_", "rg_",
-    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_")
-"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc."""
+    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_", "estimate_")
+"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc (stability_: the
+inertia count's LDL^T, estimate_: the error estimate's SNES)."""
 
 
 # ----------------------------------------------------------------------------

@@ -11,10 +11,10 @@ started there, gives u_{p+1}.  Its error is O(h^(p+2)) against O(h^(p+1)), so
 (s: 8 points per element of the fine sampling, refine.sample_points) estimate the true errors
 |x_p(L) - x(L)| and max_s |x_p(s) - x(s)| in length units, with
 (1 - r) e <= eta <= (1 + r) e for r = e_{p+1} / e_p (within a factor 3 whenever r <= 2/3).
-The carried state differs from u_{p+1} by about the error itself, so Newton takes one
-factorisation of the enriched tangent; the corrections after it reuse that factorisation
-(chord steps, a new one only when a chord step fails to halve the correction) until one is
-below 1 % of the distance travelled from the carried state (the estimate is then good to ~1 %).
+u_{p+1} is found by SNES (prefix -estimate_) from the carried state in two stages
+(EnrichedProblem): the new nodes alone with the carried ones held, then the whole problem with
+full Newton steps until a correction is below 1 % of the distance travelled from the carried
+state (the estimate is then good to ~1 %).
 Why p+1 rather than h/2: h/2 doubles the unknowns (cost x2 per estimate) and its error ratio
 2^-(p+1) is what p+1 gives at (p+1)/p times the unknowns; p+1 keeps the same elements, so the
 contact pairs, the partition and the element turn limits of the run carry over unchanged.
@@ -87,10 +87,11 @@ class EnrichedProblem:
 
     # -- SNES --------------------------------------------------------------------------
     def _snes(self):
-        """newtonls with a backtracking line search on |F| (-estimate_snes_linesearch_type bt),
-        LU by MUMPS, at most 25 iterations of the whole stage, defaults a user's
-        -estimate_* options override; the problem's residual and tangent (masked in the interior
-        stage), its rotation update before every step, and the convergence test _converged."""
+        """newtonls with full steps (-estimate_snes_linesearch_type basic: backtracking on |F|,
+        bt, stalls on slender rods, whose |F| the stiff rows dominate: docs/error_estimate.md),
+        LU by MUMPS, at most 25 iterations of the whole stage, defaults a user's -estimate_*
+        options override; the problem's residual and tangent (masked in the interior stage), its
+        rotation update before every step, and the convergence test _converged."""
         p = self.problem
         for name, value in (("snes_linesearch_type", "basic"), ("snes_max_it", "25"),
                             ("ksp_type", "preonly"), ("pc_type", "lu"),
@@ -285,6 +286,8 @@ class ErrorEstimator:
         dt = time.perf_counter() - t0
         self.seconds += dt
         self.count += 1
+        # a non-finite difference is no estimate, whatever the solve said
+        ok = bool(ok) and all(np.isfinite(v) for v in (line, tip if tip is not None else 0.0))
         return {"tip": tip, "centreline": line, "order": rod.order + 1, "nelem": rod.nelem,
                 "load": problem.lam,
                 "newton_iterations": its, "factorisations": nf, "converged": ok, "seconds": dt}
