@@ -115,6 +115,10 @@ class ContactTerm(Term):
         self.kernel.mu = self.mu
         self.kept_evaluation = None
 
+    def adopt(self, other):
+        """The penalty ``other`` (the contact term of another discretisation) has raised."""
+        self.set_penalty(other.mu)
+
     # -- communication ----------------------------------------------------------------
     def _ensure_sf(self, nodes):
         """PetscSF from the owners of ``nodes`` (natural ids, sorted) to this rank's leaves."""
