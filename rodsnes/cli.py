@@ -298,13 +298,12 @@ def petsc_error_message(exc, opts, comm):
         option = values.get(m.group(1), "pc_factor_mat_solver_type")
         return (f"-{option} {m.group(1)}: this PETSc has no {m.group(2)} factorisation of "
                 f"rodsnes' Jacobian ({m.group(3)}) by {m.group(1)} (not built with it); use "
-                f"mumps (the default)" + (" or petsc" if comm.getSize() == 1 else ""))
+                f"petsc (the default) or mumps")
     m = re.search(r"MatSolverType (\S+) does not support matrix type (\S+)", text)
     if m:
         option = values.get(m.group(1), "pc_factor_mat_solver_type")
         return (f"-{option} {m.group(1)}: {m.group(1)} cannot factor rodsnes' Jacobian "
-                f"({m.group(2)}, 6 x 6 blocks); use mumps (the default)"
-                + (" or petsc" if comm.getSize() == 1 else ""))
+                f"({m.group(2)}, 6 x 6 blocks); use petsc (the default) or mumps")
     m = re.search(r"Unknown logical value: (\S+)", text)
     if m:
         option = values.get(m.group(1), "?")
@@ -395,7 +394,7 @@ def _closest(word, names):
 
 def check_newton_linear_solver(comm):
     """Set up the Newton path's linear solver as the options make it (NewtonSolver's defaults
-    preonly + LU by MUMPS, then the options database) on a small matrix of the Jacobian's type
+    preonly + LU, solve/linear.py, then the options database) on a small matrix of the Jacobian's type
     (BAIJ, 6 x 6 blocks, two per rank): a KSP, PC or factorisation package that does not exist
     or cannot factor rodsnes' matrices raises its PETSc.Error here, before the Run is built and
     writes anything, instead of failing every load step.  Collective."""
@@ -410,11 +409,10 @@ def check_newton_linear_solver(comm):
     for i in range(lo, hi):
         A.setValue(i, i, 1.0)
     A.assemble()
+    from rodsnes.solve.linear import lu_defaults
+    lu_defaults(comm)
     ksp = PETSc.KSP().create(comm=comm)
     try:
-        ksp.setType("preonly")
-        ksp.getPC().setType("lu")
-        ksp.getPC().setFactorSolverType("mumps")
         ksp.setFromOptions()
         ksp.setOperators(A)
         ksp.setUp()                     # the factorisation, without a solve's monitors and views

@@ -155,7 +155,7 @@ REFUSALS = [
     ("solver_package_unfit", MATT + ("-load_path", "newton", "-pc_factor_mat_solver_type",
                                      "superlu"),
      ["-pc_factor_mat_solver_type superlu: superlu cannot factor rodsnes' Jacobian",
-      "use mumps"]),
+      "use petsc (the default) or mumps"]),
     ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
     # retired options say what replaced them
     ("retired_stability_switch", MATT + ("-stability", "-stability_switch", "0"),

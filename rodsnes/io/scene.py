@@ -1069,6 +1069,7 @@ def _contact(c, rod, bc):
     if enabled and model == "potential" and q is None:
         from rodsnes.contact.potential import DENSITY, MAX_POINTS, support_length
         need = _potential_points(c, rod, rcontact)
+        pen = float(c[O.contact_penetration])
         h = rod["length"] / rod["nelem"]
         if need > MAX_POINTS:
             c.fail("%s: the pair potential resolves a contact by %d quadrature points on the "

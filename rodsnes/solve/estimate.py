@@ -39,7 +39,7 @@ from rodsnes.model import partition, refine
 from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
 from rodsnes.terms import scene_terms
-from rodsnes.solve.linear import mumps_fill_room, option_default
+from rodsnes.solve.linear import direct_solver_defaults, option_default
 
 PREFIX = "estimate_"          # options prefix of the enriched problem's SNES (-estimate_snes_*)
 
@@ -88,15 +88,13 @@ class EnrichedProblem:
     def _snes(self):
         """newtonls with full steps (-estimate_snes_linesearch_type basic: backtracking on |F|,
         bt, stalls on slender rods, whose |F| the stiff rows dominate: docs/error_estimate.md),
-        LU by MUMPS, at most 25 iterations of the whole stage, defaults a user's -estimate_*
+        the run's direct LU (solve/linear.py), at most 25 iterations of the whole stage, defaults a user's -estimate_*
         options override; the problem's residual and tangent (masked in the interior stage), its
         rotation update before every step, and the convergence test _converged."""
         p = self.problem
-        for name, value in (("snes_linesearch_type", "basic"), ("snes_max_it", "25"),
-                            ("ksp_type", "preonly"), ("pc_type", "lu"),
-                            ("pc_factor_mat_solver_type", "mumps")):
+        for name, value in (("snes_linesearch_type", "basic"), ("snes_max_it", "25")):
             option_default(PREFIX + name, value)
-        mumps_fill_room(p, PREFIX)
+        direct_solver_defaults(p, PREFIX)
         snes = PETSc.SNES().create(comm=self.layout.comm)
         snes.setOptionsPrefix(PREFIX)
         snes.setType("newtonls")

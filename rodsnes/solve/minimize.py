@@ -331,8 +331,8 @@ class EnergyMinimizer:
         p.jacobian(None, p.state.X, p.J, p.J)
         ksp = self.ksp
         if ksp is None:
-            # the Newton path's linear solver (preonly + LU by MUMPS unless -ksp_type, -pc_type,
-            # -pc_factor_mat_solver_type ... say otherwise)
+            # the Newton path's linear solver (preonly + LU, solve/linear.py, unless -ksp_type,
+            # -pc_type, -pc_factor_mat_solver_type ... say otherwise)
             direct_solver_defaults(p)
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
             ksp.setFromOptions()
