@@ -224,3 +224,18 @@ def test_ltb_critical_load_within_one_percent():
     assert mu_lo > 0 > mu_hi and (n_lo, n_hi) == (0, 1)
     crossing = lo + (hi - lo) * mu_lo / (mu_lo - mu_hi)
     assert abs(crossing - 1.0) < 0.01
+
+
+def test_newton_path_stability_count_from_the_two_blocks():
+    """-load_path newton -stability on the perfect Euler column at 0.3 ... 1.2 P_cr (no
+    cut-back): the last, straight state has two negative eigenvalues, buckling in the plane
+    (in-plane block) and out of it (out-of-plane block); every step's count from the two blocks
+    is the 3-D count."""
+    kw = dict(load_path="newton", stability=True, rod_error_estimate="off", load_steps=4,
+              rod_imperfection=0, load_max_cutbacks=0)
+    a = run_case("euler", **kw)
+    b = run_case("euler", rod_planar="off", **kw)
+    assert a.summary(a.ok)["model"].startswith("planar")
+    counts = [h["negative_eigenvalues"] for h in a.history]
+    assert counts == [h["negative_eigenvalues"] for h in b.history] == [0, 0, 0, 2]
+    assert np.max(np.abs(gathered_positions(a) - gathered_positions(b))) <= 1e-8
