@@ -280,11 +280,27 @@ class Run:
         print(f"step {self.step:4d}  load {res.lam:.6f}  its {res.its:3d}  |F| {res.fnorm:9.3e}  "
               f"E {energy:+.6e}{extra}  {res.seconds:7.2f} s", flush=True)
 
+    def header(self):
+        """The run's first progress line: the discretisation, the path and the terms' choices
+        (e.g. the contact law that -contact_model auto picked)."""
+        rod = self.scene.rod
+        path = {"minimize": "energy minimisation per load step",
+                "newton": "Newton"}.get(self.path, self.path)
+        if self.arclength:
+            path = "Newton with pseudo-arclength continuation"
+        parts = [f"{self.scene.output.case_name}: {rod.nelem} elements of order {rod.order}, "
+                 f"{self.dofs} unknowns, {self.comm.getSize()} rank(s)", path]
+        # -rod_planar: the model solved (planar.py), and why 3-D for a scene that is not planar
+        parts.append(self.model() + " (in-plane unknowns only)" if self.plane is not None
+                     else "3-D (" + self.planar_why + ")")
+        parts += [t.describe() for t in self.problem.terms if t.describe()]
+        return "; ".join(parts)
+
     def execute(self):
         if self.scene.rod.tolerance is not None and not self.tolerance_trial:
             return estimate.to_tolerance(self)      # the mesh chosen from the estimate
-        self._say("model: " + (self.model() + " (in-plane unknowns only)" if self.plane is not None
-                               else "3-D (6 unknowns per node): " + self.planar_why))
+        if not self.quiet and self.rank == 0:
+            print(self.header(), flush=True)
         if not self.scene.output.restart:
             self.problem.set_load(0.0)
             self._write(None)

@@ -131,6 +131,8 @@ def test_first_contact_solve_same_on_two_ranks():
     assert np.abs(np.subtract(sp["tip_position"], ss["tip_position"])).max() < 1e-9
     assert sp["contact"]["total_force"] == pytest.approx(ss["contact"]["total_force"], rel=1e-8)
     assert sp["contact"]["total_force"] > 3.0
+    assert sp["contact"]["law"] == ss["contact"]["law"] == "projection"    # auto, 32 elements
+    assert "closest-point projection (-contact_model auto)" in par.header()
     # the pre-check's scalings are counted, identically on both (rank-independent decisions)
     keys = ("limited_steps", "penetration_limited_steps", "energy_limited_steps")
     assert [sp["contact"][k] for k in keys] == [ss["contact"][k] for k in keys]

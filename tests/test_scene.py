@@ -396,6 +396,22 @@ def test_contact_options(read):
           "contact_curvature": "false"})
 
 
+def test_contact_law_auto(read):
+    """-contact_model auto (the default) picks the pair potential where the mesh resolves it
+    (automatic points per element within contact.potential.MAX_POINTS) and the closest-point
+    projection on coarser meshes or with -contact_zones; an explicit law is kept."""
+    from rodsnes.contact.potential import MAX_POINTS, points_per_element
+    base = {"contact": None, "contact_radius": "0.025", "rod_length": "1"}
+    for n in (16, 60):
+        c = read(dict(base, rod_nelem=str(n))).contact
+        resolved = points_per_element(1.0 / n, 0.025, c.penetration) <= MAX_POINTS
+        assert resolved == (n == 60)
+        assert (c.model, c.model_auto) == ("potential" if resolved else "projection", True)
+    assert read(dict(base, rod_nelem="60", contact_zones="true")).contact.model == "projection"
+    c = read(dict(base, rod_nelem="60", contact_model="projection")).contact
+    assert (c.model, c.model_auto) == ("projection", False)
+
+
 def test_penalty_adaptation_defaults(read):
     """The promise (-contact_penetration, default 1 %) is kept by raising mu unless the user
     chose mu; an explicit -contact_penalty_adapt decides either way."""

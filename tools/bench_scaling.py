@@ -80,11 +80,12 @@ def scene_options(scene, n, law=None):
     """rodsnes options of ``scene`` at N = n elements (law: the coil's -contact_model)."""
     if scene == "cantilever":
         return ["-options_file", os.path.join(ROOT, "cases", "mattiasson.opts"),
-                "-rod_nelem", str(n), "-load_steps", "2", "-load_path", "newton"]
+                "-rod_nelem", str(n), "-load_steps", "2", "-load_path", "newton",
+                "-rod_error_estimate", "off"]
     if scene == "coil":
         return ["-options_file", os.path.join(ROOT, "cases", "bench_coil.opts"),
                 "-rod_nelem", str(n), "-rod_length", repr(COIL_ELEMENT * n),
-                "-contact_model", law, "-load_path", "newton"]
+                "-contact_model", law, "-load_path", "newton", "-rod_error_estimate", "off"]
     raise ValueError(f"unknown scene {scene!r}")
 
 

@@ -19,6 +19,12 @@ positions of the last step, x(s) = the reference centreline):
     err_l2      sqrt( (1/L) int_0^L |x_h(s) - x(s)|^2 ds ) / L    (RMS centreline error over L; Gauss
                 quadrature with p+3 points per element)
     err_energy  |E_h - E| / |E|                                     (E = the energy in summary.json)
+    err_max     max_s |x_h(s) - x(s)| / L over 8 equispaced points per element (the sampling of the
+                solver's error estimate)
+The solver's own a-posteriori estimate of the same run (summary.json error_estimate, written by
+default at the last step: order p+1 on the same elements, docs/error_estimate.md), beside them:
+    est_tip, est_centreline   the estimates of |x_h(L) - x(L)| and max_s |x_h(s) - x(s)|, / L;
+                est_converged False where its order p+1 solve did not converge (not plotted)
 References:
     rollup      exact (cases/rollup.opts: clamped rod, end moment M about an axis normal to the rod):
                 a circular arc of curvature k = |M|/EI in the plane normal to M,
@@ -64,8 +70,10 @@ step_time_s = the seconds of the accepted steps' solves (wall_time_s - step_time
 and the rejected attempts, whose iterations newton_iterations does not count).
 
 Outputs in DIR (default out/work_precision_CASE): work_precision.csv, work_precision.png (error against
-wall time and against dofs, one line per order, log-log; rollup_contact: tip and force error against
-wall time, one line per (order, penalty), against the mesh, the force error and the Newton
+wall time and against dofs, one line per order, log-log, the estimate dashed beside err_tip and
+err_max; rollup_contact: tip and force error against
+wall time, one line per (order, penalty), against the mesh (the tip estimate dashed beside
+err_tip_law: it estimates the finite-element error of the penalty problem), the force error and the Newton
 iterations against mu), rates.json, runs/pP_nN/ or runs/pP_nN_muF/ (each run's output directory).
 The CSV is rewritten after every run, so an interrupted study keeps what it measured;
 --from-csv FILE redoes the plot and the report from a CSV without running anything.
@@ -94,9 +102,13 @@ except ImportError:  # run from a checkout without pip install -e
     from rodsnes.model.fe import gauss_legendre, lagrange
 
 CSV_COLUMNS = ["case", "order", "nelem", "penalty_factor", "penalty", "dofs", "wall_time_s", "step_time_s",
-               "newton_iterations", "load_steps", "err_tip", "err_l2", "err_energy", "err_force", "err_tip_law", "err_force_law",
+               "newton_iterations", "load_steps", "err_tip", "err_l2", "err_energy", "err_max",
+               "est_tip", "est_centreline", "est_converged", "err_force", "err_tip_law", "err_force_law",
                "err_tip_published", "converged", "load", "process_time_s", "ranks", "outdir", "note"]
-ERRORS = ("err_tip", "err_l2", "err_energy")
+ERRORS = ("err_tip", "err_l2", "err_energy", "err_max")
+ESTIMATES = ("est_tip", "est_centreline")
+ESTIMATE_OF = {"err_tip": "est_tip", "err_max": "est_centreline", "err_tip_law": "est_tip"}
+SAMPLES_PER_ELEMENT = 8  # err_max's sampling, the estimator's (rodsnes.model.refine.sample_points)
 CONTACT_ERRORS = ("err_force", "err_tip_law", "err_force_law")     # rollup_contact only
 OTHER_BRANCH = 1e-2   # err_tip_law above this: the run found another equilibrium, not the end contact
 ROUNDOFF = 1e-13
@@ -124,6 +136,14 @@ def quad_points(order, nelem, length, extra=3):
     h = length / nelem
     s = (np.arange(nelem)[:, None] + (xi[None, :] + 1) / 2) * h
     return s.ravel(), np.tile(w * h / 2, nelem)
+
+
+def max_error(nodal, order, nelem, length, exact_fn):
+    """max_s |x_h(s) - x(s)| / L over SAMPLES_PER_ELEMENT equispaced points per element, both
+    ends included."""
+    s = np.linspace(0.0, length, SAMPLES_PER_ELEMENT * nelem + 1)
+    d = fe_eval(nodal, order, nelem, length, s) - exact_fn(s)
+    return float(np.sqrt(np.sum(d * d, axis=1)).max() / length)
 
 
 def l2_error(nodal, order, nelem, length, exact_fn):
@@ -161,6 +181,7 @@ class RollupExact:
         tip = self.centreline([self.L])[0]
         return {"err_tip": float(np.linalg.norm(positions[-1] - tip) / self.L),
                 "err_l2": l2_error(positions, order, nelem, self.L, self.centreline),
+                "err_max": max_error(positions, order, nelem, self.L, self.centreline),
                 "err_energy": float(abs(energy - self.energy) / abs(self.energy))}
 
 
@@ -176,6 +197,7 @@ class FEReference:
     def errors(self, positions, energy, order, nelem):
         return {"err_tip": float(np.linalg.norm(positions[-1] - self.P[-1]) / self.L),
                 "err_l2": l2_error(positions, order, nelem, self.L, self.centreline),
+                "err_max": max_error(positions, order, nelem, self.L, self.centreline),
                 "err_energy": float(abs(energy - self.energy) / max(abs(self.energy), 1e-300))}
 
 
@@ -309,6 +331,7 @@ class RollupContactReference:
         tip = np.asarray(positions[-1], float)
         return {"err_tip": float(np.linalg.norm(tip - centreline(hard)([L])[0]) / L),
                 "err_l2": l2_error(positions, order, nelem, L, centreline(hard)),
+                "err_max": max_error(positions, order, nelem, L, centreline(hard)),
                 "err_energy": float(abs(energy - self.strain_energy("hard")) / self.strain_energy("hard")),
                 "err_force": float(abs(total_force - hard.f) / hard.f),
                 "err_tip_law": float(np.linalg.norm(tip - centreline(law)([L])[0]) / L),
@@ -460,6 +483,7 @@ class CliRunner:
             return row, None
         last["first"] = first
         row["converged"] = True
+        row.update(estimate_columns(summ.get("error_estimate"), float(last["meta"]["length"])))
         return row, last
 
     def reference(self, np_, out, extra):
@@ -538,6 +562,18 @@ class CliRunner:
         return row
 
 
+def estimate_columns(est, length):
+    """est_tip, est_centreline (/ L) and est_converged of summary.json's error_estimate ({} when
+    the run made none: -rod_error_estimate off)."""
+    if not est:
+        return {}
+    out = {"est_converged": bool(est.get("converged"))}
+    for col, key in (("est_tip", "tip"), ("est_centreline", "centreline")):
+        if est.get(key) is not None:
+            out[col] = float(est[key]) / length
+    return out
+
+
 # --------------------------------------------------------------------------- study, rates, outputs
 def study(case, orders, nelems, np_, out, extra, runner=None, quiet=False, penalties=None, progress=None):
     """Run every (order, nelem), or with ``penalties`` = [(factor, mu), ...] every (order, penalty,
@@ -576,7 +612,7 @@ def run_one(runner, case, p, ne, np_, rd, extra):
     row.update({"case": case, "order": p, "nelem": ne, "outdir": rd, "note": "", "ranks": np_})
     row.update({k: v for k, v in r.items() if v is not None})
     if not row.get("converged"):
-        for k in ERRORS + CONTACT_ERRORS + ("err_tip_published",):
+        for k in ERRORS + CONTACT_ERRORS + ESTIMATES + ("err_tip_published",):
             row[k] = float("nan")
         row["converged"] = False
         if r.get("error") and not row["note"]:
@@ -645,7 +681,7 @@ def read_csv(path):
             for k, v in r.items():
                 if k in text:
                     row[k] = v
-                elif k == "converged":
+                elif k in ("converged", "est_converged"):
                     row[k] = v == "True"
                 elif k in ints and v not in ("", "nan"):
                     row[k] = int(float(v))
@@ -674,7 +710,7 @@ def plot(rows, path, case):
 
     cols = [c for c in ERRORS if any(r["converged"] and np.isfinite(float(r[c])) for r in rows)] or ["err_tip"]
     titles = {"err_tip": "tip error / L", "err_l2": "L2 centreline error (RMS / L)",
-              "err_energy": "relative energy error"}
+              "err_energy": "relative energy error", "err_max": "max centreline error / L"}
     fig, axes = plt.subplots(len(cols), 2, figsize=(10, 3.3 * len(cols) + 0.6), squeeze=False)
     orders = sorted({r["order"] for r in rows})
     cmap = plt.get_cmap("viridis")
@@ -690,17 +726,35 @@ def plot(rows, path, case):
                     continue
                 _, x, y = zip(*pts)
                 lab = f"p = {p}" + (f"  (rate {rt[p]:.2f})" if np.isfinite(rt[p]) else "")
-                ax.loglog(x, y, "o-", color=cmap(k / max(len(orders) - 1, 1) * 0.85), label=lab, ms=4)
+                col = cmap(k / max(len(orders) - 1, 1) * 0.85)
+                ax.loglog(x, y, "o-", color=col, label=lab, ms=4)
+                x, y = estimate_series([r for r in rows if r["order"] == p], xcol, c)
+                if x:
+                    ax.loglog(x, y, "s--", color=col, ms=7, lw=1, mfc="none")   # visible on top
             ax.set_xlabel("wall time [s]" if xcol == "wall_time_s" else "degrees of freedom")
             ax.set_ylabel(titles[c])
             ax.grid(True, which="both", alpha=0.3)
             if j == 1:
+                if c in ESTIMATE_OF:
+                    ax.plot([], [], "ks--", lw=1, ms=7, mfc="none", label="estimate (solver)")
                 ax.legend(fontsize=8, title="rate = slope vs h", title_fontsize=7)
     nfail = sum(1 for r in rows if not r["converged"])
     fig.suptitle(f"work-precision: {case}" + (f"  ({nfail} failed runs not shown)" if nfail else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def estimate_series(rows, xcol, err):
+    """(x, y) of the estimate paired with the error column err (ESTIMATE_OF) over the converged
+    rows on the reference's branch whose estimate converged, in mesh order; ([], []) if none."""
+    est = ESTIMATE_OF.get(err)
+    if est is None:
+        return [], []
+    pts = sorted((r["nelem"], float(r[xcol]), float(r[est])) for r in rows
+                 if on_branch(r) and r.get("est_converged") is True and np.isfinite(float(r[est]))
+                 and float(r[est]) > 0 and np.isfinite(float(r[xcol])))
+    return [q[1] for q in pts], [q[2] for q in pts]
 
 
 def on_branch(r):
@@ -760,6 +814,9 @@ def plot_contact(rows, path, case="rollup_contact"):
                 x, y = series(sel, "nelem", c + "_law")
                 if x:
                     axes[i, 1].loglog(x, y, ":", marker="x", color=col, ms=4, lw=1)
+                x, y = estimate_series(sel, "nelem", c + "_law")
+                if x:
+                    axes[i, 1].loglog(x, y, "--", marker="s", mfc="none", color=col, ms=7, lw=1)
         axes[i, 0].set_xlabel("wall time [s] (labels: elements)")
         axes[i, 1].set_xlabel("elements (h = L / nelem)")
         for j in (0, 1):
@@ -769,6 +826,7 @@ def plot_contact(rows, path, case="rollup_contact"):
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=8)
     axes[0, 1].plot([], [], "k-", label="vs hard contact (exact)")
     axes[0, 1].plot([], [], "k:", marker="x", label="vs penalty law at the run's mu (FE error)")
+    axes[0, 1].plot([], [], "k--", marker="s", mfc="none", label="the solver's estimate of the FE error")
     axes[0, 1].legend(fontsize=7)
 
     slopes = penalty_slopes(rows, "err_force")
@@ -870,6 +928,10 @@ def main(argv=None):
     print("order " + " ".join(f"{c:>12s}" for c in ERRORS))
     for p in args.orders:
         print(f"{p:5d} " + " ".join(f"{all_rates[c][p]:12.2f}" for c in ERRORS))
+    print("\nthe solver's estimate / the true error (converged estimates; shared sampling):")
+    for p in args.orders:
+        print(f"  p={p}: " + "; ".join(f"{e} / {c} {_range(estimate_ratios(rows, p, c), '.2f')}"
+                                       for c, e in (("err_tip", "est_tip"), ("err_max", "est_centreline"))))
     if args.case == "mattiasson":
         # no rate: the published values are the inextensible elastica to 6 digits, so this error
         # levels off at max(6-digit rounding ~7e-7, the model difference ~ P/EA, P/GA)
@@ -929,6 +991,14 @@ def report_contact(rows, out):
     print(f"\n{len(rows) - nfail}/{len(rows)} runs converged; wrote {out}/work_precision.csv, "
           f"{out}/work_precision.png")
     return 0 if nfail == 0 else 1
+
+
+def estimate_ratios(rows, order, err):
+    """est / err of the order's converged runs with a converged estimate (ESTIMATE_OF)."""
+    est = ESTIMATE_OF[err]
+    return [float(r[est]) / float(r[err]) for r in rows
+            if r["order"] == order and on_branch(r) and r.get("est_converged") is True
+            and float(r[err]) > ROUNDOFF and np.isfinite(float(r[est]))]
 
 
 def _range(v, fmt=".0f"):

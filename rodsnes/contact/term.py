@@ -71,6 +71,7 @@ class ContactTerm(Term):
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
         self.model = c.model
+        self.model_auto = c.model_auto
         if self.model == "potential":
             self.kernel = PotentialKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                           mesh.length, mesh.nelem, mesh.closed,
@@ -113,6 +114,10 @@ class ContactTerm(Term):
         self.mu = float(mu)
         self.kernel.mu = self.mu
         self.kept_evaluation = None
+
+    def adopt(self, other):
+        """The penalty ``other`` (the contact term of another discretisation) has raised."""
+        self.set_penalty(other.mu)
 
     # -- communication ----------------------------------------------------------------
     def _ensure_sf(self, nodes):
@@ -520,7 +525,8 @@ class ContactTerm(Term):
     def run_summary(self, stats):
         """The halo exchange's star forests built, the problem's pattern refreshes and step
         scalings (RodProblem.precheck), the penalty's promise and its raises."""
-        s = {"sf_builds": self.sf_builds, "pattern_refreshes": stats.get("pattern_refreshes", 0)}
+        s = {"law": self.model, "sf_builds": self.sf_builds,
+             "pattern_refreshes": stats.get("pattern_refreshes", 0)}
         for key in ("limited_steps", "penetration_limited_steps", "energy_limited_steps"):
             s[key] = stats.get(key, 0)
         s.update({"penetration_promised": self.penetration, "penalty_adapt": self.adapt,
@@ -530,6 +536,13 @@ class ContactTerm(Term):
 
     def log_text(self):
         return f"  min_gap {self.last_min_gap:+.3e}"
+
+    LAWS = {"potential": "self-contact by the pair potential",
+            "projection": "self-contact by the closest-point projection"}
+
+    def describe(self):
+        auto = " (-contact_model auto)" if self.model_auto else ""
+        return self.LAWS[self.model] + auto
 
     def qp_fields(self):
         out = self.kernel.add_report(self.last)

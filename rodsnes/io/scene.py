@@ -295,11 +295,12 @@ class O:
     contact_curvature = Opt(BOOL, True, "the contact tube also bounds bending: flexure above "
                             "1/radius is penalised (stiffness EI / -contact_penetration), so the "
                             "exclusion pi*radius hides no penetration", "contact")
-    contact_model = Opt(CHOICE, "projection", "contact law: projection (the gap to the closest "
-                        "point, penalty (mu/2) int <d>^2 ds) or potential (a pair potential "
+    contact_model = Opt(CHOICE, "auto", "contact law: projection (the gap to the closest "
+                        "point, penalty (mu/2) int <d>^2 ds), potential (a pair potential "
                         "(k/2) int int <2 eps - |r(s) - r(sigma)|>^2 between centreline points, "
-                        "smooth where closest points are not unique: tight plies)", "contact",
-                        choices=("projection", "potential"))
+                        "smooth where closest points are not unique: tight plies) or auto (the "
+                        "potential where the mesh resolves it, else projection; the run says "
+                        "which)", "contact", choices=("auto", "projection", "potential"))
     contact_zones = Opt(BOOL, True, "integrate the penalty over the contact zones (d > 0, found by "
                         "root finding) instead of at fixed Gauss points (-contact_model "
                         "projection)", "contact")
@@ -362,8 +363,10 @@ PETSC_PREFIXES = (
     "memory_", "saws", "python", "use_gpu", "device", "citations", "skip_petscrc", "history",
     "viewer", "tao_", "ts_", "is_", "ao_", "pf_", "random_", "matload_", "matmatmult_",
     "matptap_", "bv_", "eps_", "st_", "svd_", "nep_", "pep_", "mfn_", "ds_", "fn_", "rg_",
-    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_", "planar_")
-"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc."""
+    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_", "estimate_", "planar_")
+"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc (stability_: the
+inertia count's LDL^T, estimate_: the error estimate's SNES, planar_: the planar run's in-plane
+solves)."""
 
 
 # ----------------------------------------------------------------------------
@@ -482,7 +485,8 @@ class Contact:
     adapt: bool = True              # raise mu after a step that breaks the promise
     curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
     supports: bool = True           # the clamps' mounts as obstacles (support.py)
-    model: str = "projection"       # contact law: projection (contact.py), potential (contact_potential.py)
+    model: str = "projection"       # contact law: projection (contact/projection.py), potential (contact/potential.py)
+    model_auto: bool = False        # the law was chosen by -contact_model auto (_contact_law)
     potential_points: Optional[int] = None   # -contact_quadrature with the potential (nqp)
 
 
@@ -1064,15 +1068,15 @@ def _contact(c, rod, bc):
                "sliding at its end (-bc_start clamped -bc_end sliding, here %s, %s); drop the "
                "option or change the supports" % (c.show(O.contact_supports), bc.start, bc.end),
                O.contact_supports, O.bc_start, O.bc_end)
-    if enabled and c[O.contact_model] == "potential" and c.given(O.contact_zones):
+    model = _contact_law(c, rod, rcontact)
+    if enabled and model == "potential" and c.given(O.contact_zones):
         c.fail("%s: contact zones belong to the closest-point law; -contact_model potential "
                "integrates at fixed points (-contact_quadrature); drop the option"
                % c.show(O.contact_zones), O.contact_zones, O.contact_model)
-    if enabled and c[O.contact_model] == "potential" and q is None:
-        from rodsnes.contact.potential import DENSITY, MAX_POINTS, points_per_element, support_length
-        pen = float(c[O.contact_penetration])
+    if enabled and model == "potential" and q is None:
+        from rodsnes.contact.potential import DENSITY, MAX_POINTS, support_length
+        need = _potential_points(c, rod, rcontact)
         h = rod["length"] / rod["nelem"]
-        need = points_per_element(h, rcontact, pen)
         if need > MAX_POINTS:
             c.fail("%s: the pair potential resolves a contact by %d quadrature points on the "
                    "stretch 2 t0 = %.4g a point touches at the promised penetration, which "
@@ -1087,14 +1091,37 @@ def _contact(c, rod, bc):
     adapt = bool(c[O.contact_penalty_adapt]) if c.given(O.contact_penalty_adapt) else penalty is None
     return Contact(enabled=enabled, penalty=penalty, radius=rc,
                    exclusion=_f(c[O.contact_exclusion]),
-                   quadrature=int(q) if q is not None and c[O.contact_model] != "potential"
+                   quadrature=int(q) if q is not None and model != "potential"
                    else rod["order"] + 2,
-                   potential_points=int(q) if q is not None and c[O.contact_model] == "potential"
+                   potential_points=int(q) if q is not None and model == "potential"
                    else None,
-                   zones=bool(c[O.contact_zones]), model=str(c[O.contact_model]),
+                   zones=bool(c[O.contact_zones]), model=model,
+                   model_auto=c[O.contact_model] == "auto",
                    penetration=float(c[O.contact_penetration]), adapt=adapt,
                    curvature=bool(c[O.contact_curvature]),
                    supports=bool(c[O.contact_supports]))
+
+
+def _potential_points(c, rod, rcontact):
+    """Quadrature points per element the pair potential needs on this mesh
+    (contact.potential.points_per_element at the promised penetration)."""
+    from rodsnes.contact.potential import points_per_element
+    return points_per_element(rod["length"] / rod["nelem"], rcontact,
+                              float(c[O.contact_penetration]))
+
+
+def _contact_law(c, rod, rcontact):
+    """The contact law of -contact_model: as given, or for auto the pair potential where the
+    mesh resolves it (its automatic points per element within MAX_POINTS) and contact zones
+    were not asked for, else the closest-point projection; -contact_quadrature then applies to
+    the law picked."""
+    model = str(c[O.contact_model])
+    if model != "auto":
+        return model
+    from rodsnes.contact.potential import MAX_POINTS
+    if c.given(O.contact_zones) or _potential_points(c, rod, rcontact) > MAX_POINTS:
+        return "projection"
+    return "potential"
 
 
 def _output(c, argv):

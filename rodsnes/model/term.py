@@ -94,6 +94,10 @@ class Term:
         """(measure, the penalty that keeps the promise or None while it is kept).  Collective."""
         return 0.0, None
 
+    def adopt(self, other):
+        """Take what ``other``, the same term of another discretisation of the scene, has
+        adapted during its run (the raised penalty), so that both pose the same problem."""
+
     # -- report ---------------------------------------------------------------------------
     def restart(self, attrs):
         """Take what a restart needs from the result.h5 attributes of the step it starts from."""
@@ -112,6 +116,10 @@ class Term:
 
     def log_text(self):
         """What the step's log line adds ("" for nothing)."""
+        return ""
+
+    def describe(self):
+        """What the run's first line says of it, e.g. the law it uses ("" for nothing)."""
         return ""
 
 

@@ -11,10 +11,10 @@ started there, gives u_{p+1}.  Its error is O(h^(p+2)) against O(h^(p+1)), so
 (s: 8 points per element of the fine sampling, refine.sample_points) estimate the true errors
 |x_p(L) - x(L)| and max_s |x_p(s) - x(s)| in length units, with
 (1 - r) e <= eta <= (1 + r) e for r = e_{p+1} / e_p (within a factor 3 whenever r <= 2/3).
-The carried state differs from u_{p+1} by about the error itself, so Newton takes one
-factorisation of the enriched tangent; the corrections after it reuse that factorisation
-(chord steps, a new one only when a chord step fails to halve the correction) until one is
-below 1 % of the distance travelled from the carried state (the estimate is then good to ~1 %).
+u_{p+1} is found by SNES (prefix -estimate_) from the carried state in two stages
+(EnrichedProblem): the new nodes alone with the carried ones held, then the whole problem with
+full Newton steps until a correction is below 1 % of the distance travelled from the carried
+state (the estimate is then good to ~1 %).
 Why p+1 rather than h/2: h/2 doubles the unknowns (cost x2 per estimate) and its error ratio
 2^-(p+1) is what p+1 gives at (p+1)/p times the unknowns; p+1 keeps the same elements, so the
 contact pairs, the partition and the element turn limits of the run carry over unchanged.
@@ -38,7 +38,7 @@ from rodsnes.model import mesh as rodmesh
 from rodsnes.model import partition, refine
 from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
-from rodsnes.terms import contact_term, scene_terms
+from rodsnes.terms import scene_terms
 from rodsnes.solve.linear import mumps_fill_room, option_default
 
 PREFIX = "estimate_"          # options prefix of the enriched problem's SNES (-estimate_snes_*)
@@ -75,7 +75,6 @@ class EnrichedProblem:
         self.mesh = rodmesh.build_mesh(self.scene.rod, scene.bc)
         self.layout = partition.Layout(comm, self.mesh)
         terms = scene_terms(self.scene, self.mesh, self.layout)
-        self.contact = contact_term(terms)
         self.problem = RodProblem(self.scene, self.mesh, self.layout, terms)
         self.comm = comm.tompi4py()
         self.floor = 1e-13 * self.mesh.length
@@ -87,10 +86,11 @@ class EnrichedProblem:
 
     # -- SNES --------------------------------------------------------------------------
     def _snes(self):
-        """newtonls with a backtracking line search on |F| (-estimate_snes_linesearch_type bt),
-        LU by MUMPS, at most 25 iterations of the whole stage, defaults a user's
-        -estimate_* options override; the problem's residual and tangent (masked in the interior
-        stage), its rotation update before every step, and the convergence test _converged."""
+        """newtonls with full steps (-estimate_snes_linesearch_type basic: backtracking on |F|,
+        bt, stalls on slender rods, whose |F| the stiff rows dominate: docs/error_estimate.md),
+        LU by MUMPS, at most 25 iterations of the whole stage, defaults a user's -estimate_*
+        options override; the problem's residual and tangent (masked in the interior stage), its
+        rotation update before every step, and the convergence test _converged."""
         p = self.problem
         for name, value in (("snes_linesearch_type", "basic"), ("snes_max_it", "25"),
                             ("ksp_type", "preonly"), ("pc_type", "lu"),
@@ -209,9 +209,10 @@ class EnrichedProblem:
             a[:, 0:3] = x[lay.owned_nodes]
             a[:, 3:6] = 0.0
 
-    def solve_from(self, mesh, x_nodes, q_nodes, lam, mu=None, gauge=False, rtol=1e-2):
-        """Newton on this discretisation at load lam from the carried state (place), penalty mu
-        (the run's current one): the interior stage, the nodes of ``mesh`` held, then the whole
+    def solve_from(self, mesh, x_nodes, q_nodes, lam, terms=(), gauge=False, rtol=1e-2):
+        """Newton on this discretisation at load lam from the carried state (place), each term
+        adopting what the run's same term has adapted (``terms``, Term.adopt: the run's current
+        penalty, so that the estimate measures the discretisation, not the penalty): the interior stage, the nodes of ``mesh`` held, then the whole
         problem (class docstring), until a Newton correction is below rtol times the way
         travelled from the carried state: the estimate is then good to about rtol.  An interior
         stage that fails is dropped (the whole stage starts from the carried state).  Returns
@@ -220,8 +221,8 @@ class EnrichedProblem:
         self.rtol, self.factorisations = rtol, 0
         self._hold(mesh)
         self.place(mesh, x_nodes, q_nodes)
-        if self.contact is not None and mu is not None:
-            self.contact.set_penalty(mu)
+        for mine, run_term in zip(p.terms, terms):
+            mine.adopt(run_term)
         p.set_load(lam)
         if gauge:
             p.hold_sliding()
@@ -277,14 +278,15 @@ class ErrorEstimator:
         if self.enriched is None:
             self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem)
         x, q = gathered_state(problem)
-        mu = contact_term(problem.terms).mu if contact_term(problem.terms) is not None else None
         e = self.enriched
-        xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, mu=mu,
+        xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, terms=problem.terms,
                                            gauge=problem.gauge is not None)
         tip, line = differences(problem.mesh, x, q, e.mesh, xe, qe)
         dt = time.perf_counter() - t0
         self.seconds += dt
         self.count += 1
+        # a non-finite difference is no estimate, whatever the solve said
+        ok = bool(ok) and all(np.isfinite(v) for v in (line, tip if tip is not None else 0.0))
         return {"tip": tip, "centreline": line, "order": rod.order + 1, "nelem": rod.nelem,
                 "load": problem.lam,
                 "newton_iterations": its, "factorisations": nf, "converged": ok, "seconds": dt}
@@ -355,7 +357,6 @@ def order_estimates(run):
     """eta_centreline of every candidate order on the run's (coarse) elements at its final state:
     the order p and p+1 problems each solved from the run's state.  Collective."""
     x, q = gathered_state(run.problem)
-    mu = run.contact.mu if run.contact is not None else None
     mesh, lam = run.mesh, run.problem.lam
     out = {}
     sols = {run.mesh.order: (mesh, x, q)}
@@ -363,7 +364,7 @@ def order_estimates(run):
         if p in sols:
             continue
         e = EnrichedProblem(run.scene, run.comm, p, mesh.nelem)
-        xe, qe, _, _, _ = e.solve_from(mesh, x, q, lam, mu=mu, gauge=run.problem.gauge is not None)
+        xe, qe, _, _, _ = e.solve_from(mesh, x, q, lam, terms=run.problem.terms, gauge=run.problem.gauge is not None)
         sols[p] = (e.mesh, xe, qe)
         e.destroy()
     for p in ORDERS:
