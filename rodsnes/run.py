@@ -25,6 +25,7 @@ from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.terms import scene_terms, contact_term
 from rodsnes.solve import estimate
+from rodsnes.solve import planar
 from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative
 from rodsnes.errors import SceneError
@@ -45,6 +46,10 @@ class Run:
         # the self-contact term, or None (for tools and tests that look into it)
         self.contact = contact_term(terms)
         self.problem = RodProblem(scene, self.mesh, self.layout, terms)
+        # -rod_planar: the linear solves on the in-plane block of a planar scene (planar.py)
+        self.plane, self.planar_why = self._choose_model(scene)
+        if self.plane is not None:
+            self.problem.planar = planar.PlanarSystem(self.problem, self.plane, say=self._say)
         rod = scene.rod
         L = rod.length
         ld = scene.loads
@@ -90,6 +95,27 @@ class Run:
         self.mpi.Barrier()
         self.writer = output.ResultWriter(self.outdir, self.mpi, self.mesh.n_nodes, meta, append=append)
         self.dofs = NDOF * self.mesh.n_nodes
+
+    def _choose_model(self, scene):
+        """(Plane or None, why 3-D): -rod_planar auto solves a planar scene in its plane, off
+        in 3-D; on is refused for a scene that is not planar (SceneError naming the part that
+        leaves the plane)."""
+        if scene.rod.planar == "off":
+            return None, "-rod_planar off"
+        plane, why = planar.detect(scene, self.mesh)
+        if plane is None and scene.rod.planar == "on":
+            raise SceneError(planar.refusal(why), ("-rod_planar",))
+        return plane, why
+
+    def model(self):
+        """summary.json's ``model``: "planar (x, y, theta per node)" (and where it went on in
+        3-D), or "3-D"."""
+        pl = self.problem.planar
+        return "3-D" if pl is None else pl.model()
+
+    def _say(self, text):
+        if not self.quiet and self.rank == 0:
+            print(text, flush=True)
 
     @staticmethod
     def _choose_path(scene):
@@ -159,7 +185,8 @@ class Run:
             rec["negative_eigenvalues"] = res.negative_eigenvalues
         if getattr(res, "arclength", False):
             rec["arclength_from"] = res.arclength_from
-        for key in ("link_error", "shifts", "line_search_cuts", "escapes"):
+        for key in ("link_error", "shifts", "line_search_cuts", "escapes",
+                    "out_of_plane_negative_eigenvalues"):
             if getattr(res, key, None) is not None:
                 rec[key] = res.__dict__[key]
         return rec
@@ -217,7 +244,8 @@ class Run:
              "load": self.problem.lam, "energy": self.last_energy,
              "newton_iterations": self.solver.total_its, "load_steps": len(self.history),
              "wall_time_s": time.perf_counter() - self.t_start, "dofs": self.dofs,
-             "ranks": self.comm.getSize(), "path": self.path, "steps": self.history}
+             "ranks": self.comm.getSize(), "path": self.path, "model": self.model(),
+             "steps": self.history}
         if self.path == "newton":
             s["predictor_retries"] = self.solver.predictor_retries
             s["stagnated_solves"] = self.solver.stagnations
@@ -262,6 +290,9 @@ class Run:
             path = "Newton with pseudo-arclength continuation"
         parts = [f"{self.scene.output.case_name}: {rod.nelem} elements of order {rod.order}, "
                  f"{self.dofs} unknowns, {self.comm.getSize()} rank(s)", path]
+        # -rod_planar: the model solved (planar.py), and why 3-D for a scene that is not planar
+        parts.append(self.model() + " (in-plane unknowns only)" if self.plane is not None
+                     else "3-D (" + self.planar_why + ")")
         parts += [t.describe() for t in self.problem.terms if t.describe()]
         return "; ".join(parts)
 

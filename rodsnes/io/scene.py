@@ -217,6 +217,11 @@ class O:
                         "order unless -rod_order is given) until the estimated centreline error "
                         "is below this, at the least predicted cost", "disc", rng="(0,inf)",
                         shown="none", note="an error in length units, e.g. 1e-6")
+    rod_planar = Opt(CHOICE, "auto", "a scene whose shape, directors, supports and loads lie in "
+                     "one coordinate plane is solved on its in-plane unknowns (x, y, theta per "
+                     "node: half the unknowns; each step's out-of-plane stability checked): auto "
+                     "(when the scene is planar), on (refused for a scene that is not), off (3-D)",
+                     "disc", choices=("auto", "on", "off"))
     # --- boundary conditions ----------------------------------------------------
     bc_start = Opt(CHOICE, "clamped", "support of the end s = 0", "bc",
                    choices=("clamped", "pinned", "free"), shown="clamped (free on a closed rod)")
@@ -358,9 +363,10 @@ PETSC_PREFIXES = (
     "memory_", "saws", "python", "use_gpu", "device", "citations", "skip_petscrc", "history",
     "viewer", "tao_", "ts_", "is_", "ao_", "pf_", "random_", "matload_", "matmatmult_",
     "matptap_", "bv_", "eps_", "st_", "svd_", "nep_", "pep_", "mfn_", "ds_", "fn_", "rg_",
-    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_", "estimate_")
+    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_", "estimate_", "planar_")
 """Options with these prefixes belong to PETSc/SLEPc and are left to PETSc (stability_: the
-inertia count's LDL^T, estimate_: the error estimate's SNES)."""
+inertia count's LDL^T, estimate_: the error estimate's SNES, planar_: the planar run's in-plane
+solves)."""
 
 
 # ----------------------------------------------------------------------------
@@ -406,6 +412,7 @@ class Rod:
     kernel: str = "auto"
     error_estimate: str = "last"      # -rod_error_estimate last|every|off (solve/estimate.py)
     tolerance: Optional[float] = None  # -rod_tolerance: the mesh is chosen (solve/estimate.py)
+    planar: str = "auto"              # -rod_planar auto|on|off (solve/planar.py)
 
     @property
     def area(self):
@@ -913,7 +920,7 @@ def _rod(c):
                nelem=int(c[O.rod_nelem]), order=int(c[O.rod_order]),
                quadrature=c[O.rod_quadrature], closed_gauge=bool(c[O.rod_closed_gauge]),
                kernel=c[O.rod_kernel], error_estimate=c[O.rod_error_estimate],
-               tolerance=_f(c[O.rod_tolerance]))
+               tolerance=_f(c[O.rod_tolerance]), planar=c[O.rod_planar])
     _check_tolerance(c, L)
     return rod, material
 
@@ -1487,6 +1494,17 @@ def _check_element_turns(scene, mesh, fail):
                                     math.degrees(MAX_ELEMENT_TURN), need), *opts)
 
 
+def _check_planar(scene, mesh, fail):
+    """-rod_planar on for a scene that is not planar (solve/planar.py: which part leaves the
+    plane)."""
+    if scene.rod.planar != "on":
+        return
+    from rodsnes.solve.planar import detect, refusal
+    plane, why = detect(scene, mesh)
+    if plane is None:
+        fail(refusal(why), O.rod_planar)
+
+
 def check_solvable(scene, memory="machine"):
     """Raise SceneError if the scene, valid option by option, cannot be solved as given: a
     mesh too large for the machine (``memory`` in bytes, "machine": this one's, None: no
@@ -1508,7 +1526,9 @@ def check_solvable(scene, memory="machine"):
         _check_imperfection(scene, fail)
         _check_contact_reach(scene, fail)
         _check_contact_mesh(scene, fail)
-        _check_element_turns(scene, build_mesh(scene.rod, scene.bc), fail)
+        mesh = build_mesh(scene.rod, scene.bc)
+        _check_element_turns(scene, mesh, fail)
+        _check_planar(scene, mesh, fail)
     if msgs:
         raise SceneError("\n".join(msgs), opts)
 

@@ -217,6 +217,7 @@ class RodProblem:
                                       shape=(len(layout.local_nodes), lconn.size))
         self.stats = {}
         self.inertia = None                 # stability.Inertia, made at the first count
+        self.planar = None                  # planar.PlanarSystem of a planar run (run.py)
         self._e0_nodes = None
         self.on_pattern_change = None
         # the largest move per Newton step of a node a term watches (precheck, limit 1; 0: none)
@@ -455,17 +456,20 @@ class RodProblem:
             c = self.constraints
             fa[c.rows_local] = xa[c.rows_local] - np.where(c.rows_local % NDOF < 3, c.target_own, 0.0)
 
-    def jacobian(self, snes, X, J, P, symmetric=False):
+    def jacobian(self, snes, X, J, P, symmetric=False, view=None):
         """The tangent at X into P: the consistent Newton tangent, or with symmetric the chart
         Hessian of the energy (stability.py).  Dirichlet rows and columns hold the identity:
         zeroed after assembly (MatZeroRowsColumns), or for SBAIJ, which lacks that operation
-        in parallel, in every block before it enters the matrix (partition.DirichletRows)."""
-        masked = "sbaij" in P.getType()
+        in parallel, in every block before it enters the matrix (partition.DirichletRows).
+        ``view``: P seen through it (planar.ComponentView: a block of the components of every
+        node, masked as DirichletRows does)."""
+        masked = view is not None or "sbaij" in P.getType()
         r, q = self.state.local_config(X)
         _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True,
                                              symmetric=symmetric)
         P.zeroEntries()
-        T = DirichletRows(P, self.constraints.block_mask) if masked else P
+        T = view if view is not None else (
+            DirichletRows(P, self.constraints.block_mask) if masked else P)
         g = self.layout.gconn.astype(PETSc.IntType)
         T.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
         for t in self.terms:

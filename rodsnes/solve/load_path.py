@@ -104,6 +104,35 @@ class LoadPath:
                 return False
         return True
 
+    def check_plane(self, res):
+        """A planar run's converged step: the out-of-plane block of the Hessian factored
+        (planar.PlanarSystem.out_of_plane_count), its negative eigenvalues added to the step's
+        (res.out_of_plane_negative_eigenvalues).  A planar minimum that is a saddle out of the
+        plane (lateral-torsional buckling) is not what the minimiser promises: the run leaves
+        the plane and minimises again at the same load in 3-D from that state, which leaves
+        the saddle along its negative curvature (EnergyMinimizer._escape).  Collective."""
+        planar = self.problem.planar
+        if planar is None or not planar.active:
+            return
+        n_out = planar.out_of_plane_count()
+        res.out_of_plane_negative_eigenvalues = n_out
+        res.negative_eigenvalues += n_out
+        if n_out == 0:
+            return
+        planar.leave("the planar equilibrium is UNSTABLE out of plane (%d negative eigenvalue%s "
+                     "of the out-of-plane Hessian)" % (n_out, "" if n_out == 1 else "s"),
+                     "unstable out of plane")
+        again = self.minimizer.solve_at(res.lam)
+        res.its += again.its
+        res.seconds += again.seconds
+        res.history = np.concatenate([res.history, again.history])
+        res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
+        res.escapes += again.escapes
+        res.shifts += again.shifts
+        res.line_search_cuts += again.line_search_cuts
+        if not again.converged:
+            res.converged, res.reason = False, f"in 3-D after leaving the plane: {again.reason}"
+
     def predict(self, prev, lam, dl):
         """The start of the step lam -> lam + dl: the secant through the last two converged
         states (positions and rotations, problem.RodState.predict) when there is a step before
@@ -170,6 +199,8 @@ class LoadPath:
             res = self.minimizer.solve_at(lam + dl)
             if res.converged:
                 self.keep_promise(res)
+            if res.converged:
+                self.check_plane(res)
             err = self.link_error(lam + dl) if res.converged else None
             if res.converged and err is not None and not self.link_kept(err):
                 res.converged, res.reason = False, f"link off by {err:.3g}"

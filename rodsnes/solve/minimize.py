@@ -87,7 +87,8 @@ class EnergyMinimizer:
         self.comm = problem.layout.comm.tompi4py()
         if problem.inertia is None:
             problem.inertia = Inertia(problem)
-        self.factor = problem.inertia
+        # a planar run factors the in-plane block (planar.PlanarInertia), 3-D once it left it
+        self.factor = problem.inertia if problem.planar is None else problem.planar.inertia
         self.force_scale = force_scale
         self.tol = rtol * force_scale
         self.floor = residual_floor(problem.scene.rod)
@@ -328,6 +329,14 @@ class EnergyMinimizer:
         """d = -K^-1 g with the consistent tangent K (LU); True when d is a descent direction
         of the energy (g . d < 0), else the step comes from the symmetric Hessian."""
         p = self.problem
+        if p.planar is not None and p.planar.holds(g):
+            # the in-plane block of K (planar.py: the 3-D step, whose out-of-plane part is 0)
+            self.factorizations += 1
+            if not p.planar.tangent_solve(g, d):
+                return False
+            d.scale(-1.0)
+            slope = self._same(g.dot(d))
+            return bool(np.isfinite(slope) and slope < 0.0)
         p.jacobian(None, p.state.X, p.J, p.J)
         ksp = self.ksp
         if ksp is None:

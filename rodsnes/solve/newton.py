@@ -66,6 +66,8 @@ class NewtonSolver:
         snes.setFromOptions()
         self.snes = snes
         problem.on_pattern_change = self.set_matrix
+        if problem.planar is not None:      # linear solves on the in-plane block (planar.py)
+            problem.planar.attach(self)
         rod = problem.scene.rod
         # roundoff floor of the residual: strains of size ~1 (v3 = 1), differentiated over a
         # node spacing, times the largest stiffness, summed over the nodes; a residual at this
@@ -383,6 +385,8 @@ class NewtonSolver:
             pc.setOptionsPrefix(prefix)
         ksp.setPC(pc)
         ksp.setFromOptions()
+        if self.problem.planar is not None:
+            self.problem.planar.attach_pc(ksp)
         self.stats_linear_resets = getattr(self, "stats_linear_resets", 0) + 1
 
     def tolerance(self):
@@ -394,6 +398,14 @@ class NewtonSolver:
         """The negative eigenvalues of the energy Hessian at the current state
         (stability.negative_eigenvalues), the same on every rank (max over ranks).  Collective."""
         from mpi4py import MPI
+        planar = self.problem.planar
+        if planar is not None and planar.active:
+            # a planar state: the in-plane and the out-of-plane blocks, each of half the size
+            n_in, n_out = planar.negative_eigenvalues()
+            if n_out:
+                self.say(f"  load {self.problem.lam:.6f}: the planar equilibrium is UNSTABLE out "
+                         f"of plane ({n_out} negative eigenvalues of the out-of-plane Hessian)")
+            return n_in + n_out
         n = int(negative_eigenvalues(self.problem))
         return int(self.problem.layout.comm.tompi4py().allreduce(n, op=MPI.MAX))
 

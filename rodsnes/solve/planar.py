@@ -1,0 +1,547 @@
+"""Planar scenes on three unknowns per node (-rod_planar auto|on|off; docs/planar.md).
+
+A scene whose reference centreline, directors, intrinsic curvature, supports and loads all lie
+in one plane normal to a coordinate axis e_a (with one director d_k = +-e_a at every node) has
+the reflection through that plane as a symmetry: the energy E(S x) = E(x), S the reflection in
+the chart x = (r, theta) of the spatial rotation increments (problem.py: R = exp(theta^x) R_ref;
+under S the in-plane positions and theta_a are even, r_a and the two in-plane components of
+theta odd).  At a planar state the gradient is then even, g_out = 0, and the Hessian and the
+consistent tangent commute with S, so they are block diagonal,
+
+    K = [[K_ii, 0], [0, K_oo]],     K d = -g  <=>  K_ii d_i = -g_i,  d_o = 0,
+
+with i the in-plane unknowns (two position components and theta_a per node) and o the three
+others.  Newton restricted to the in-plane block gives exactly the 3-D iterates with half the
+unknowns and a block size of 3 instead of 6 (a factorisation of about an eighth of the flops).
+
+PlanarSystem makes every linear solve of the run on the in-plane block: the minimiser's Newton
+step (tangent_solve) and its inertia-controlled LDL^T (PlanarInertia), and the SNES's KSP on
+the Newton path (a python PC on a python operator: attach).  The blocks are assembled directly
+(ComponentView: the 6 x 6 nodal blocks the problem and its terms set, cut to the chosen
+components, Dirichlet rows and columns masked), never as the full matrix.
+
+Guard: at every solve the out-of-plane share of the right-hand side (the residual) must be at
+round-off, |g_o| <= max(GUARD |g|, residual floor); if it is not, the state was not planar
+(a 3-D restart state, a scene the detection misjudged): the run says so and goes on in 3-D.
+
+A planar equilibrium need not be stable out of plane (lateral-torsional buckling): at the end of
+every converged step the out-of-plane Hessian H_oo is factored by LDL^T (MUMPS, ICNTL(13) = 1),
+whose negative pivots are the out-of-plane negative eigenvalues (out_of_plane_count); the
+minimiser's load path then goes on in 3-D from that state (load_path.LoadPath.check_plane).
+"""
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from rodsnes.model import so3
+from rodsnes.model.partition import NDOF, _upper_blocks
+from rodsnes.model.scales import residual_floor
+from rodsnes.model.term import same_patterns
+from rodsnes.solve.linear import mumps_fill_room, option_default
+from rodsnes.solve.stability import Inertia, zero_shift
+
+# the out-of-plane share of a residual that is still round-off (relative to |g|)
+GUARD = 1e-8
+# a position or director component that is zero in a plane (relative to L, resp. 1)
+FLAT = 1e-12
+AXES = "xyz"
+PREFIX = "planar_"                 # the in-plane Newton step's KSP (LU by MUMPS)
+STABILITY_PREFIX = "planar_stability_"   # the in-plane and out-of-plane LDL^T
+
+
+class Plane:
+    """The plane normal to e_axis: in-plane unknowns ``inplane`` (two position components and
+    the rotation increment about e_axis), out-of-plane ``outplane`` (the other three);
+    ``director``: the index k of the director d_k = +-e_axis."""
+
+    def __init__(self, axis, director):
+        self.axis, self.director = int(axis), int(director)
+        pos = [c for c in range(3) if c != axis]
+        self.inplane = np.array(pos + [3 + axis])
+        self.outplane = np.array([axis] + [3 + c for c in pos])
+        self.label = "%s-%s" % (AXES[pos[0]], AXES[pos[1]])
+
+    def model(self):
+        """The model as summary.json says it, e.g. "planar (x, y, theta per node)"."""
+        a, b = self.label.split("-")
+        return "planar (%s, %s, theta per node)" % (a, b)
+
+
+def detect(scene, mesh):
+    """(Plane, None) when the scene is planar (module docstring), else (None, why not: the
+    part of the scene that leaves the plane, with its option).  Reads the mesh's reference,
+    perfect and initial shapes and the scene's loads and supports."""
+    rod, ld, bc = scene.rod, scene.loads, scene.bc
+    if ld.twist_turns:
+        return None, "-load_twist_turns twists the rod about its tangent, out of any plane"
+    if bc.end_turns:
+        return None, "-bc_end_turns turns the end about its tangent, out of any plane"
+    if ld.arclength:
+        return None, "-load_arclength continues the branch on the 3-D system"
+    L = mesh.length
+    shapes = (("reference", mesh.x_ref, mesh.q_ref), ("initial", mesh.x_init, mesh.q_init),
+              ("perfect", mesh.x_perfect, mesh.q_perfect))
+    why = []
+    for axis in (2, 1, 0):                     # the x-y plane first
+        reason = _off_plane(axis, shapes, L, rod, ld)
+        if isinstance(reason, Plane):
+            return reason, None
+        why.append(reason)
+    return None, why[0]
+
+
+def _off_plane(axis, shapes, L, rod, ld):
+    """The Plane normal to e_axis if the scene lies in it, else why not."""
+    name = AXES[axis]
+    for what, x, q in shapes[::-1]:              # the perfect shape first
+        if np.ptp(x[:, axis]) > FLAT * L:
+            return _shape_reason(rod, what, name)
+    director = None
+    for what, x, q in shapes:
+        R = so3.rot(q)                                    # columns: the directors
+        normal = np.abs(np.abs(R[:, axis, :]) - 1.0) <= FLAT   # (n, 3): d_k = +-e_axis
+        common = np.flatnonzero(normal.all(axis=0))
+        if len(common) == 0 or (director is not None and director not in common):
+            if rod.twist_turns:
+                return "-rod_twist_turns twists the directors out of the plane"
+            return "the %s directors do not keep one of them normal to the %s plane" % (
+                what, _plane(axis))
+        director = int(common[0])
+    k = director
+    if rod.kappa0 is not None and np.any(np.delete(rod.kappa0, k) != 0.0):
+        return ("-rod_kappa0 has a curvature or twist component about an in-plane director "
+                "(only k%d, about the plane normal d%d, keeps the rod in the %s plane)"
+                % (k + 1, k + 1, _plane(axis)))
+    if ld.end_force[axis] != 0.0:
+        return "-load_end_force has a component along %s, out of the %s plane" % (name, _plane(axis))
+    if ld.gravity[axis] != 0.0:
+        return "-load_gravity has a component along %s, out of the %s plane" % (name, _plane(axis))
+    if np.any(np.delete(ld.end_moment, axis) != 0.0):
+        return ("-load_end_moment has a component about an in-plane axis (only m%s, about the "
+                "normal of the %s plane, keeps the rod in it)" % (name, _plane(axis)))
+    return Plane(axis, k)
+
+
+def _plane(axis):
+    return "-".join(AXES[c] for c in range(3) if c != axis)
+
+
+def _shape_reason(rod, what, name):
+    if rod.shape == "helix":
+        return "-rod_shape helix is not a plane curve"
+    if what != "perfect" and rod.imperfection:
+        return "-rod_imperfection moves the centreline out of its plane (along %s)" % name
+    return "the %s centreline is not in a plane normal to a coordinate axis" % what
+
+
+def refusal(why):
+    """The message of -rod_planar on for a scene that is not planar."""
+    return ("-rod_planar on: the scene is not planar: %s; use -rod_planar auto (3-D for this "
+            "scene) or off" % why)
+
+
+# -- the in-plane and out-of-plane blocks -----------------------------------------------------
+def create_block_matrix(problem, patterns, symmetric):
+    """A matrix of block size 3 over the problem's nodes with the block pattern of the elements
+    and the terms' ``patterns`` (every block present, as partition.Layout.create_matrix):
+    BAIJ, or SBAIJ (upper block triangle) when ``symmetric``.  Collective."""
+    lay = problem.layout
+    n, N = 3 * lay.n_owned, 3 * lay.n_global
+    A = PETSc.Mat().create(comm=lay.comm)
+    A.setSizes(((n, N), (n, N)), bsize=3)
+    A.setType(PETSc.Mat.Type.SBAIJ if symmetric else PETSc.Mat.Type.BAIJ)
+    A.setBlockSize(3)
+    ai, aj = lay.block_pattern(problem.node_groups(patterns))
+    if symmetric:
+        ai, aj = _upper_blocks(ai, aj, lay.starts[lay.comm.getRank()])
+    A.setPreallocationCSR((ai, aj))
+    if symmetric:
+        A.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
+        A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    return A
+
+
+class ComponentView:
+    """The block-size-3 matrix ``mat`` seen as the 6-dof matrix of the problem: every block
+    set through it (setValuesBlockedRCV, the one way the problem and its terms add tangents)
+    is cut to the components ``comps`` of each node, with the entries of Dirichlet rows and
+    columns zeroed (as partition.DirichletRows); finish() puts 1 on their diagonal.  The result
+    is the (comps, comps) block of the problem's matrix with MatZeroRowsColumns applied."""
+
+    def __init__(self, mat, comps, constraints):
+        self.mat, self.comps = mat, np.asarray(comps)
+        self.mask = constraints.block_mask[:, self.comps]        # (blocks, 3)
+        self.touched = self.mask.any(axis=1)
+        where = np.full(NDOF, -1)
+        where[self.comps] = np.arange(3)
+        rows = np.asarray(constraints.rows_global, dtype=np.int64)
+        keep = where[rows % NDOF] >= 0
+        self.rows = 3 * (rows[keep] // NDOF) + where[rows[keep] % NDOF]
+
+    def setValuesBlockedRCV(self, R, C, V, addv=None):
+        R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
+        kr, kc = R2.shape[1], C2.shape[1]
+        c = self.comps
+        V = np.asarray(V).reshape(len(R2), kr, NDOF, kc, NDOF)[:, :, c][:, :, :, :, c]
+        V = np.ascontiguousarray(V.reshape(len(R2), 3 * kr, 3 * kc))
+        hit = np.flatnonzero(self.touched[R2].any(axis=1) | self.touched[C2].any(axis=1))
+        if len(hit):
+            keep_r = ~self.mask[R2[hit]].reshape(len(hit), -1)
+            keep_c = ~self.mask[C2[hit]].reshape(len(hit), -1)
+            V[hit] *= keep_r[:, :, None] & keep_c[:, None, :]
+        self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+
+    def finish(self, rows_global=None):
+        """Before assembly: 1 on the diagonal of this rank's constrained rows of the block."""
+        if len(self.rows):
+            r = self.rows.astype(PETSc.IntType)[:, None]
+            self.mat.setValuesRCV(r, r, np.ones((len(r), 1, 1)), addv=PETSc.InsertMode.ADD)
+
+    def __getattr__(self, name):
+        return getattr(self.mat, name)
+
+
+class BlockInertia:
+    """stability.Inertia on the (comps, comps) block of the energy Hessian: the block assembled
+    into an SBAIJ matrix of block size 3 (kept with its MUMPS analysis while the terms'
+    patterns stay), LDL^T with ICNTL(13) = 1, the negative pivots counted.  Same interface as
+    Inertia (assemble, factor, solve, count; factor and solve take vectors of the block)."""
+
+    def __init__(self, problem, comps, prefix=STABILITY_PREFIX):
+        self.problem, self.comps, self.prefix = problem, np.asarray(comps), prefix
+        self.patterns = self.H = self.pc = None
+        self.diagonal = None
+        self.counts = self.builds = 0
+
+    def _build(self, patterns):
+        p = self.problem
+        self.destroy()
+        self.H = create_block_matrix(p, patterns, symmetric=True)
+        pc = PETSc.PC().create(comm=p.layout.comm)
+        pc.setOptionsPrefix(self.prefix)
+        pc.setType(PETSc.PC.Type.CHOLESKY)
+        pc.setFactorSolverType("mumps")
+        option_default(self.prefix + "mat_mumps_icntl_13", "1")
+        mumps_fill_room(p, self.prefix)
+        pc.setFromOptions()
+        self.pc, self.patterns = pc, patterns
+        self.builds += 1
+
+    def assemble(self, patterns=None):
+        p = self.problem
+        if patterns is None:
+            patterns = p.patterns_at()
+        if not same_patterns(patterns, self.patterns):
+            self._build(patterns)
+        p.jacobian(None, p.state.X, self.H, self.H, symmetric=True,
+                   view=ComponentView(self.H, self.comps, p.constraints))
+        if self.diagonal is not None:
+            self.diagonal.destroy()
+        self.diagonal = self.H.getDiagonal()
+        return self.H
+
+    def factor(self, shift=None):
+        """LDL^T of H + diag(shift) (shift: a Vec of the block; None: zero_shift); the negative
+        pivots, or -1 when the factorisation failed.  Collective."""
+        H = self.H
+        d = self.diagonal.copy()
+        if shift is None:
+            d.shift(zero_shift(H))
+        else:
+            d.axpy(1.0, shift)
+        H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
+        d.destroy()
+        self.pc.setOperators(H)
+        self.counts += 1
+        try:
+            self.pc.setUp()
+        except PETSc.Error:
+            self.pc.reset()
+            self.pc.setOperators(H)
+            return -1
+        F = self.pc.getFactorMatrix()
+        if F.getMumpsInfog(1) < 0:
+            return -1
+        return int(F.getMumpsInfog(12))
+
+    def solve(self, b, x):
+        self.pc.apply(b, x)
+
+    def count(self):
+        self.assemble()
+        return self.factor()
+
+    def destroy(self):
+        for obj in (self.pc, self.H):
+            if obj is not None:
+                obj.destroy()
+        self.pc = self.H = None
+
+
+class PlanarInertia:
+    """The minimiser's factorisation (minimize.EnergyMinimizer.factor): the in-plane block's
+    (BlockInertia) while the run is planar, the full Hessian's (problem.inertia) once it has
+    left the plane.  Takes and gives vectors of the full 6-dof layout."""
+
+    def __init__(self, planar):
+        self.planar = planar
+        self.block = BlockInertia(planar.problem, planar.plane.inplane)
+        self.planar_factor = True          # the last assemble() was of the in-plane block
+        self._b = self._x = None
+
+    @property
+    def full(self):
+        p = self.planar.problem
+        if p.inertia is None:
+            p.inertia = Inertia(p)
+        return p.inertia
+
+    @property
+    def diagonal(self):
+        return self.block.diagonal if self.planar_factor else self.full.diagonal
+
+    def assemble(self, patterns=None):
+        self.planar_factor = self.planar.active
+        if self.planar_factor:
+            return self.block.assemble(patterns)
+        return self.full.assemble(patterns)
+
+    def factor(self, shift=None):
+        if not self.planar_factor:
+            return self.full.factor(shift)
+        s = None if shift is None else self.planar.restrict(shift)
+        return self.block.factor(s)
+
+    def solve(self, b, x):
+        if not self.planar_factor:
+            return self.full.solve(b, x)
+        bi = self.planar.restrict(b)
+        xi = bi.duplicate()
+        self.block.solve(bi, xi)
+        self.planar.expand(xi, x)
+        bi.destroy()
+        xi.destroy()
+
+    def count(self):
+        self.assemble()
+        return self.factor()
+
+
+class PlanarSystem:
+    """The run's linear algebra on the in-plane block (module docstring).  ``active`` while the
+    run is planar; leave() ends it (the guard, or an out-of-plane instability) for the rest of
+    the run."""
+
+    def __init__(self, problem, plane, say=None):
+        self.problem, self.plane = problem, plane
+        self.comm = problem.layout.comm.tompi4py()
+        self.active = True
+        self.left = None                  # (load, why) where the run left the plane
+        self.floor = residual_floor(problem.scene.rod)
+        self.say = say or (lambda text: None)
+        self.J = None                     # the in-plane consistent tangent (BAIJ, bs 3)
+        self._patterns = None
+        self.ksp = None                   # its LU (prefix planar_)
+        self.full_ksp = None              # the 3-D solve of the Newton path after leave()
+        self.inertia = PlanarInertia(self)
+        self.out_inertia = BlockInertia(problem, plane.outplane)
+        self.stats = {"planar_solves": 0, "out_of_plane_counts": 0}
+        self.solver = None
+
+    # -- vectors ------------------------------------------------------------------------
+    def restrict(self, v, out=None):
+        """The in-plane components of the 6-dof vector v as a new (or ``out``) block-3 Vec."""
+        a = v.getArray(readonly=True).reshape(-1, NDOF)[:, self.plane.inplane]
+        if out is None:
+            lay = self.problem.layout
+            out = PETSc.Vec().createMPI((3 * lay.n_owned, 3 * lay.n_global), bsize=3,
+                                        comm=lay.comm)
+        out.setArray(np.ascontiguousarray(a).ravel())
+        return out
+
+    def expand(self, vi, v):
+        """v <- vi on the in-plane components, 0 on the others."""
+        a = np.zeros((self.problem.layout.n_owned, NDOF))
+        a[:, self.plane.inplane] = vi.getArray(readonly=True).reshape(-1, 3)
+        v.setArray(a.ravel())
+
+    def out_of_plane_share(self, v):
+        """(|v_o|, |v|) over all ranks."""
+        a = v.getArray(readonly=True).reshape(-1, NDOF)
+        loc = np.array([float(np.sum(a[:, self.plane.outplane] ** 2)), float(np.sum(a * a))])
+        tot = np.empty(2)
+        self.comm.Allreduce(loc, tot, op=MPI.SUM)
+        return tuple(np.sqrt(tot))
+
+    def holds(self, g):
+        """The guard: True while the run is planar and the residual g has no out-of-plane share
+        beyond round-off; else the run leaves the plane (said) and False.  Collective."""
+        if not self.active:
+            return False
+        go, gn = self.out_of_plane_share(g)
+        go, gn = self.comm.bcast((go, gn), root=0)
+        if go <= max(GUARD * gn, self.floor):
+            return True
+        self.leave("the residual has an out-of-plane part (|g_out| = %.3e of |g| = %.3e): the "
+                   "state is not planar" % (go, gn), "the state left the plane")
+        return False
+
+    def leave(self, why, short="not planar"):
+        """Go on in 3-D for the rest of the run (``short``: the reason in summary.json's
+        model)."""
+        if not self.active:
+            return
+        self.active = False
+        self.left = (self.problem.lam, short)
+        self.say("  load %.6f: %s; going on in 3-D" % (self.problem.lam, why))
+
+    def model(self):
+        """summary.json's ``model``."""
+        text = self.plane.model()
+        if self.left is not None:
+            text += ", 3-D from load %.6f (%s)" % self.left
+        return text
+
+    # -- the in-plane Newton step --------------------------------------------------------
+    def assemble_tangent(self, X=None):
+        """The in-plane block of the consistent tangent at X (default: the state) into J."""
+        p = self.problem
+        if self.J is None or not same_patterns(p.patterns, self._patterns):
+            if self.J is not None:
+                self.J.destroy()
+            self.J = create_block_matrix(p, p.patterns, symmetric=False)
+            self._patterns = p.patterns
+            if self.ksp is not None:
+                self.ksp.reset()
+        p.jacobian(None, p.state.X if X is None else X, self.J, self.J,
+                   view=ComponentView(self.J, self.plane.inplane, p.constraints))
+
+    def _inner_ksp(self):
+        if self.ksp is None:
+            opts = PETSc.Options()
+            for key, value in (("ksp_type", "preonly"), ("pc_type", "lu"),
+                               ("pc_factor_mat_solver_type", "mumps")):
+                option_default(PREFIX + key, opts.getString(key, value))
+            mumps_fill_room(self.problem, PREFIX)
+            ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
+            ksp.setOptionsPrefix(PREFIX)
+            ksp.setFromOptions()
+            self.ksp = ksp
+        return self.ksp
+
+    def solve_block(self, b, x):
+        """x = J_ii^-1 b_i on the in-plane components, 0 on the others (J assembled); False
+        when the factorisation failed.  Collective."""
+        ksp = self._inner_ksp()
+        ksp.setOperators(self.J)
+        bi = self.restrict(b)
+        xi = bi.duplicate()
+        self.stats["planar_solves"] += 1
+        try:
+            ksp.solve(bi, xi)
+            ok = ksp.getConvergedReason() >= 0
+        except PETSc.Error:
+            ksp.reset()
+            ok = False
+        if ok:
+            self.expand(xi, x)
+        bi.destroy()
+        xi.destroy()
+        return ok
+
+    def tangent_solve(self, b, x):
+        """The minimiser's Newton step in the plane: J_ii at the state, x = J^-1 b."""
+        self.assemble_tangent()
+        return self.solve_block(b, x)
+
+    # -- the Newton path's SNES ----------------------------------------------------------
+    def attach(self, solver):
+        """Make the SNES of the Newton path (newton.NewtonSolver) solve on the in-plane block:
+        its Jacobian callback assembles J_ii (or, after leave(), the full J), its operator is a
+        python matrix of the full size that holds nothing, and its KSP's PC a python PC that
+        solves J_ii y_i = x_i, y_o = 0 (or the full system).  KSP preonly never multiplies by
+        the operator."""
+        self.solver = solver
+        p = self.problem
+        lay = p.layout
+        n, N = NDOF * lay.n_owned, NDOF * lay.n_global
+        self.shell = PETSc.Mat().createPython(((n, N), (n, N)), context=_Operator(),
+                                              comm=lay.comm)
+        self.shell.setUp()
+        solver.snes.setJacobian(self._snes_jacobian, self.shell)
+        self.attach_pc(solver.snes.getKSP())
+        p.on_pattern_change = self._pattern_changed
+
+    def attach_pc(self, ksp):
+        """The SNES's KSP: preonly with the planar python PC."""
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.PYTHON)
+        pc.setPythonContext(_PlanarPC(self))
+
+    def _pattern_changed(self, J):
+        if self.full_ksp is not None:
+            self.full_ksp.reset()
+
+    def _snes_jacobian(self, snes, X, J, P):
+        if self.active:
+            self.assemble_tangent(X)
+        else:
+            self.problem.jacobian(snes, X, self.problem.J, self.problem.J)
+        J.assemble()
+
+    def full_solve(self, b, x):
+        """The 3-D solve with the full J (assembled by the Jacobian callback)."""
+        if self.full_ksp is None:
+            self.full_ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
+            self.full_ksp.setFromOptions()
+        self.full_ksp.setOperators(self.problem.J)
+        try:
+            self.full_ksp.solve(b, x)
+            return self.full_ksp.getConvergedReason() >= 0
+        except PETSc.Error:
+            self.full_ksp.reset()
+            return False
+
+    # -- stability -----------------------------------------------------------------------
+    def out_of_plane_count(self):
+        """Negative eigenvalues of the out-of-plane block H_oo of the energy Hessian at the
+        current (planar) state: one LDL^T.  Collective."""
+        self.stats["out_of_plane_counts"] += 1
+        n = self.out_inertia.count()
+        return int(self.comm.allreduce(n, op=MPI.MAX))
+
+    def negative_eigenvalues(self):
+        """(in-plane, out-of-plane) negative eigenvalues of the Hessian at a planar state."""
+        n_in = int(self.comm.allreduce(self.inertia.block.count(), op=MPI.MAX))
+        return n_in, self.out_of_plane_count()
+
+
+class _Operator:
+    """The SNES's operator of the planar Newton path: a placeholder of the full size (the
+    Jacobian lives in PlanarSystem.J or the problem's J; KSP preonly never multiplies)."""
+
+    def mult(self, A, x, y):
+        raise RuntimeError("rodsnes: the planar Newton path's operator holds no matrix")
+
+
+class _PlanarPC:
+    """The SNES's PC of the planar Newton path: y = J_ii^-1 x_i on the in-plane components
+    (after the guard on x, the residual), or the full solve once the run left the plane.  A
+    failed factorisation returns NaN, which fails the Newton step (and cuts the load back)."""
+
+    def __init__(self, planar):
+        self.planar = planar
+
+    def setUp(self, pc):
+        pass
+
+    def apply(self, pc, x, y):
+        pl = self.planar
+        if pl.active and not pl.holds(x):
+            p = pl.problem
+            p.jacobian(None, p.state.X, p.J, p.J)     # this iterate's, in 3-D
+        ok = pl.solve_block(x, y) if pl.active else pl.full_solve(x, y)
+        if not ok:
+            y.set(np.nan)
