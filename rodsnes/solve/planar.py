@@ -37,7 +37,7 @@ from rodsnes.model import so3
 from rodsnes.model.partition import NDOF, _upper_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
-from rodsnes.solve.linear import mumps_fill_room, option_default
+from rodsnes.solve.linear import direct_solver_defaults, mumps_fill_room, option_default
 from rodsnes.solve.stability import Inertia, zero_shift
 
 # the out-of-plane share of a residual that is still round-off (relative to |g|)
@@ -45,7 +45,7 @@ GUARD = 1e-8
 # a position or director component that is zero in a plane (relative to L, resp. 1)
 FLAT = 1e-12
 AXES = "xyz"
-PREFIX = "planar_"                 # the in-plane Newton step's KSP (LU by MUMPS)
+PREFIX = "planar_"                 # the in-plane Newton step's KSP (the run's LU, solve/linear.py)
 STABILITY_PREFIX = "planar_stability_"   # the in-plane and out-of-plane LDL^T
 
 
@@ -420,10 +420,10 @@ class PlanarSystem:
     def _inner_ksp(self):
         if self.ksp is None:
             opts = PETSc.Options()
-            for key, value in (("ksp_type", "preonly"), ("pc_type", "lu"),
-                               ("pc_factor_mat_solver_type", "mumps")):
-                option_default(PREFIX + key, opts.getString(key, value))
-            mumps_fill_room(self.problem, PREFIX)
+            for key in ("ksp_type", "pc_type", "pc_factor_mat_solver_type"):
+                if opts.hasName(key):            # the 3-D step's choice, the user's or its default
+                    option_default(PREFIX + key, opts.getString(key))
+            direct_solver_defaults(self.problem, PREFIX)
             ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
             ksp.setOptionsPrefix(PREFIX)
             ksp.setFromOptions()
