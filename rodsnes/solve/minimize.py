@@ -102,6 +102,7 @@ class EnergyMinimizer:
         self.total_its = 0
         self.factorizations = 0
         self._mode = None
+        self._trial = None          # (E, depth) of the line search's last evaluated trial
         self.last = None
         self.ksp = None
 
@@ -219,7 +220,7 @@ class EnergyMinimizer:
         if rot > MAX_ROTATION:
             alpha = MAX_ROTATION / rot
         limit = p.step_limit                  # the terms' (contact: half its radius; 0: none)
-        if limit:
+        if limit and t * alpha > limit:       # a shorter step is within every move limit
             r, _ = p.state.local_config()
             t_near, _ = self._move(d, p.watched_nodes(r))
             if t_near * alpha > limit:
@@ -251,6 +252,7 @@ class EnergyMinimizer:
         its = shifts = cuts = escapes = free_steps = 0
         nneg, reason, prev = -1, "iteration limit", np.inf
         watch = None                # the watchdog's reference point (module docstring, 4.)
+        accepted = None             # (E, depth) of the step just taken, at the new iterate
         while True:
             p.state.recentre()
             p.ensure_pattern()
@@ -285,7 +287,10 @@ class EnergyMinimizer:
                     escapes += escaped
             slope = self._same(g.dot(d))
             alpha = self._longest_step(d)
-            E0, depth0 = self.energy_at(X)
+            # the energy here was the accepted trial's of the last iteration (the same chart
+            # point; recentre moves it by round-off only): one evaluation fewer per iteration
+            E0, depth0 = accepted if accepted is not None else self.energy_at(X)
+            accepted = None
             energies.append(E0)
             if watch is not None and E0 <= watch["E"] + ARMIJO * watch["alpha"] * watch["slope"]:
                 watch = None                    # the free steps have paid off
@@ -311,7 +316,8 @@ class EnergyMinimizer:
             elif not ok:
                 reason = "line search"
                 break
-            X.axpy(alpha, d)
+            X.axpy(alpha, d)               # Xt, bit for bit: the trial's energy is the new E0
+            accepted = self._trial
             its += 1
         if watch is not None:
             watch["d"].destroy()
@@ -394,6 +400,7 @@ class EnergyMinimizer:
                 alpha *= 0.5
                 free = False
                 continue
+            self._trial = (E, depth)
             if E <= E0 + ARMIJO * alpha * min(slope, 0.0):
                 return True, alpha, k
             if free:
