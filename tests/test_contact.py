@@ -7,7 +7,7 @@ import pytest
 from petsc4py import PETSc
 
 from conftest import natural_residuals, place, run_case, tangent_against_finite_differences
-from rodsnes.contact import projection as ck
+from rodsnes.contact import search
 from rodsnes.model.partition import NDOF
 
 SETUP = dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0")
@@ -298,8 +298,7 @@ def test_residual_alone_is_the_residual_of_the_full_evaluation(model):
 
 def _fresh_search_pairs(c, r):
     """The candidates within reach of a fresh search at r (what the evaluation must use)."""
-    from rodsnes.contact import projection as ck
-    return c.search_pairs(*ck.element_bounds(r[c.lconn]), c.reach)
+    return c.search_pairs(*search.element_bounds(r[c.lconn]), c.reach)
 
 
 @pytest.mark.mpi
@@ -360,7 +359,7 @@ def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
     n = run.mesh.nelem
     assert len(need) and np.isin(need[:, 0] * n + need[:, 1], have[:, 0] * n + have[:, 1]).all()
     assert c.pattern_covers(r, have)
-    wide = c.comm.allreduce(len(c.search_pairs(*ck.element_bounds(r[c.lconn]),
+    wide = c.comm.allreduce(len(c.search_pairs(*search.element_bounds(r[c.lconn]),
                                                 c.reach + c.skin)))
     assert len(have) < wide
     contact_pairs = need[need[:, 0] != need[:, 1]]

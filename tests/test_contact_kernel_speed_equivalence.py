@@ -1,13 +1,15 @@
-"""The fast paths of the closest-point contact kernel (ContactKernel) against the plain ones they
-replace: the sampled Newton projection against the per-problem reference it was rewritten from
-(Horner sampling, Newton with its own backtracking loop, one problem set at a time), the
-bisection of a cut with several levels per closest-point search against one step per search,
-and all strands in one pass against strand by strand (evaluate_strand on each strand's pairs,
-summed as ContactKernel.evaluate describes)."""
+"""The fast paths of the closest-point contact law against the plain ones they replace: the sampled
+Newton projection (ClosestPoint) against the per-problem reference it was rewritten from (Horner
+sampling, Newton with its own backtracking loop, one problem set at a time), the bisection of a cut
+with several levels per closest-point search (ContactZones.bisect_kind) against one step per search,
+and all strands in one pass against strand by strand (evaluate_strand on each strand's pairs, summed
+as ContactKernel.evaluate describes)."""
 import numpy as np
 import pytest
 
-from rodsnes.contact import projection as C
+from rodsnes.contact.closest_point import ClosestPoint, phi, phi_derivatives
+from rodsnes.contact.search import strand_index
+from rodsnes.contact.zones import ContactZones
 
 from test_contact_math import EPS
 from test_contact_strands import sandwich
@@ -15,8 +17,8 @@ from test_contact_zones import crossing, plectoneme_end_loop
 
 
 def sampled_newton_reference(k, P, A, lo, hi):
-    """The sampled Newton search of ContactKernel.project, as it was written before the
-    batched version (_project, _newton): phi = |r(xi) - P|^2 / 2 at 4p+1 samples by Horner,
+    """The sampled Newton search of ClosestPoint.project (k), as it was written before the
+    batched version (ClosestPoint.sampled_newton): phi = |r(xi) - P|^2 / 2 at 4p+1 samples by Horner,
     Newton from every discrete local minimum with steps of at most one sample spacing, clamped
     to [lo, hi], halved until phi rises by at most 1e-14 phi (a Newton step below 1e-9 always
     taken), converged when a step moves by <= 1e-13; the best start per problem."""
@@ -38,14 +40,14 @@ def sampled_newton_reference(k, P, A, lo, hi):
         dx = (h - l) / (ns - 1)
         scale = q @ q + np.sum(a * a)
         for _ in range(k.MAXIT):
-            f0, g, H = (v[0] for v in k._fgh(np.array([x[i]]), a[None], q[None]))
+            f0, g, H = (v[0] for v in phi_derivatives(np.array([x[i]]), a[None], q[None]))
             newton = H > 0.0
             step = float(np.clip(-g / H if newton else -np.sign(g) * dx, -dx, dx))
             tol = 1e-14 * f0 + 1e-30 * scale
             xnew, fnew, done = x[i], f0, False
             for _bt in range(k.MAXBT):
                 xt = float(np.clip(x[i] + step, l, h))
-                ft = k._f(np.array([xt]), a[None], q[None])[0]
+                ft = phi(np.array([xt]), a[None], q[None])[0]
                 if ft <= f0 + tol or (newton and abs(step) < 1e-9):
                     xnew, fnew, done = xt, ft, True
                     break
@@ -68,7 +70,7 @@ def test_sampled_projection_is_the_reference_search(p):
     the reference's minimiser and minimum.  Where the reference's search misses the global
     minimum (it only samples), so does the batched one: the same algorithm, not a better one."""
     rng = np.random.default_rng(p)
-    k = C.ContactKernel(p, p + 1, eps=0.01, mu=1.0, delta=0.05, L=1.0, nelem=10, closed=False)
+    k = ClosestPoint(p, eps=0.01, delta=0.05, L=1.0, nelem=10, closed=False)
     M = 400
     A = rng.normal(scale=0.3, size=(M, p + 1, 3))
     P = rng.normal(scale=0.5, size=(M, 3))
@@ -76,7 +78,7 @@ def test_sampled_projection_is_the_reference_search(p):
     lo[:100], hi[:100] = -1.0, 1.0
     hi[100:120] = lo[100:120]
     xi_ref, f_ref = sampled_newton_reference(k, P, A, lo, hi)
-    xi, f = k._project_chunk(P, A, lo, hi)
+    xi, f = k.sampled_newton(P, A, lo, hi)
     assert np.all(np.abs(f - f_ref) <= 1e-12 * np.maximum(f_ref, 1e-300) + 1e-300)
     assert np.max(np.abs(xi - xi_ref)) < 1e-12
     # and the full projection (roots where phi may be non-convex) is never worse
@@ -86,36 +88,36 @@ def test_sampled_projection_is_the_reference_search(p):
 
 def test_bisection_several_levels_at_once_is_the_bisection():
     """The cuts of two strands crossing at 60 degrees (the closest point crosses master nodes):
-    ``_bisect_kind`` with the bisection tree's next levels located in one closest-point search
+    ``ContactZones.bisect_kind`` with the bisection tree's next levels located in one closest-point search
     returns the cuts and final brackets of one step per search, in fewer searches."""
     rod, X = crossing(3, np.pi / 3, 1.5 * EPS, 0.0371)
-    k = rod.k
+    zones, cp = rod.k.zones, rod.k.closest_point
     calls = []
-    bisect = k._bisect_kind
+    bisect = zones.bisect_kind
 
     def spy(*a, **kw):
         calls.append(a)
         return bisect(*a, **kw)
-    k._bisect_kind = spy
+    zones.bisect_kind = spy
     rod.eval(X, rod.pairs(X))
-    del k._bisect_kind
+    del zones.bisect_kind
     assert calls and len(calls[0][1]) >= 4                      # 2 cuts, each from both sides
 
     searches = []
-    closest = k._closest
+    find = cp.find
 
     def count(*a, **kw):
         searches.append(len(a[1]))
-        return closest(*a, **kw)
-    k._closest = count
+        return find(*a, **kw)
+    cp.find = count
     results = {}
-    for points in (1, C.ContactKernel.BISECT_POINTS, 1024):
-        k.BISECT_POINTS = points
+    for points in (1, ContactZones.BISECT_POINTS, 1024):
+        zones.BISECT_POINTS = points
         searches.clear()
-        results[points] = ([k._bisect_kind(*a) for a in calls], len(searches))
-    del k.BISECT_POINTS, k._closest
+        results[points] = ([zones.bisect_kind(*a) for a in calls], len(searches))
+    del zones.BISECT_POINTS, cp.find
     one, n_one = results[1]
-    for points in (C.ContactKernel.BISECT_POINTS, 1024):
+    for points in (ContactZones.BISECT_POINTS, 1024):
         many, n_many = results[points]
         assert n_many < n_one / 2, (points, n_many, n_one)
         for r1, r2 in zip(one, many):
@@ -126,9 +128,9 @@ def test_bisection_several_levels_at_once_is_the_bisection():
 def strand_by_strand(k, ids, xe, pairs, tangent):
     """ContactKernel.evaluate as it was before all strands shared one pass: evaluate_strand on
     the pairs of each strand (contact.strand_index), the outputs summed (gap: the deepest,
-    sbar of the deepest, force summed; per-point arrays concatenated strand by strand; depth
-    over all)."""
-    s = C.strand_index(pairs, k.nelem, k.closed, int(np.ceil(k.delta / k.h)) + 1)
+    sbar of the deepest, force summed; per-point arrays concatenated strand by strand; depth:
+    the deepest d of the Gauss and zone points)."""
+    s = strand_index(pairs, k.nelem, k.closed, int(np.ceil(k.delta / k.h)) + 1)
     outs = [k.evaluate_strand(ids, xe, ids, xe, pairs[s == j], tangent)
             for j in range(int(s.max()) + 1)]
     out = outs[0]
@@ -147,7 +149,9 @@ def strand_by_strand(k, ids, xe, pairs, tangent):
                 out[key] = np.concatenate([out[key], o[key]])
         else:
             out["_deferred"] += o["_deferred"]
-    return k._depth(out), int(s.max()) + 1
+    out["depth"] = max(float(out["gap"].max(initial=-np.inf)),
+                       float(out["d_active"].max(initial=-np.inf)))
+    return out, int(s.max()) + 1
 
 
 def close(a, b, rtol):

@@ -3,7 +3,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from rodsnes.contact import projection as C
+from rodsnes.contact import search
+from rodsnes.contact.monomials import monomials
+from rodsnes.contact.projection import ContactKernel, default_exclusion, default_penalty
 from rodsnes.model import fe
 
 EPS = 0.1
@@ -20,15 +22,15 @@ class Rod:
         assert (self.nelem * p == nn) if closed else (self.nelem * p + 1 == nn)
         self.nn = nn
         self.h = self.L / self.nelem
-        self.delta = C.default_exclusion(eps) if delta is None else delta
+        self.delta = default_exclusion(eps) if delta is None else delta
         self.reach = 2 * eps + 0.05 if reach is None else reach
         self.ids = np.arange(self.nelem)
-        self.conn = C.element_node_ids(self.ids, p, self.nelem, closed)
-        self.k = C.ContactKernel(p, nqc or p + 1, eps, mu, self.delta, self.L, self.nelem, closed)
+        self.conn = search.element_node_ids(self.ids, p, self.nelem, closed)
+        self.k = ContactKernel(p, nqc or p + 1, eps, mu, self.delta, self.L, self.nelem, closed)
 
     def pairs(self, X):
-        c, r = C.element_bounds(X[self.conn])
-        return C.candidate_pairs(self.ids, c, r, self.ids, c, r, self.reach, self.L, self.h,
+        c, r = search.element_bounds(X[self.conn])
+        return search.candidate_pairs(self.ids, c, r, self.ids, c, r, self.reach, self.L, self.h,
                                  self.closed, self.delta)
 
     def eval(self, X, pairs, tangent=False):
@@ -38,7 +40,8 @@ class Rod:
     def energy(self, X, pairs):
         return self.eval(X, pairs)["energy"]
 
-    def _nodes(self, out):
+    def active_nodes(self, out):
+        """Nodes (nact, 2(p+1)) of [slave element, master element] of every active point."""
         a = out["active"]
         return np.concatenate([self.conn[a[:, 0]], self.conn[a[:, 1]]], axis=1)
 
@@ -48,7 +51,7 @@ class Rod:
     def assemble(self, out):
         """The nodal residual (nn, 3) of an evaluation."""
         R = np.zeros((self.nn, 3))
-        np.add.at(R, self._nodes(out), out["vec"])
+        np.add.at(R, self.active_nodes(out), out["vec"])
         return R
 
     def slaves_reaching(self, pairs, node):
@@ -64,13 +67,16 @@ class Rod:
         mine = pairs[np.isin(pairs[:, 0], self.slaves_reaching(pairs, node))]
         return self.residual(X, mine)[node]
 
-    def tangent(self, X, pairs):
+    def tangent(self, X, pairs, switch_points=True):
+        """The assembled tangent (3 nn, 3 nn) and the evaluation; without ``switch_points``
+        the switch-point terms (out["switch_mat"]) are left out."""
         out = self.eval(X, pairs, tangent=True)
-        dof = (3 * self._nodes(out)[:, :, None] + np.arange(3)).reshape(len(out["active"]), -1)
+        nodes = self.active_nodes(out)
+        dof = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(out["active"]), -1)
         K = np.zeros((3 * self.nn, 3 * self.nn))
         np.add.at(K, (dof[:, :, None], dof[:, None, :]), out["mat"])
         sw = out["switch"]
-        if len(sw):
+        if len(sw) and switch_points:
             nodes = np.concatenate([self.conn[sw[:, 0]], self.conn[sw[:, 1]], self.conn[sw[:, 2]]],
                                    axis=1)
             dof = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(sw), -1)
@@ -166,14 +172,14 @@ def check_tangent(rod, X, pairs, step, tol=1e-5, ndir=3, seed=0, maxcols=None):
 # 0. parameters
 # ------------------------------------------------------------------------------------------
 def test_default_parameters():
-    assert C.default_exclusion(0.2) == pytest.approx(0.2 * np.pi)
+    assert default_exclusion(0.2) == pytest.approx(0.2 * np.pi)
     EI, eps = 3.0, 0.05
-    mu = C.default_penalty(EI, eps)
+    mu = default_penalty(EI, eps)
     assert mu == pytest.approx(5 * EI / eps ** 4)
     # the tight-contact line force 0.2 EI/eps^3 (measured on the plectoneme), carried as 2 mu d
     # in a two-sided contact (see test_gap_parallel_segments), penetrates 1 % of the diameter
     assert (0.2 * EI / eps ** 3) / (2 * mu) == pytest.approx(0.01 * 2 * eps)
-    assert C.default_penalty(EI, eps, penetration=0.005) == pytest.approx(2 * mu)
+    assert default_penalty(EI, eps, penetration=0.005) == pytest.approx(2 * mu)
 
 
 # ------------------------------------------------------------------------------------------
@@ -320,7 +326,7 @@ def test_closest_point_matches_brute_force_p3():
         xm += 0.08 * rng.standard_normal(xm.shape)
         ctr = np.array([0.0, 0.0, 0.0]) if trial % 2 == 0 else np.array([1.5, 0.0, 0.0])
         xs = ctr + 0.35 * rng.standard_normal((4, 3))
-        k = C.ContactKernel(p, 5, eps=1.0, mu=1.0, delta=0.3, L=10.0, nelem=nelem, closed=False)
+        k = ContactKernel(p, 5, eps=1.0, mu=1.0, delta=0.3, L=10.0, nelem=nelem, closed=False)
         out = k.evaluate([0], xs[None], [nelem - 1], xm[None], [[0, nelem - 1]])
         rq = k.Nq @ xs
         for q in range(5):
@@ -340,11 +346,12 @@ def test_projection_finds_global_minimum_of_two_basins():
     p = 4
     nod = fe.reference_nodes(p)
     xm = np.stack([0.5 * nod, 2.0 * (nod + 0.75) ** 2 * (nod - 0.70) ** 2, 0 * nod], axis=1)
-    k = C.ContactKernel(p, 3, eps=1.0, mu=1.0, delta=0.1, L=10.0, nelem=10, closed=False)
+    k = ContactKernel(p, 3, eps=1.0, mu=1.0, delta=0.1, L=10.0, nelem=10, closed=False)
     A = np.einsum("ka,ad->kd", k.C, xm)
     x0 = np.linspace(-0.05, 0.05, 41)
     P = np.stack([x0, -0.3 + 0 * x0, 0 * x0], axis=1)
-    xi, f = k.project(P, np.repeat(A[None], len(P), axis=0), -np.ones(len(P)), np.ones(len(P)))
+    xi, f = k.closest_point.project(P, np.repeat(A[None], len(P), axis=0), -np.ones(len(P)),
+                                    np.ones(len(P)))
     for i in range(len(P)):
         xb, db = brute_closest(P[i], xm, p)
         assert abs(xi[i] - xb) < 1e-10 and abs(np.sqrt(2 * f[i]) - db) < 1e-12, (x0[i], xi[i], xb)
@@ -460,7 +467,7 @@ def test_tangent_formula_of_the_docstring_and_slide_sign():
     k = rod.k
     v = np.random.default_rng(0).standard_normal(X.shape)
     dR = ((rod.residual(X + 1e-6 * v, pairs) - rod.residual(X - 1e-6 * v, pairs)) / 2e-6).ravel()
-    nodes = rod._nodes(out)
+    nodes = rod.active_nodes(out)
     dof = (3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), -1)
     eps, mu = k.eps, k.mu
     Nm, dNm, d2Nm = fe.lagrange(p, out["xi"])
@@ -554,8 +561,9 @@ def test_candidate_pairs_equal_brute_force(closed):
     L = nelem * step
     eps = 0.05
     rod = Rod(X, p, closed, L, eps=eps, reach=2 * eps + 0.02)
-    c, r = C.element_bounds(X[rod.conn])
-    got = C.candidate_pairs(rod.ids, c, r, rod.ids, c, r, rod.reach, L, rod.h, closed, rod.delta)
+    c, r = search.element_bounds(X[rod.conn])
+    got = search.candidate_pairs(rod.ids, c, r, rod.ids, c, r, rod.reach, L, rod.h, closed,
+                                 rod.delta)
     # brute force: all pairs sphere test + sampled arclength test
     dist = np.linalg.norm(c[:, None] - c[None], axis=2)
     ok = dist <= rod.reach + r[:, None] + r[None]
@@ -572,7 +580,8 @@ def test_candidate_pairs_equal_brute_force(closed):
     assert got.shape == ref.shape and np.array_equal(got, ref)
     # own subset vs all (what one rank does)
     own = rod.ids[rod.ids % 3 == 0]
-    sub = C.candidate_pairs(own, c[own], r[own], rod.ids, c, r, rod.reach, L, rod.h, closed, rod.delta)
+    sub = search.candidate_pairs(own, c[own], r[own], rod.ids, c, r, rod.reach, L, rod.h, closed,
+                                 rod.delta)
     assert np.array_equal(sub, ref[np.isin(ref[:, 0], own)])
 
 
@@ -581,7 +590,7 @@ def test_element_bounds_contain_curve(p):
     rng = np.random.default_rng(p)
     x = rng.standard_normal((200, p + 1, 3))
     x[:, :, 0] += 3 * np.linspace(-1, 1, p + 1)           # wiggly elements with overshoot
-    c, r = C.element_bounds(x)
+    c, r = search.element_bounds(x)
     xs = np.linspace(-1, 1, 5001)
     pts = np.einsum("ma,ead->emd", fe.lagrange(p, xs)[0], x)
     far = np.linalg.norm(pts - c[:, None], axis=2).max(axis=1)
@@ -602,7 +611,7 @@ def test_element_capsules_contain_curve(p):
     rng = np.random.default_rng(10 + p)
     x = rng.standard_normal((200, p + 1, 3))
     x[:, :, 0] += 3 * np.linspace(-1, 1, p + 1)
-    a, b, rho = C.element_capsules(x)
+    a, b, rho = search.element_capsules(x)
     xs = np.linspace(-1, 1, 2001)
     pts = np.einsum("ma,ead->emd", fe.lagrange(p, xs)[0], x)
     t = (xs + 1) / 2
@@ -614,7 +623,7 @@ def test_element_capsules_contain_curve(p):
         return
     th = np.linspace(-1, 1, p + 1)[None, :] * np.linspace(0.05, 0.5, 20)[:, None]   # arcs
     arc = np.stack([np.sin(th), 1 - np.cos(th), 0 * th], axis=2)
-    a, b, rho = C.element_capsules(arc)
+    a, b, rho = search.element_capsules(arc)
     pts = np.einsum("ma,ead->emd", fe.lagrange(p, xs)[0], arc)
     chord = a[:, None] * (1 - t)[None, :, None] + b[:, None] * t[None, :, None]
     dev = np.linalg.norm(pts - chord, axis=2).max(axis=1)
@@ -635,7 +644,7 @@ def test_segment_distance_against_sampling():
     mid = 0.5 * (p1[90:120] + q1[90:120])                      # crossing at the middles
     d = rng.standard_normal((30, 3))
     p2[90:120], q2[90:120] = mid - d, mid + d
-    got = C.segment_distance(p1, q1, p2, q2)
+    got = search.segment_distance(p1, q1, p2, q2)
     t = np.linspace(0, 1, 801)
     A = p1[:, None] + t[None, :, None] * (q1 - p1)[:, None]
     # distance from each sample of the first segment to the second (its closest point: the
@@ -663,8 +672,8 @@ def test_capsule_test_keeps_every_pair_within_reach(closed):
     rod = Rod(X, p, closed, nelem * step, eps=eps, reach=2 * eps + 0.05)
     pairs = rod.pairs(X)
     xe = X[rod.conn]
-    caps = C.element_capsules(xe)
-    keep = C.capsules_within([v[pairs[:, 0]] for v in caps], [v[pairs[:, 1]] for v in caps],
+    caps = search.element_capsules(xe)
+    keep = search.capsules_within([v[pairs[:, 0]] for v in caps], [v[pairs[:, 1]] for v in caps],
                              2 * eps)
     xs = np.einsum("ma,ead->emd", fe.lagrange(p, np.linspace(-1, 1, 41))[0], xe)
     dmin = np.linalg.norm(xs[pairs[:, 0]][:, :, None] - xs[pairs[:, 1]][:, None], axis=3)
@@ -679,7 +688,7 @@ def test_tangent_made_later_is_the_tangent_made_at_once(segments):
     the residual is the same with or without (the noisy cubic helix: switch points)."""
     p = 3
     rod, X = helix_config(p, seed=41)
-    k = C.ContactKernel(p, p + 1, rod.eps, 1.0, rod.delta, rod.L, rod.nelem, False,
+    k = ContactKernel(p, p + 1, rod.eps, 1.0, rod.delta, rod.L, rod.nelem, False,
                         segments=segments)
     pairs = rod.pairs(X)
     args = (rod.ids, X[rod.conn], rod.ids, X[rod.conn], pairs)
@@ -724,10 +733,10 @@ def test_partitioned_evaluation_equals_serial():
     ref_E = rod.energy(X, pairs)
     ref_R = rod.residual(X, pairs)
     ref_K, _ = rod.tangent(X, pairs)
-    c, r = C.element_bounds(X[rod.conn])
+    c, r = search.element_bounds(X[rod.conn])
     E, R, K = 0.0, np.zeros_like(ref_R), np.zeros_like(ref_K)
     for part in (rod.ids[rod.ids < 9], rod.ids[(rod.ids >= 9) & (rod.ids < 17)], rod.ids[rod.ids >= 17]):
-        pr = C.candidate_pairs(part, c[part], r[part], rod.ids, c, r, rod.reach, rod.L, rod.h,
+        pr = search.candidate_pairs(part, c[part], r[part], rod.ids, c, r, rod.reach, rod.L, rod.h,
                                False, rod.delta)
         other = np.unique(pr[:, 1])
         out = rod.k.evaluate(part, X[rod.conn[part]], other, X[rod.conn[other]], pr, tangent=True)
@@ -744,29 +753,29 @@ def test_partitioned_evaluation_equals_serial():
 def test_projection_finds_a_minimum_next_to_a_maximum():
     """A slave point near a centre of curvature of the master sees a flat distance valley whose
     minima can sit next to maxima, between the projection's samples.  Where phi may be
-    non-convex on the slot (its Bernstein bound), ContactKernel.project also takes every real
+    non-convex on the slot (its Bernstein bound), ClosestPoint.project also takes every real
     root of the polynomial phi' (companion eigenvalues): on the noisy helix (p = 3), slave
     element 15 near xi = 0.274 against master element 0, the sampled search alone misses the
     interior minimum at 16 of 201 points (it returns the node, 3e-6 farther: the gap jumps),
     the full projection at none, against a brute-force search on 40001 points."""
-    from rodsnes.contact.projection import _monomials
     p = 3
     X, L = helix(p, 24, pitch=0.19, turns=1.6, noise=0.002)
     rod = Rod(X, p, False, L)
     k = rod.k
     xe = X[rod.conn]
     xs = np.linspace(0.27, 0.28, 201)
-    P = (_monomials(p, xs)[0] @ k.C) @ xe[15]
+    P = (monomials(p, xs)[0] @ k.C) @ xe[15]
     A = np.repeat(np.einsum("ka,ad->kd", k.C, xe[0])[None], len(xs), axis=0)
     lo, hi = -np.ones(len(xs)), np.ones(len(xs))
     tt = np.linspace(-1, 1, 40001)
-    r = (_monomials(p, tt)[0] @ k.C) @ xe[0]
+    r = (monomials(p, tt)[0] @ k.C) @ xe[0]
     brute = 0.5 * (((r[None, :, :] - P[:, None, :]) ** 2).sum(axis=2)).min(axis=1)
-    _, f_sampled = k._project_chunk(P, A, lo, hi)
-    k.nonconvex = 0
-    _, f = k.project(P, A, lo, hi)
+    cp = k.closest_point
+    _, f_sampled = cp.sampled_newton(P, A, lo, hi)
+    cp.nonconvex = 0
+    _, f = cp.project(P, A, lo, hi)
     assert np.sum(f_sampled > brute + 1e-13) > 5          # the case is a hard one
-    assert np.all(f <= brute + 1e-13) and k.nonconvex > 0
+    assert np.all(f <= brute + 1e-13) and cp.nonconvex > 0
     # and the polynomial roots alone agree with the full projection everywhere
-    _, f_roots = k._stationary_min(P, A, lo, hi)
+    _, f_roots = cp.stationary_minimum(P, A, lo, hi)
     assert np.allclose(f_roots, f, rtol=1e-12, atol=1e-16)

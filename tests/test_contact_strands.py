@@ -6,7 +6,7 @@ smooth, and the point is pushed by both."""
 import numpy as np
 import pytest
 
-from rodsnes.contact import projection as C
+from rodsnes.contact.search import strand_index
 
 from test_contact_math import EPS, check_gradient, check_tangent
 from test_contact_zones import exact_energy, waypoint_rod
@@ -17,23 +17,23 @@ def test_strand_index_open_rod():
     slave's own neighbourhood (e -+ near) joins the run it touches."""
     pairs = np.array([[5, 20], [5, 21], [5, 22], [5, 40], [5, 41], [5, 7],
                       [30, 0], [30, 1], [30, 10], [30, 29]])
-    k = C.strand_index(pairs, 60, closed=False, near=1)
+    k = strand_index(pairs, 60, closed=False, near=1)
     # slave 5: 4-6 (own, virtual) + 7 -> run 0; 20-22 -> 1; 40-41 -> 2
     # slave 30: 0-1 -> 0; 10 -> 1; 29 (with own 29-31) -> 2
     assert k.tolist() == [1, 1, 1, 2, 2, 0, 0, 0, 1, 2]
-    assert C.strand_index(np.zeros((0, 2)), 60, False).shape == (0,)
+    assert strand_index(np.zeros((0, 2)), 60, False).shape == (0,)
 
 
 def test_strand_index_closed_rod_wraps():
     """On a closed rod a run through the last element and element 0 is one strand (run 0)."""
     pairs = np.array([[30, 58], [30, 59], [30, 0], [30, 1],
                       [0, 30], [0, 31], [0, 58]])
-    k = C.strand_index(pairs, 60, closed=True, near=1)
+    k = strand_index(pairs, 60, closed=True, near=1)
     # slave 30: 58-59-0-1 one run (0), own 29-31 -> 1
     # slave 0: own 59-0-1 and 58 -> one run through the wrap (0); 30-31 -> 1
     assert k.tolist() == [0, 0, 0, 0, 1, 1, 0]
     # the same pairs on an open rod: 58-59 and 0-1 are two strands (own 29-31 between)
-    assert C.strand_index(pairs[:4], 60, closed=False, near=1).tolist() == [2, 2, 0, 0]
+    assert strand_index(pairs[:4], 60, closed=False, near=1).tolist() == [2, 2, 0, 0]
 
 
 XC = 0.0517            # where B and C cross A: not at a node of A (generic position)
@@ -62,7 +62,7 @@ def test_a_point_between_two_strands_is_pushed_by_both(p):
     g = 1.8 * EPS
     rod, X, nel = sandwich(p, g)
     pairs = rod.pairs(X)
-    k = C.strand_index(pairs, rod.nelem, False, int(np.ceil(rod.delta / rod.h)) + 1)
+    k = strand_index(pairs, rod.nelem, False, int(np.ceil(rod.delta / rod.h)) + 1)
     a_elems = np.arange(nel[0])
     assert k[np.isin(pairs[:, 0], a_elems)].max() >= 2      # A's crossing elements: own, B, C
     out = rod.eval(X, pairs)

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
+from rodsnes.contact.closest_point import ClosestPoint
+from rodsnes.contact.search import co_master_pairs
 from rodsnes.model import fe
 
 from test_contact_math import EPS, Rod, check_gradient, check_tangent, polyline
@@ -123,8 +125,8 @@ def test_zone_line_contact(p):
     pairs = rod.pairs(X)
     out = rod.eval(X, pairs)
     fine = type(rod.k)(p, p + 1, rod.eps, rod.k.mu, rod.delta, L, rod.nelem, False, segments=True)
-    fine.nqz = 20
-    fine.xz, fine.wz = fe.gauss_legendre(20)
+    fine.zones.nqz = 20
+    fine.zones.xz, fine.zones.wz = fe.gauss_legendre(20)
     xe = X[rod.conn]
     Ef = fine.evaluate(rod.ids, xe, rod.ids, xe, pairs, tangent=False)["energy"]
     # every kink of d(s) (master nodes, the rod's end) is a cut: the pieces are smooth
@@ -135,17 +137,16 @@ def test_zone_line_contact(p):
 
 
 def test_kind_of_a_closest_point_on_a_node_is_the_same_from_both_elements():
-    """The kind of closest point (ContactKernel._kind) names a master node, not an element end:
+    """The kind of closest point (ClosestPoint.kind) names a master node, not an element end:
     a point stuck at node k has kind 2 k whichever of the two elements sharing it won the tie
     (on a ring, node nelem is node 0); strictly inside element m it is 2 m + 1; on an exclusion
     boundary inside element m, -2 - m; without a closest point, -1."""
-    k = type(Rod(polyline([(0, 0, 0), (1, 0, 0)], [4], 2), 2, False, 1.0).k)(
-        2, 3, EPS, 1.0, 0.3, 1.0, 4, True)
+    k = ClosestPoint(2, EPS, 0.3, 1.0, 4, True)
     ctx = {"pool_ids": np.array([0, 1, 2, 3])}
     cl = {"m": np.array([0, 1, 3, 0, 2, 2, -1]),
           "xi_m": np.array([1.0, -1.0, 1.0, -1.0, 0.3, 0.4, 0.0]),
           "interior": np.array([False, False, False, False, True, False, False])}
-    assert list(k._kind(ctx, cl)) == [2, 2, 0, 0, 5, -4, -1]
+    assert list(k.kind(ctx, cl)) == [2, 2, 0, 0, 5, -4, -1]
 
 
 @pytest.mark.slow
@@ -186,9 +187,10 @@ def noisy_helix(p):
     return rod, X
 
 
-def directional_error(rod, X, pairs, step=1e-8, ndir=2, seed=1):
-    """max over random directions v of |K v - (R(X + h v) - R(X - h v)) / 2h| / |K v|."""
-    K, out = rod.tangent(X, pairs)
+def directional_error(rod, X, pairs, step=1e-8, ndir=2, seed=1, switch_points=True):
+    """max over random directions v of |K v - (R(X + h v) - R(X - h v)) / 2h| / |K v| (K
+    without its switch-point terms unless ``switch_points``)."""
+    K, out = rod.tangent(X, pairs, switch_points)
     rng = np.random.default_rng(seed)
     err = 0.0
     for _ in range(ndir):
@@ -206,10 +208,10 @@ def test_switch_points_complete_the_tangent(p):
     of one master element to the start of the next, or from inside an element to its end node),
     the cut between the two pieces moves with the nodes and the integrand differs on its two
     sides: the tangent gets J mu d phi_x phi_x^T / phi_xi, phi = g_A - g_B
-    (ContactKernel._switch_terms).  With it, the tangent of the noisy helix agrees with central
+    (docs/contact.md, section 3).  With it, the tangent of the noisy helix agrees with central
     differences of the residual (measured 1e-6 for p = 2, falling like the step, and 1e-5 for
     p = 3); without it, to 7e-2.  For p = 3 the pieces must also be graded toward their cuts
-    (ContactKernel._grade): without, 4-9e-2."""
+    (ContactZones.cut_levels, ``grade``): without, 4-9e-2."""
     rod, X = noisy_helix(p)
     pairs = rod.pairs(X)
     K, out = check_tangent(rod, X, pairs, 1e-8, tol={2: 1e-5, 3: 1e-4}[p], maxcols=30)
@@ -219,22 +221,15 @@ def test_switch_points_complete_the_tangent(p):
     # element to its end node)
     assert np.all(np.abs(sw[:, 1] - sw[:, 2]) <= 1) and np.any(sw[:, 1] != sw[:, 2])
     assert np.all(np.einsum("nii->n", out["switch_mat"]) > 0)      # J mu d / phi_xi > 0
-    k = rod.k
-    orig = k._switch_terms
-    try:
-        k._switch_terms = lambda *a: None
-        assert directional_error(rod, X, pairs) > 1e-2
-    finally:
-        k._switch_terms = orig
+    assert directional_error(rod, X, pairs, switch_points=False) > 1e-2
     if p == 3:
-        k.grade = 0
+        rod.k.zones.grade = 0
         assert directional_error(rod, X, pairs) > 1e-2
 
 
 def test_co_master_pairs():
     """Two masters of one slave element are coupled when their bounding spheres come within
     the reach; masters of different slaves, or far apart, are not."""
-    from rodsnes.contact.projection import co_master_pairs
     pairs = np.array([[0, 5], [0, 7], [0, 9], [1, 7], [1, 3]])
     cen = np.zeros((10, 3))
     cen[:, 0] = np.arange(10)
@@ -264,17 +259,17 @@ def tight_arc(p, nelem=10, length=0.5, k0=5.0, a=0.5):
 
 
 def record_cuts(k):
-    """Wrap k._split_zones to record the cuts (own element id, xi) of the evaluations since
-    (one per strand, ``ContactKernel.evaluate``)."""
+    """Wrap the zone segmentation of kernel k (``ContactZones.split``) to record the cuts (own
+    element id, xi) of the evaluations since (one per strand, ``ContactKernel.evaluate``)."""
     rec = {"cuts": (np.zeros(0, dtype=np.int64), np.zeros(0))}
-    orig = k._split_zones
+    orig = k.zones.split
 
     def split(ctx, oz, za, zb):
         r = orig(ctx, oz, za, zb)
         e, xc = rec["cuts"]
         rec["cuts"] = (np.r_[e, ctx["own_ids"][r[3][0]]], np.r_[xc, r[3][1]])
         return r
-    k._split_zones = split
+    k.zones.split = split
     return rec
 
 
@@ -362,8 +357,8 @@ def plectoneme_end_loop():
 
 @pytest.mark.slow
 def test_the_plectoneme_end_loop_tangent():
-    """Tangent vs central differences of the residual on the real end loop: 4e-6 (measured),
-    against 1.4e-4 with 10 levels of grading at every cut (before ``_cut_levels`` added log2 of
+    """Tangent vs central differences of the residual on the real end loop: 4e-6 (measured), against
+    1.4e-4 with 10 levels of grading at every cut (before ``ContactZones.cut_levels`` added log2 of
     the racing rate) and 3e-2 without the switch-point terms.  In the Newton solve this was the
     difference between failing at 8.57 turns and steps of 2e-3 of the load in 11-28 iterations."""
     rod, X = plectoneme_end_loop()
@@ -388,8 +383,8 @@ def test_the_plectoneme_end_loop_tangent():
             err = max(err, np.linalg.norm(KV - dR.ravel()) / np.linalg.norm(KV))
         return err
     assert error(K0) < 2e-5
-    k = rod.k
-    k._cut_levels = lambda ctx, o, *sides: np.full(len(o), k.grade, dtype=np.int64)
+    zones = rod.k.zones
+    zones.cut_levels = lambda ctx, o, *sides: np.full(len(o), zones.grade, dtype=np.int64)
     assert error() > 5e-5
 
 
@@ -422,24 +417,25 @@ def test_several_changes_of_closest_point_between_two_samples_are_all_cut():
     # minimum over both has to cut all three
     K.evaluate = K.evaluate_strand
     seen = []
-    zones = K._zones
+    quadrature = K.zones.quadrature
 
     def spy(ctx, gap):
-        out = zones(ctx, gap)
+        out = quadrature(ctx, gap)
         seen.append((ctx, out))
         return out
-    K._zones = spy
+    K.zones.quadrature = spy
     r, q = run.problem.state.local_config()
     r = np.array(r)
     c.evaluate(r, tangent=False)
     pieces = 0
     for ctx, (o_q, xi_q, _, _, _) in seen:
-        cl = K._closest(ctx, o_q, xi_q)
-        kind = K._kind(ctx, cl).reshape(-1, K.nqz)
+        cl = K.closest_point.find(ctx, o_q, xi_q)
+        kind = K.closest_point.kind(ctx, cl).reshape(-1, K.zones.nqz)
         pieces += len(kind)
         # arclength of the closest points: within a piece it may change kind only where it
         # moves on continuously (a node crossed, within the cuts' 1e-13), not jump
-        sbar = ((ctx["pool_ids"][cl["m"]] + 0.5 * (cl["xi_m"] + 1.0)) * K.h).reshape(-1, K.nqz)
+        sbar = ((ctx["pool_ids"][cl["m"]] + 0.5 * (cl["xi_m"] + 1.0)) * K.h).reshape(-1,
+                                                                                    K.zones.nqz)
         jump = np.abs(np.diff(sbar, axis=1)).max(axis=1)
         mixed = np.flatnonzero(np.any(kind != kind[:, :1], axis=1) & (jump > 1e-6))
         assert mixed.size == 0, f"{mixed.size} pieces straddle a jump of the closest point"
@@ -464,7 +460,7 @@ def test_a_kink_minimum_that_takes_over_between_two_samples_is_cut():
     samples of the zone's kinds (0.2 apart), and no sample saw it: as node 79 moved by 7.15e-8
     that stretch's end crossed a Gauss point, whose force moved from four nodes to one, and the
     contact force at node 51 stepped by 5.5 of 46 (load steps stalled at 9.7188 turns).  The
-    runner-up's margin is minimised between samples (``ContactKernel._rival_brackets``): the
+    runner-up's margin is minimised between samples (``ContactZones.rival_brackets``): the
     stretch gets its two cuts, and the largest step of that force over moves of node 79 in
     [0, 2e-7] (bisected to 2e-16) is 5e-9 (measured; 5.5 without)."""
     import os
