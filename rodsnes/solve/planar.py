@@ -459,14 +459,13 @@ class PlanarSystem:
     def attach(self, solver):
         """Make the SNES of the Newton path (newton.NewtonSolver) solve on the in-plane block:
         its Jacobian callback assembles J_ii (or, after leave(), the full J), its operator is a
-        python matrix of the full size that holds nothing, and its KSP's PC a python PC that
-        solves J_ii y_i = x_i, y_o = 0 (or the full system).  KSP preonly never multiplies by
-        the operator."""
+        python matrix of the full size that multiplies by it (_Operator), and its KSP's PC a python PC that
+        solves J_ii y_i = x_i, y_o = 0 (or the full system)."""
         self.solver = solver
         p = self.problem
         lay = p.layout
         n, N = NDOF * lay.n_owned, NDOF * lay.n_global
-        self.shell = PETSc.Mat().createPython(((n, N), (n, N)), context=_Operator(),
+        self.shell = PETSc.Mat().createPython(((n, N), (n, N)), context=_Operator(self),
                                               comm=lay.comm)
         self.shell.setUp()
         solver.snes.setJacobian(self._snes_jacobian, self.shell)
@@ -519,11 +518,25 @@ class PlanarSystem:
 
 
 class _Operator:
-    """The SNES's operator of the planar Newton path: a placeholder of the full size (the
-    Jacobian lives in PlanarSystem.J or the problem's J; KSP preonly never multiplies)."""
+    """The SNES's operator of the planar Newton path, of the full size: y = J_ii x_i on the
+    in-plane components and 0 on the others (the Jacobian lives in PlanarSystem.J), or the
+    problem's full J once the run left the plane.  KSP preonly never multiplies by it; a line
+    search that takes the slope J d (-snes_linesearch_type bt) does."""
+
+    def __init__(self, planar):
+        self.planar = planar
 
     def mult(self, A, x, y):
-        raise RuntimeError("rodsnes: the planar Newton path's operator holds no matrix")
+        pl = self.planar
+        if not pl.active:
+            pl.problem.J.mult(x, y)
+            return
+        xi = pl.restrict(x)
+        yi = xi.duplicate()
+        pl.J.mult(xi, yi)
+        pl.expand(yi, y)
+        xi.destroy()
+        yi.destroy()
 
 
 class _PlanarPC:
