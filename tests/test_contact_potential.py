@@ -470,3 +470,90 @@ def test_compiled_kernel_equals_the_numpy_path(onset):
                 assert ref["energy"] == pytest.approx(E, rel=1e-12), name
                 assert same(ref["vec"], vec) and same(ref["mat"], mat), name
     assert -np.inf < ref["depth"] < 0 and len(ref["active"]) == 0     # the helix: near, apart
+
+
+@pytest.mark.parametrize("kind", ["numpy", "compiled"])
+def test_chunks_of_the_pass_over_the_near_pairs_do_not_change_the_result(kind):
+    """The pass over the near pairs in chunks of a bounded number of point couples (Cost:
+    ``chunk_couples``; the compiled kernel's couple buffers, numpy's distance arrays, the
+    report's line force) against one chunk: the couples, depth, rows, energy, residual, tangent
+    and report bit for bit (compiled) or to round-off of the energy's sum (numpy: its chunks'
+    sums), with chunks of one pair, a few pairs and all pairs, on the states of the
+    compiled-against-numpy comparison (contact, and the helix's near pairs apart)."""
+    if kind == "compiled":
+        from rodsnes.contact import potential_compiled
+        assert potential_compiled.available(), "the compiled potential kernel is not built"
+    for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
+        rod = potential_rod(X, p, closed, L, eps, mu, reach=reach)
+        pairs = rod.pairs(X)
+        ids = rod.ids
+        if own is not None:
+            pairs = pairs[np.isin(pairs[:, 0], own)]
+            ids = own
+        args = (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+        out = {}
+        for chunk in (1, 7, None):
+            k = PotentialKernel(p, rod.k.nqc, eps, mu, rod.delta, L, rod.nelem, closed, kernel=kind)
+            per_pair = k.nqp * (k.nqp + 2)
+            k.chunk_couples = 10 ** 12 if chunk is None else chunk * per_pair
+            out[chunk] = k.evaluate(*args, tangent=True, report=True)
+            if chunk == 1:
+                assert len(k._pair_chunks(len(out[chunk]["_near"]["oi"]))) == \
+                    len(out[chunk]["_near"]["oi"]), name
+        ref = out[None]
+        near = ref["_near"]
+        assert len(near["oi"]) > 7, name        # several chunks of 7 pairs
+        for chunk in (1, 7):
+            got = out[chunk]
+            for key in ("depth", "active", "vec", "mat", "gap", "force", "d_active",
+                        "total_force", "complementarity", "zones"):
+                assert np.array_equal(got[key], ref[key]), (name, chunk, key)
+            for a, b in zip(got["_near"]["couples"], near["couples"]):
+                assert np.array_equal(a, b), (name, chunk)
+            if kind == "compiled":
+                assert got["energy"] == ref["energy"], (name, chunk)
+            else:
+                assert got["energy"] == pytest.approx(ref["energy"], rel=1e-14, abs=0.0), \
+                    (name, chunk)
+    assert ref["depth"] < 0 and len(ref["active"]) == 0        # the helix: near, apart
+
+
+def test_pattern_pairs_are_the_pairs_with_a_couple_of_points_within_reach():
+    """PotentialKernel.pairs_within (the Jacobian's pattern with this law,
+    ContactTerm.pattern_pairs): at reach 2 eps exactly the rows of an evaluation (the pairs the
+    tangent couples); at 2 eps + 0.5 eps the pairs whose admissible couples of W > 0 come
+    within that distance, by the dense couples of every candidate pair; the compiled kernel's
+    pairs are numpy's; fewer pairs than the capsules within reach on the plectoneme's line
+    contact (the pattern's default reach, 2 eps)."""
+    from rodsnes.contact.projection import capsules_within, element_capsules
+    for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
+        rod = potential_rod(X, p, closed, L, eps, mu, reach=reach)
+        pairs = rod.pairs(X)
+        ids = rod.ids
+        if own is not None:
+            pairs = pairs[np.isin(pairs[:, 0], own)]
+            ids = own
+        args = (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+        k = {kind: PotentialKernel(p, rod.k.nqc, eps, mu, rod.delta, L, rod.nelem, closed,
+                                   kernel=kind) for kind in ("numpy", "compiled")}
+        rows = k["numpy"].evaluate(*args, tangent=False, report=False)["active"]
+        for kind, kern in k.items():
+            got = kern.pairs_within(*args, 2.0 * eps)
+            assert np.array_equal(got, np.asarray(rows).reshape(-1, 2)), (name, kind)
+        wide = 2.5 * eps
+        got = k["numpy"].pairs_within(*args, wide)
+        assert np.array_equal(k["compiled"].pairs_within(*args, wide), got), name
+        # the dense couples of every candidate pair
+        kern = k["numpy"]
+        e, m = pairs[:, 0], pairs[:, 1]
+        xs = np.einsum("qa,pad->pqd", kern.Np, X[rod.conn[e]])
+        xm = np.einsum("ja,pad->pjd", kern.Nm, X[rod.conn[m]])
+        r = np.linalg.norm(xs[:, :, None, :] - xm[:, None, :, :], axis=3)
+        ok = kern._admissible(e, m, kern.xp, kern.xm) & (kern.master_weights(m) > 0)[:, None, :]
+        dense = pairs[(ok & (r < wide)).any(axis=(1, 2))]
+        assert np.array_equal(got, dense), name
+        if name == "plectoneme_9.72_line_contact":
+            caps = element_capsules(X[rod.conn])
+            near = capsules_within([v[e] for v in caps], [v[m] for v in caps], 2.0 * eps)
+            assert 100 < len(rows) < 0.6 * np.count_nonzero(near), \
+                (len(rows), np.count_nonzero(near))

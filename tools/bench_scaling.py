@@ -18,8 +18,12 @@ Scenes (one rodsnes subprocess per scene, N, ranks, contact law):
               -contact_model projection (the default law) and potential (the plectoneme's).
               Heavy: every element has candidates on 2-3 turns either side (the turns lie 2 r
               apart); measured at N = 1000 (26 Nov 2026): factorisation 1.2-1.5 s, contact 1.8 s
-              (potential) and 20 s (projection) per iteration, peak memory 2.6 and 9.6 GB, so
-              N >= 1e4 does not fit on a 24 GB machine (the memory guard below skips it).
+              (potential) and 20 s (projection) per iteration, peak memory 2.6 and 9.6 GB.
+              With the potential's chunked passes and its pattern of pairs within reach: 0.38
+              GB at N = 1000, 2.6 GB at N = 1e4 (MUMPS' factors most of it), so 1e5 needs ~26
+              GB.  From N = 1e4 the scene needs a softer stretch (--extra "-rod_EA 3 -rod_GA 3":
+              scene.py refuses the default one, whose residual roundoff exceeds 0.1 of EI/L^2),
+              and --skip-topology saves the O(N^2) writhe (2 x 230 s at N = 1e4).
 
 Each run writes PETSc's -log_view (ASCII) and rodsnes' summary.json; the parts of an iteration
 are the events of -log_view divided by the Newton iterations (SNESJacobianEval's count: every
@@ -205,12 +209,18 @@ def instrument():
     return done
 
 
-def child(argv):
+def child(argv, topology=True):
     """rodsnes.cli.main(argv) with the work of _WRAP logged (PETSc initialised first, with
-    argv, so that -log_view is seen)."""
+    argv, so that -log_view is seen).  Without ``topology`` (--skip-topology) the run reports
+    no link, twist and writhe (RodProblem.topology returns None, as for a rod without them):
+    the writhe's Gauss integral is O(N^2), outside the Newton iterations, and took 2 x 230 s
+    of a coil run at N = 1e4 (2 x 2.3 s at N = 1e3)."""
     import petsc4py
     petsc4py.init(argv)
     instrument()
+    if not topology:
+        from rodsnes.model.problem import RodProblem
+        RodProblem.topology = lambda self: None
     from rodsnes import cli
     return cli.main(argv)
 
@@ -229,9 +239,10 @@ def run_name(scene, law, n, ranks):
     return f"{scene}{'' if law == '-' else '_' + law}_N{n}_np{ranks}"
 
 
-def command(scene, law, n, ranks, rundir, logfile, extra=()):
+def command(scene, law, n, ranks, rundir, logfile, extra=(), topology=True):
     """The command line of one run: this file's child mode under mpirun for ranks > 1."""
-    cmd = [sys.executable, os.path.abspath(__file__), "--child", "rodsnes",
+    cmd = [sys.executable, os.path.abspath(__file__), "--child",
+           *(() if topology else ("--skip-topology",)), "rodsnes",
            *scene_options(scene, n, None if law == "-" else law),
            "-output_dir", rundir, "-quiet", "-log_view", ":" + logfile, *extra]
     if ranks > 1:
@@ -287,7 +298,7 @@ def read_run(rundir, logfile, n):
     return row
 
 
-def run_one(scene, law, n, ranks, out, timeout, extra=(), reuse=False):
+def run_one(scene, law, n, ranks, out, timeout, extra=(), reuse=False, topology=True):
     """Run one case (with reuse: read the files of a finished run instead); returns the CSV
     row: status ok, not converged, timeout or failed, and the parts of read_run."""
     name = run_name(scene, law, n, ranks)
@@ -300,7 +311,7 @@ def run_one(scene, law, n, ranks, out, timeout, extra=(), reuse=False):
             os.remove(logfile)
         shutil.rmtree(rundir, ignore_errors=True)
         os.makedirs(os.path.dirname(base), exist_ok=True)
-        rc, rss, wall = launch(command(scene, law, n, ranks, rundir, logfile, extra),
+        rc, rss, wall = launch(command(scene, law, n, ranks, rundir, logfile, extra, topology),
                                base + "_stdout.txt", timeout)
         with open(res, "w") as fh:
             json.dump({"wall_s": wall, "peak_rss_gb": rss, "exit": rc}, fh)
@@ -596,6 +607,9 @@ def main(argv=None):
                     help="cap each run at this many Newton iterations (one solve, no cut-backs): "
                          "per-iteration times without waiting for convergence (status 'capped')")
     ap.add_argument("--extra", default="", help="more rodsnes options for every run (quoted)")
+    ap.add_argument("--skip-topology", action="store_true",
+                    help="no link, twist and writhe in the runs: the writhe is O(N^2), outside "
+                         "the Newton iterations (2 x 230 s of a coil run at N = 1e4)")
     ap.add_argument("--note", default="", help="a sentence for the Markdown table's heading")
     args = ap.parse_args(argv)
     extra = args.extra.split()
@@ -628,7 +642,7 @@ def main(argv=None):
                         continue
                     print(f"{run_name(scene, law, n, np_):40s}", end=" ", flush=True)
                     row = run_one(scene, law, n, np_, args.out, args.timeout, extra=extra,
-                                  reuse=args.reuse)
+                                  reuse=args.reuse, topology=not args.skip_topology)
                     if args.max_its and row["status"] == "not converged":
                         row["status"] = "capped"
                     rows.append(row)
@@ -658,5 +672,6 @@ def main(argv=None):
 
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        sys.exit(child(sys.argv[2:]))
+        skip = len(sys.argv) > 2 and sys.argv[2] == "--skip-topology"
+        sys.exit(child(sys.argv[2 + skip:], topology=not skip))
     sys.exit(main())

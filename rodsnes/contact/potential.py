@@ -113,6 +113,17 @@ blocks from the list; the numpy path (``kernel="numpy"``) is its reference: the 
 round-off.  ``depth`` = max 2 eps - |D_qj| over the admissible couples of the near pairs (the
 potential's own points; -inf without any): RodProblem.precheck's penetration limit compares
 it at the iterate and at its trials, with no closest point.
+
+Memory: the passes over the near pairs go in chunks of at most ``CHUNK_COUPLES`` point couples
+(``_pair_chunks``; the compiled kernel stops where the next pair might not fit its couple
+buffers and goes on from there with its running sums), so a pass holds the couples in contact
+and a bounded scratch, whatever N: on the bench coil (N = 1000, 11918 near pairs of 43 x 45
+couples, 83202 in contact) the list's buffers had been sized for all 23 million couples
+(715 MB allocated) and the report's line force held 4-d arrays of every near pair (201 MB).
+The chunks do not change the result: the same couples, depth, rows, residual and tangent, the
+compiled energy bit for bit (one compensated sum carried across the chunks), numpy's to the
+round-off of its chunks' sums.  The Jacobian's pattern (``pairs_within``) holds the pairs
+with a couple of these points within reach, not every pair whose capsules are.
 """
 import numpy as np
 
@@ -206,6 +217,8 @@ class PotentialKernel:
     ``kernel``: "auto" (the compiled kernel if built, else numpy), "compiled" or "numpy"
     (module docstring, Cost)."""
 
+    CHUNK_COUPLES = 1 << 19     # point couples per chunk of a pass over the near pairs (Cost)
+
     def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None,
                  onset=None, kernel="auto"):
         if kernel not in ("auto", "compiled", "numpy"):
@@ -244,6 +257,7 @@ class PotentialKernel:
         self._wmJ = np.concatenate([self._wpJ, [0.0, 0.0]])
         self._Npc, self._Nmc = np.ascontiguousarray(self.Np), np.ascontiguousarray(self.Nm)
         self._scratch = {}
+        self.chunk_couples = self.CHUNK_COUPLES
 
     @property
     def mu(self):
@@ -328,43 +342,88 @@ class PotentialKernel:
             return potential_compiled.couples(self, c, self._workspace)
         return self._couples_numpy(c)
 
-    def _near_pairs(self, own_ids, x_own, other_ids, x_other, pairs):
-        """The pairs whose capsules (contact.element_capsules) come within 2 eps (no couple of
-        another pair is closer): own index oi, pool index mi, elements e, m, in the order of the
-        pairs; the slave points xs (own, nqp, 3) and master points xm (pool, nqp + 2, 3)."""
+    def pairs_within(self, own_ids, x_own, other_ids, x_other, pairs, reach):
+        """The element pairs (e, m) of ``pairs`` (own, other) with a couple of the law's points
+        closer than ``reach`` (>= 2 eps), admissible and of master weight W > 0, as rows in the
+        order of ``pairs``: at reach = 2 eps exactly the rows of an evaluation (the pairs the
+        tangent couples), beyond it also the pairs within reach - 2 eps of coupling.  The
+        Jacobian's pattern with this law (ContactTerm.pattern_pairs): the pairs whose capsules
+        come within 2 eps are 3 times as many on the bench coil (5959 against the 1981 that
+        touch, N = 1000), all of them filled in by the factorisation.  The same pass as the
+        residual's (compiled or numpy), with 2 eps replaced by ``reach``."""
+        own_ids, x_own, other_ids, x_other, pairs = self.gauge.as_inputs(own_ids, x_own, other_ids,
+                                                                         x_other, pairs)
+        if not len(own_ids) or not len(pairs):
+            return np.zeros((0, 2), dtype=np.int64)
+        reach = max(float(reach), 2.0 * self.eps)
+        c = self._near_pairs(own_ids, x_own, other_ids, x_other, pairs, reach)
+        if self.compiled:
+            rows = potential_compiled.rows_within(self, c, self._workspace, reach)
+        else:
+            p, _, j, _ = self._couples_numpy(c, reach)["couples"]
+            rows = np.unique(p[self._couple_master_weights(c["m"][p], j) > 0.0])
+        return np.stack([c["e"][rows], c["m"][rows]], axis=1).astype(np.int64)
+
+    def _near_pairs(self, own_ids, x_own, other_ids, x_other, pairs, reach=None):
+        """The pairs whose capsules (contact.element_capsules) come within 2 eps (``reach``;
+        no couple of another pair is closer): own index oi, pool index mi, elements e, m, in
+        the order of the pairs; the slave points xs (own, nqp, 3) and master points xm (pool,
+        nqp + 2, 3)."""
         pool_ids, pool_x = self.gauge.master_pool(own_ids, x_own, other_ids, x_other)
         oi = _lookup(own_ids, pairs[:, 0], "own")
         mi = _lookup(pool_ids, pairs[:, 1], "other")
         ko, kp = element_capsules(x_own), element_capsules(pool_x)
         near = np.flatnonzero(capsules_within([v[oi] for v in ko], [v[mi] for v in kp],
-                                              2.0 * self.eps))
+                                              2.0 * self.eps if reach is None else reach))
         return {"oi": oi[near], "mi": mi[near], "e": pairs[near, 0], "m": pairs[near, 1],
                 "xs": self.Np @ x_own, "xm": self.Nm @ pool_x}
 
-    def _couples_numpy(self, c):
-        """``couples`` and ``depth`` of the near pairs ``c`` in numpy: the squared distances of
-        all their couples in one pass (``_squared_distances``), those below 4 eps^2 (a
-        superset: the roundoff of the square root), |D| < 2 eps exactly, the exclusion tested
-        on these couples alone (``_admissible_couples``)."""
+    def _couples_numpy(self, c, reach=None):
+        """``couples`` and ``depth`` of the near pairs ``c`` in numpy, chunk by chunk of pairs
+        (``_pair_chunks``: at most ``chunk_couples`` point couples at a time): the squared
+        distances of a chunk's couples (``_squared_distances``), those below 4 eps^2 (a
+        superset: the roundoff of the square root), |D| < 2 eps exactly (< ``reach``), the
+        exclusion tested on these couples alone (``_admissible_couples``).  The couples and the
+        depth do not depend on the chunks."""
         oi, mi, e, m = c["oi"], c["mi"], c["e"], c["m"]
-        nqp, nm, two_eps = self.nqp, self.nqp + 2, 2.0 * self.eps
-        r2 = self._squared_distances(c["xs"], c["xm"], oi, mi)
-        cand = np.flatnonzero(r2 < two_eps * two_eps * (1.0 + 1e-12))
-        r = np.sqrt(r2.ravel()[cand])
-        keep = r < two_eps
-        p, qj = np.divmod(cand, nqp * nm)
-        q, j = np.divmod(qj, nm)
+        nqp, nm = self.nqp, self.nqp + 2
+        two_eps = 2.0 * self.eps if reach is None else float(reach)
         cut = self._min_arclength(e, m) < self.delta                   # pairs the exclusion cuts
-        t = np.flatnonzero(keep & cut[p])
-        if len(t):
-            keep[t] = self._admissible_couples(e[p[t]], m[p[t]], q[t], j[t])
-        if keep.all():
-            c["couples"] = (p, q, j, r)
+        parts, apart = [], -np.inf
+        for lo, hi in self._pair_chunks(len(oi)):
+            r2 = self._squared_distances(c["xs"], c["xm"], oi[lo:hi], mi[lo:hi])
+            cand = np.flatnonzero(r2 < two_eps * two_eps * (1.0 + 1e-12))
+            r = np.sqrt(r2.ravel()[cand])
+            keep = r < two_eps
+            p, qj = np.divmod(cand, nqp * nm)
+            q, j = np.divmod(qj, nm)
+            p += lo
+            t = np.flatnonzero(keep & cut[p])
+            if len(t):
+                keep[t] = self._admissible_couples(e[p[t]], m[p[t]], q[t], j[t])
+            if not keep.all():
+                p, q, j, r = p[keep], q[keep], j[keep], r[keep]
+            if len(r):
+                parts.append((p, q, j, r))
+            elif not parts:         # nothing in contact so far: the least distance apart
+                apart = max(apart, self._depth_apart(r2, e[lo:hi], m[lo:hi], cut[lo:hi]))
+        if len(parts) == 1:
+            c["couples"] = parts[0]
+        elif parts:
+            c["couples"] = tuple(np.concatenate(v) for v in zip(*parts))
         else:
-            c["couples"] = (p[keep], q[keep], j[keep], r[keep])
+            z = np.zeros(0, dtype=np.int64)
+            c["couples"] = (z, z.copy(), z.copy(), np.zeros(0))
         r = c["couples"][3]
-        c["depth"] = two_eps - float(r.min()) if len(r) else self._depth_apart(r2, e, m, cut)
+        c["depth"] = two_eps - float(r.min()) if len(r) else apart
         return c
+
+    def _pair_chunks(self, npair, per_pair=None):
+        """(lo, hi) ranges of the pairs, at most ``chunk_couples`` point couples each (at least
+        one pair): the memory of a pass over the near pairs stays bounded, whatever N."""
+        per_pair = self.nqp * (self.nqp + 2) if per_pair is None else int(per_pair)
+        step = max(1, int(self.chunk_couples) // max(per_pair, 1))
+        return [(lo, min(lo + step, npair)) for lo in range(0, npair, step)]
 
     def _active_couples(self, c):
         """The couples of W > 0 (every Gauss point; the end points only as an open rod's
@@ -456,12 +515,18 @@ class PotentialKernel:
     def _energy_sum(self, ac, terms):
         """sum W psi(a) of the couples in contact, by numpy's sum over the touching pairs'
         (nqp, nqp + 2) couple grids (zero where no couple is in contact): the round-off of a
-        sum over every couple of those pairs, whichever of them are in contact."""
+        sum over every couple of those pairs, whichever of them are in contact; chunk by chunk
+        of touching pairs (``_pair_chunks``), the chunks' sums added in order."""
         nqp, nm = self.nqp, self.nqp + 2
-        grid = self._workspace("energy", (ac["nt"] * nqp * nm,))
-        grid[:] = 0.0
-        grid[(ac["t"] * nqp + ac["q"]) * nm + ac["j"]] = terms
-        return float(np.sum(grid))
+        t, qj = ac["t"], ac["q"] * nm + ac["j"]
+        total = 0.0
+        for lo, hi in self._pair_chunks(ac["nt"]):
+            a, b = np.searchsorted(t, [lo, hi])        # couples sorted by pair, so by t
+            grid = self._workspace("energy", ((hi - lo) * nqp * nm,))
+            grid[:] = 0.0
+            grid[(t[a:b] - lo) * (nqp * nm) + qj[a:b]] = terms[a:b]
+            total += float(np.sum(grid))
+        return total
 
     @staticmethod
     def _per_point(V, row, idx, nrow, n):
@@ -577,14 +642,15 @@ class PotentialKernel:
         _, gap, out["sbar"] = g.report_points(ctx, no)
         out["gap"] = gap
         out["zones"] = int(np.count_nonzero(gap > 0.0))
-        # line force density at the report points, over the near pairs
-        xs = self.Nq @ x_own[c["oi"]]
-        a, r, nu = self._couples(xs, c["xm"][c["mi"]],
-                                 self._admissible(c["e"], c["m"], self.xq, self.xm))
-        wm = self.master_weights(c["m"])
+        # line force density at the report points, over the near pairs, chunk by chunk
         f = np.zeros((no, nqc, 3))
-        fa = wm[:, None, :] * law_force(a, self.a_s)
-        np.add.at(f, c["oi"], k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
+        xq_own = self.Nq @ x_own
+        for lo, hi in self._pair_chunks(len(c["oi"]), nqc * (self.nqp + 2)):
+            oi, e, m = c["oi"][lo:hi], c["e"][lo:hi], c["m"][lo:hi]
+            a, r, nu = self._couples(xq_own[oi], c["xm"][c["mi"][lo:hi]],
+                                     self._admissible(e, m, self.xq, self.xm))
+            fa = self.master_weights(m)[:, None, :] * law_force(a, self.a_s)
+            np.add.at(f, oi, k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
         out["force"] = np.linalg.norm(f, axis=2)
         out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
         # total force by the nqp rule over the couples in contact

@@ -13,9 +13,11 @@ blocks.  The numpy path of PotentialKernel stays the reference: equal to round-o
 
 C entry points (int64 indices, C-contiguous float64 arrays):
 
-    int64 rodsnes_potential_residual(nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem, h, delta,
-        L, closed, sq, sm, Np, Nm, wpJ, wm, two_eps, a_s, k, maxc, cp, cq, cj, cr, act, vec,
-        work, result)       -> number of couples in contact (-1: more than maxc)
+    int64 rodsnes_potential_residual(prune, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem,
+        h, delta, L, closed, sq, sm, Np, Nm, wpJ, wm, two_eps, a_s, k, maxc, cp, cq, cj, cr,
+        act, vec, work, state)  -> couples in contact of the chunk from pair p0 (-1: maxc
+                                   below one pair's nqp nm); state: the running sums and the
+                                   next pair
     int64 rodsnes_potential_tangent(nc, nqp, nm, n1, xs, xm, oi, mi, Np, Nm, wpJ, wm,
         two_eps, a_s, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
 """
@@ -43,7 +45,8 @@ def _load():
             i64 = np.ctypeslib.ndpointer(dtype=np.int64, flags="C_CONTIGUOUS")
             n, x = ctypes.c_int64, ctypes.c_double
             res = lib.rodsnes_potential_residual
-            res.argtypes = [n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x, ctypes.c_int,
+            res.argtypes = [ctypes.c_int, n, n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x,
+                            ctypes.c_int,
                             f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
                             f64, f64, f64]
             res.restype = n
@@ -68,29 +71,80 @@ def couples(kern, c, scratch):
     """The couples in contact of the near pairs of ``c`` (PotentialKernel._near_pairs), with
     the energy, the depth and the residual rows, into ``c``: couples (p, q, j, |D|) sorted by
     (pair, q, j), act (the rows' pairs), vec (rows, 2(p+1), 3), energy, depth.  ``scratch``
-    (name, shape, dtype) -> array gives the kernel's reusable buffers."""
-    res, _ = _load()
+    (name, shape, dtype) -> array gives the kernel's reusable buffers: the couples are made in
+    chunks of at most ``kern.chunk_couples`` point couples' room (_chunked_couples), so the
+    memory is that of the couples in contact, not of all the near pairs' nqp (nqp + 2)."""
     oi, mi, e, m = (_c(c[v], np.int64) for v in ("oi", "mi", "e", "m"))
-    xs, xm = _c(c["xs"]), _c(c["xm"])
-    nn, nqp, nm, n1 = len(oi), kern.nqp, kern.nqp + 2, kern.p + 1
+    nn, n1 = len(oi), kern.p + 1
     wm = _c(kern.master_weights(m))
-    maxc = nn * nqp * nm
-    cp, cq, cj = (scratch(v, (maxc,), np.int64) for v in ("cp", "cq", "cj"))
-    cr = scratch("cr", (maxc,), np.float64)
     act = np.empty(nn, dtype=np.int64)
     vec = np.empty((nn, 2 * n1, 3))
-    work = np.empty((nqp + nm) * 3)
-    result = np.empty(3)
-    nc = res(nn, nqp, nm, n1, xs, xm, oi, mi, e, m, kern.nelem, kern.h, kern.delta, kern.L,
-             int(bool(kern.closed)), kern._sq, kern._sm, kern._Npc, kern._Nmc, kern._wpJ, wm,
-             2.0 * kern.eps, kern.a_s, kern.k, maxc, cp, cq, cj, cr, act, vec, work, result)
-    if nc < 0:
-        raise RuntimeError("rodsnes_potential_residual: more couples than point couples")
-    nrow = int(result[2])
-    c.update(couples=(cp[:nc].copy(), cq[:nc].copy(), cj[:nc].copy(), cr[:nc].copy()),
-             act=act[:nrow], vec=vec[:nrow], energy=float(result[0]), wm_table=wm,
-             depth=2.0 * kern.eps - float(np.sqrt(result[1])) if nn else -np.inf)
+    args = (oi, mi, e, m, wm, act, vec)
+    cp, cq, cj, cr, state = _chunked_couples(kern, c, args, scratch, prune=1)
+    if not len(cp) and state[5]:
+        # nothing in contact and points were skipped: the least distance without the skips
+        cp, cq, cj, cr, state = _chunked_couples(kern, c, args, scratch, prune=0)
+    nrow = int(state[3])
+    c.update(couples=(cp, cq, cj, cr), act=act[:nrow], vec=vec[:nrow],
+             energy=kern.k * (state[0] + state[1]), wm_table=wm,
+             depth=2.0 * kern.eps - float(np.sqrt(state[2])) if nn else -np.inf)
     return c
+
+
+def rows_within(kern, c, scratch, reach):
+    """The near pairs of ``c`` (indices, sorted) with an admissible couple of W > 0 closer than
+    ``reach``: the rows of the pass with 2 eps replaced by reach (PotentialKernel.pairs_within;
+    no energy: k = 0)."""
+    oi, mi, e, m = (_c(c[v], np.int64) for v in ("oi", "mi", "e", "m"))
+    nn, n1 = len(oi), kern.p + 1
+    act = np.empty(nn, dtype=np.int64)
+    vec = np.empty((nn, 2 * n1, 3))
+    args = (oi, mi, e, m, _c(kern.master_weights(m)), act, vec)
+    state = _chunked_couples(kern, c, args, scratch, prune=1, two_eps=reach, k=0.0)[4]
+    return act[:int(state[3])].copy()
+
+
+def _chunked_couples(kern, c, args, scratch, prune, two_eps=None, k=None):
+    """One pass of rodsnes_potential_residual over the near pairs, chunk by chunk: each call
+    fills the couple buffers (room for max(chunk_couples, nqp (nqp + 2)) couples) from the
+    pair where the last stopped, with the running energy, least distance and rows carried in
+    ``state``; the chunks' couples are concatenated.  ``two_eps`` and ``k`` replace the
+    kernel's 2 eps and k (``rows_within``).  Returns (p, q, j, |D|, state)."""
+    res, _ = _load()
+    two_eps = 2.0 * kern.eps if two_eps is None else float(two_eps)
+    k = kern.k if k is None else float(k)
+    oi, mi, e, m, wm, act, vec = args
+    xs, xm = _c(c["xs"]), _c(c["xm"])
+    nn, nqp, nm, n1 = len(oi), kern.nqp, kern.nqp + 2, kern.p + 1
+    maxc = max(int(kern.chunk_couples), nqp * nm)
+    maxc = min(maxc, max(nn * nqp * nm, nqp * nm))
+    cp, cq, cj = (scratch(v, (maxc,), np.int64) for v in ("cp", "cq", "cj"))
+    cr = scratch("cr", (maxc,), np.float64)
+    work = np.empty((nqp + nm) * 3)
+    state = np.array([0.0, 0.0, np.inf, 0.0, 0.0, 0.0])
+    parts = []
+    p0 = 0
+    while True:
+        nc = res(prune, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, kern.nelem, kern.h,
+                 kern.delta, kern.L, int(bool(kern.closed)), kern._sq, kern._sm, kern._Npc,
+                 kern._Nmc, kern._wpJ, wm, two_eps, kern.a_s, k, maxc, cp, cq, cj,
+                 cr, act, vec, work, state)
+        if nc < 0:
+            raise RuntimeError("rodsnes_potential_residual: couple buffers below one pair")
+        if nc:
+            parts.append((cp[:nc].copy(), cq[:nc].copy(), cj[:nc].copy(), cr[:nc].copy()))
+        p1 = int(state[4])
+        if p1 >= nn:
+            break
+        if p1 <= p0 and not nc:
+            raise RuntimeError("rodsnes_potential_residual: no progress")
+        p0 = p1
+    if len(parts) == 1:
+        return (*parts[0], state)
+    if not parts:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z.copy(), z.copy(), np.zeros(0), state
+    return (*(np.concatenate(v) for v in zip(*parts)), state)
 
 
 def tangent(kern, c):

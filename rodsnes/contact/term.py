@@ -336,7 +336,10 @@ class ContactTerm(Term):
         capsules (contact.element_capsules) come within 2 eps + ``margin`` (PATTERN_MARGIN eps
         by default) of each other, i.e. every pair with a couple of points closer than that;
         with the closest-point law also every two candidate masters of one slave element that
-        a switch point can couple (``ContactKernel._switch_terms``); the mounts' pairs.
+        a switch point can couple (``ContactKernel._switch_terms``); with the pair potential
+        only those of them with a couple of its own quadrature points closer than that
+        (PotentialKernel.pairs_within: at margin 0 the pairs its tangent couples; the capsules
+        held 3 times as many on the bench coil); the mounts' pairs.
 
         Only pairs that can touch: a wider pattern (the search's Verlet list, 3.5 eps on
         bounding spheres) held 7 times the pairs in contact on the compact plectoneme and
@@ -349,15 +352,17 @@ class ContactTerm(Term):
         pairs, cen, rad = self.search_pairs(*ck.element_bounds(x_el), touch, bounds=True)
         if len(pairs):
             lay_ids = self._element_slots()
-            caps = ck.element_capsules(np.concatenate(self.comm.allgather(x_el)))
+            x_all = np.concatenate(self.comm.allgather(x_el))
+            caps = ck.element_capsules(x_all)
             near = ck.capsules_within([v[lay_ids[pairs[:, 0]]] for v in caps],
                                       [v[lay_ids[pairs[:, 1]]] for v in caps], touch)
             if self.model != "potential":       # the pair potential has no switch points
                 # two closest points of one slave point both lie within 2 eps of it
                 pairs = np.concatenate([pairs[near], ck.co_master_pairs(
                     pairs[near], cen, rad, 4.0 * self.eps + margin)])
-            else:
-                pairs = pairs[near]
+            else:       # a couple of its own points within touch (PotentialKernel.pairs_within)
+                pairs = self.kernel.pairs_within(self.own_ids, x_el, self._gathered_ids(), x_all,
+                                                 pairs[near], touch)
         pairs = np.concatenate(self.comm.allgather(pairs.reshape(-1, 2)))
         if self.supports is not None:
             pairs = np.concatenate([pairs.reshape(-1, 2), self.supports.pattern_pairs()])
