@@ -525,7 +525,7 @@ def test_pattern_pairs_are_the_pairs_with_a_couple_of_points_within_reach():
     within that distance, by the dense couples of every candidate pair; the compiled kernel's
     pairs are numpy's; fewer pairs than the capsules within reach on the plectoneme's line
     contact (the pattern's default reach, 2 eps)."""
-    from rodsnes.contact.projection import capsules_within, element_capsules
+    from rodsnes.contact.search import capsules_within, element_capsules
     for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
         rod = potential_rod(X, p, closed, L, eps, mu, reach=reach)
         pairs = rod.pairs(X)

@@ -37,7 +37,7 @@ def cpu_ms(f, reps=7):
 
 
 def laws():
-    from rodsnes.contact import projection as C
+    from rodsnes.contact import search as C
     from rodsnes.contact.projection import ContactKernel
     from rodsnes.contact.potential import PotentialKernel
     X = np.load(os.path.join(ROOT, "tests", "data", "plectoneme_9.72_line_contact.npy"))
@@ -129,7 +129,7 @@ def helix(nelem, p=3, h=1.0 / 60, R=0.1):
 
 
 def search():
-    from rodsnes.contact import projection as ck
+    from rodsnes.contact import search as ck
     print("search (helix, reach 2.5 eps):")
     for n in (1000, 10000, 100000):
         ids = np.arange(n)

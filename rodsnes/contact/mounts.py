@@ -31,7 +31,7 @@ node) are preallocated once (``pattern_pairs``: O(N) blocks).  Pure numpy but fo
 import numpy as np
 from mpi4py import MPI
 
-from rodsnes.contact import projection as ck
+from rodsnes.contact import search
 from rodsnes.model.partition import add_position_blocks
 
 
@@ -176,7 +176,7 @@ class SupportTerm:
         m = self.mesh
         self.add_tangent(out)
         for elems, B in zip(out["elems"], out["blocks"]):
-            nodes = ck.element_node_ids(elems, m.order, m.nelem, m.closed)
+            nodes = search.element_node_ids(elems, m.order, m.nelem, m.closed)
             nodes = np.concatenate([nodes, np.full((len(elems), 1), self.end)], axis=1)
             n, k = nodes.shape
             add_position_blocks(P, self.layout, nodes,

@@ -130,7 +130,8 @@ import numpy as np
 from rodsnes.profiling import logged
 from rodsnes.model import fe
 from rodsnes.contact import potential_compiled
-from rodsnes.contact.projection import ContactKernel, _lookup, capsules_within, element_capsules
+from rodsnes.contact.projection import ContactKernel
+from rodsnes.contact.search import capsules_within, element_capsules, positions as _lookup
 
 __all__ = ["ONSET", "DENSITY", "MAX_POINTS", "law_energy", "law_force", "law_stiffness",
            "onset_layer", "pair_stiffness", "support_length", "points_per_element",

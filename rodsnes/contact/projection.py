@@ -93,14 +93,6 @@ from rodsnes.contact.monomials import monomials
 from rodsnes.contact.search import strand_index
 from rodsnes.contact.zones import ContactZones
 
-# Re-exports, for the modules that still import these names from here (contact/term.py,
-# contact/potential.py, contact/mounts.py, tools/bench_contact_law.py, tests/
-# test_contact_potential.py); new code imports them from contact/search.py.  ``_lookup`` is
-# search.positions.
-from rodsnes.contact.search import (  # noqa: F401  (re-exported)
-    candidate_pairs, capsules_within, co_master_pairs, element_bounds, element_capsules,
-    element_node_ids, spheres_within, positions as _lookup)
-
 __all__ = ["default_exclusion", "default_penalty", "ContactKernel"]
 
 

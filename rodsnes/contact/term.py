@@ -40,6 +40,7 @@ from petsc4py import PETSc
 
 from rodsnes.profiling import logged
 from rodsnes.contact import projection as ck
+from rodsnes.contact import search
 from rodsnes.model import so3
 from rodsnes.model.partition import add_position_blocks
 from rodsnes.model.term import Term
@@ -189,7 +190,7 @@ class ContactTerm(Term):
         skin / 2 since (module docstring, 2.; the decision is the same on every rank).
         Collective."""
         x_own = r_loc[self.lconn]
-        cen, rad = ck.element_bounds(x_own)
+        cen, rad = search.element_bounds(x_own)
         s = self.verlet_list
         stale = s is None
         if not stale and len(cen):
@@ -211,7 +212,7 @@ class ContactTerm(Term):
         all_ids = self._gathered_ids()
         cens = np.concatenate(self.comm.allgather(cen))
         rads = np.concatenate(self.comm.allgather(rad))
-        pairs = ck.candidate_pairs(self.own_ids, cen, rad, all_ids, cens, rads, reach,
+        pairs = search.candidate_pairs(self.own_ids, cen, rad, all_ids, cens, rads, reach,
                                    self.mesh.length, self.mesh.h, self.mesh.closed, self.delta)
         if bounds:
             order = np.argsort(all_ids)
@@ -223,17 +224,17 @@ class ContactTerm(Term):
         n1 = m.order + 1
         x_own, cen, rad, cand = self._candidates(r_loc)
         other = np.unique(cand[:, 1]) if len(cand) else np.zeros(0, dtype=np.int64)
-        other_nodes = ck.element_node_ids(other, m.order, m.nelem, m.closed)
+        other_nodes = search.element_node_ids(other, m.order, m.nelem, m.closed)
         nodes = np.unique(other_nodes)
         # every rank takes part in the SF collectives, even with nothing to fetch
         leaf = self._fetch(r_loc, nodes)
         x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, n1, 3))
         # the candidates within reach at these positions: the test of a fresh search
-        c_other, r_other = ck.element_bounds(x_other)
+        c_other, r_other = search.element_bounds(x_other)
         if len(cand):
-            io = ck._lookup(self.own_ids, cand[:, 0], "own")
+            io = search.positions(self.own_ids, cand[:, 0], "own")
             ia = np.searchsorted(other, cand[:, 1])
-            pairs = cand[ck.spheres_within(cen[io], rad[io], c_other[ia], r_other[ia], self.reach)]
+            pairs = cand[search.spheres_within(cen[io], rad[io], c_other[ia], r_other[ia], self.reach)]
         else:
             pairs = cand
         used = np.isin(other, pairs[:, 1])
@@ -263,7 +264,7 @@ class ContactTerm(Term):
             if not len(self.own_ids):
                 close = np.zeros(0, dtype=np.int64)
             elif self.model == "potential":
-                close = np.unique(ck._lookup(self.own_ids, st["pairs"][:, 0], "own"))
+                close = np.unique(search.positions(self.own_ids, st["pairs"][:, 0], "own"))
             else:
                 close = np.flatnonzero(st["out"]["gap"].max(axis=1) > -self.eps)
             near = np.unique(self.lconn[close]) if len(close) else np.zeros(0, dtype=np.int64)
@@ -281,7 +282,7 @@ class ContactTerm(Term):
             own_index = np.searchsorted(self.own_ids, act[:, 0])
             np.add.at(Floc[:, 0:3], self.lconn[own_index], out["vec"][:, :n1])
             m = self.mesh
-            master_nodes = ck.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
+            master_nodes = search.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
             np.add.at(leaf_force, np.searchsorted(out["nodes"], master_nodes), out["vec"][:, n1:])
         Floc[:self.layout.n_owned, 0:3] += self._send_back(leaf_force)
         if self.supports is not None:
@@ -301,7 +302,7 @@ class ContactTerm(Term):
     @logged("ContactAssemble")
     def _add_blocks(self, P, elems, mat):
         m = self.mesh
-        nodes = np.concatenate([ck.element_node_ids(elems[:, j], m.order, m.nelem, m.closed)
+        nodes = np.concatenate([search.element_node_ids(elems[:, j], m.order, m.nelem, m.closed)
                                 for j in range(elems.shape[1])], axis=1)
         add_position_blocks(P, self.layout, nodes, mat)
 
@@ -349,16 +350,16 @@ class ContactTerm(Term):
         margin = self.PATTERN_MARGIN * self.eps if margin is None else float(margin)
         touch = 2.0 * self.eps + margin
         x_el = r_loc[self.lconn]
-        pairs, cen, rad = self.search_pairs(*ck.element_bounds(x_el), touch, bounds=True)
+        pairs, cen, rad = self.search_pairs(*search.element_bounds(x_el), touch, bounds=True)
         if len(pairs):
             lay_ids = self._element_slots()
             x_all = np.concatenate(self.comm.allgather(x_el))
-            caps = ck.element_capsules(x_all)
-            near = ck.capsules_within([v[lay_ids[pairs[:, 0]]] for v in caps],
+            caps = search.element_capsules(x_all)
+            near = search.capsules_within([v[lay_ids[pairs[:, 0]]] for v in caps],
                                       [v[lay_ids[pairs[:, 1]]] for v in caps], touch)
             if self.model != "potential":       # the pair potential has no switch points
                 # two closest points of one slave point both lie within 2 eps of it
-                pairs = np.concatenate([pairs[near], ck.co_master_pairs(
+                pairs = np.concatenate([pairs[near], search.co_master_pairs(
                     pairs[near], cen, rad, 4.0 * self.eps + margin)])
             else:       # a couple of its own points within touch (PotentialKernel.pairs_within)
                 pairs = self.kernel.pairs_within(self.own_ids, x_el, self._gathered_ids(), x_all,
@@ -415,8 +416,8 @@ class ContactTerm(Term):
         if not len(pairs):
             return None
         m = self.mesh
-        return np.concatenate([ck.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
-                               ck.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
+        return np.concatenate([search.element_node_ids(pairs[:, 0], m.order, m.nelem, m.closed),
+                               search.element_node_ids(pairs[:, 1], m.order, m.nelem, m.closed)], axis=1)
 
     def extra_pattern(self, r_loc):
         """Natural node groups (npair, 2(p+1)) coupled by candidate pairs of the positions
