@@ -247,7 +247,7 @@ def dense_reference(k, X, conn, pairs):
     e, m = pairs[:, 0], pairs[:, 1]
     xs = np.einsum("qa,pad->pqd", k.Np, X[conn[e]])
     xm = np.einsum("ja,pad->pjd", k.Nm, X[conn[m]])
-    a, r, nu = k._couples(xs, xm, k._admissible(e, m, k.xp, k.xm))
+    a, r, nu = k.couples(xs, xm, k.admissible(e, m, k.xp, k.xm))
     W = (k.wp * 0.5 * k.h)[None, :, None] * k.master_weights(m)[:, None, :]
     act = np.flatnonzero((W * a > 0).any(axis=(1, 2)))
     a, r, nu, W = a[act], r[act], nu[act], W[act]
@@ -498,7 +498,7 @@ def test_chunks_of_the_pass_over_the_near_pairs_do_not_change_the_result(kind):
             k.chunk_couples = 10 ** 12 if chunk is None else chunk * per_pair
             out[chunk] = k.evaluate(*args, tangent=True, report=True)
             if chunk == 1:
-                assert len(k._pair_chunks(len(out[chunk]["_near"]["oi"]))) == \
+                assert len(k.pair_chunks(len(out[chunk]["_near"]["oi"]))) == \
                     len(out[chunk]["_near"]["oi"]), name
         ref = out[None]
         near = ref["_near"]
@@ -549,7 +549,7 @@ def test_pattern_pairs_are_the_pairs_with_a_couple_of_points_within_reach():
         xs = np.einsum("qa,pad->pqd", kern.Np, X[rod.conn[e]])
         xm = np.einsum("ja,pad->pjd", kern.Nm, X[rod.conn[m]])
         r = np.linalg.norm(xs[:, :, None, :] - xm[:, None, :, :], axis=3)
-        ok = kern._admissible(e, m, kern.xp, kern.xm) & (kern.master_weights(m) > 0)[:, None, :]
+        ok = kern.admissible(e, m, kern.xp, kern.xm) & (kern.master_weights(m) > 0)[:, None, :]
         dense = pairs[(ok & (r < wide)).any(axis=(1, 2))]
         assert np.array_equal(got, dense), name
         if name == "plectoneme_9.72_line_contact":

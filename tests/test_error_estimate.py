@@ -143,7 +143,7 @@ def test_newton_from_the_carried_state_needs_the_interior_stage():
     # the whole problem alone, from the carried state
     e.place(run.mesh, x, q)
     e.problem.state.X.copy(e.X0)
-    _, ok = e._solve("whole")
+    _, ok = e.solve_stage("whole")
     xw, _ = gathered_state(e.problem)
     assert not ok and not np.linalg.norm(xw - xf, axis=1).max() < gap
     e.destroy()

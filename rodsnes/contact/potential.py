@@ -115,7 +115,7 @@ potential's own points; -inf without any): RodProblem.precheck's penetration lim
 it at the iterate and at its trials, with no closest point.
 
 Memory: the passes over the near pairs go in chunks of at most ``CHUNK_COUPLES`` point couples
-(``_pair_chunks``; the compiled kernel stops where the next pair might not fit its couple
+(``pair_chunks``; the compiled kernel stops where the next pair might not fit its couple
 buffers and goes on from there with its running sums), so a pass holds the couples in contact
 and a bounded scratch, whatever N: on the bench coil (N = 1000, 11918 near pairs of 43 x 45
 couples, 83202 in contact) the list's buffers had been sized for all 23 million couples
@@ -289,7 +289,7 @@ class PotentialKernel:
             w[:, self.nqp + 1] = np.where(m == self.nelem - 1, self.cap, 0.0)
         return w
 
-    def _admissible(self, e, m, xa, xb):
+    def admissible(self, e, m, xa, xb):
         """(npair, na, nb) True where dist(s, sigma) >= delta, s in e at xa, sigma in m at xb
         (xi of the slave and master points)."""
         h = self.h
@@ -300,7 +300,7 @@ class PotentialKernel:
             dist = np.minimum(dist, self.L - dist)
         return dist >= self.delta
 
-    def _couples(self, xs, xm, adm):
+    def couples(self, xs, xm, adm):
         """a = <2 eps - |D|> (masked), |D| and nu for D = xs_q - xm_j, (npair, na, nb)."""
         D = xs[:, :, None, :] - xm[:, None, :, :]
         r = np.sqrt(np.einsum("pqjd,pqjd->pqj", D, D))
@@ -381,7 +381,7 @@ class PotentialKernel:
 
     def _couples_numpy(self, c, reach=None):
         """``couples`` and ``depth`` of the near pairs ``c`` in numpy, chunk by chunk of pairs
-        (``_pair_chunks``: at most ``chunk_couples`` point couples at a time): the squared
+        (``pair_chunks``: at most ``chunk_couples`` point couples at a time): the squared
         distances of a chunk's couples (``_squared_distances``), those below 4 eps^2 (a
         superset: the roundoff of the square root), |D| < 2 eps exactly (< ``reach``), the
         exclusion tested on these couples alone (``_admissible_couples``).  The couples and the
@@ -391,7 +391,7 @@ class PotentialKernel:
         two_eps = 2.0 * self.eps if reach is None else float(reach)
         cut = self._min_arclength(e, m) < self.delta                   # pairs the exclusion cuts
         parts, apart = [], -np.inf
-        for lo, hi in self._pair_chunks(len(oi)):
+        for lo, hi in self.pair_chunks(len(oi)):
             r2 = self._squared_distances(c["xs"], c["xm"], oi[lo:hi], mi[lo:hi])
             cand = np.flatnonzero(r2 < two_eps * two_eps * (1.0 + 1e-12))
             r = np.sqrt(r2.ravel()[cand])
@@ -419,7 +419,7 @@ class PotentialKernel:
         c["depth"] = two_eps - float(r.min()) if len(r) else apart
         return c
 
-    def _pair_chunks(self, npair, per_pair=None):
+    def pair_chunks(self, npair, per_pair=None):
         """(lo, hi) ranges of the pairs, at most ``chunk_couples`` point couples each (at least
         one pair): the memory of a pass over the near pairs stays bounded, whatever N."""
         per_pair = self.nqp * (self.nqp + 2) if per_pair is None else int(per_pair)
@@ -485,7 +485,7 @@ class PotentialKernel:
 
     def _admissible_couples(self, e, m, q, j):
         """True where dist(s, sigma) >= delta for the couples (slave point q of element e,
-        master point j of element m), couple by couple (``_admissible`` on a list)."""
+        master point j of element m), couple by couple (``admissible`` on a list)."""
         h = self.h
         s = e * h + self._sq[q]
         sig = m * h + self._sm[j]
@@ -502,7 +502,7 @@ class PotentialKernel:
             return -np.inf
         part = np.flatnonzero(cut)
         if len(part):
-            r2[part] = np.where(self._admissible(e[part], m[part], self.xp, self.xm), r2[part],
+            r2[part] = np.where(self.admissible(e[part], m[part], self.xp, self.xm), r2[part],
                                 np.inf)
         return 2.0 * self.eps - float(np.sqrt(r2.min()))
 
@@ -517,11 +517,11 @@ class PotentialKernel:
         """sum W psi(a) of the couples in contact, by numpy's sum over the touching pairs'
         (nqp, nqp + 2) couple grids (zero where no couple is in contact): the round-off of a
         sum over every couple of those pairs, whichever of them are in contact; chunk by chunk
-        of touching pairs (``_pair_chunks``), the chunks' sums added in order."""
+        of touching pairs (``pair_chunks``), the chunks' sums added in order."""
         nqp, nm = self.nqp, self.nqp + 2
         t, qj = ac["t"], ac["q"] * nm + ac["j"]
         total = 0.0
-        for lo, hi in self._pair_chunks(ac["nt"]):
+        for lo, hi in self.pair_chunks(ac["nt"]):
             a, b = np.searchsorted(t, [lo, hi])        # couples sorted by pair, so by t
             grid = self._workspace("energy", ((hi - lo) * nqp * nm,))
             grid[:] = 0.0
@@ -646,10 +646,10 @@ class PotentialKernel:
         # line force density at the report points, over the near pairs, chunk by chunk
         f = np.zeros((no, nqc, 3))
         xq_own = self.Nq @ x_own
-        for lo, hi in self._pair_chunks(len(c["oi"]), nqc * (self.nqp + 2)):
+        for lo, hi in self.pair_chunks(len(c["oi"]), nqc * (self.nqp + 2)):
             oi, e, m = c["oi"][lo:hi], c["e"][lo:hi], c["m"][lo:hi]
-            a, r, nu = self._couples(xq_own[oi], c["xm"][c["mi"][lo:hi]],
-                                     self._admissible(e, m, self.xq, self.xm))
+            a, r, nu = self.couples(xq_own[oi], c["xm"][c["mi"][lo:hi]],
+                                     self.admissible(e, m, self.xq, self.xm))
             fa = self.master_weights(m)[:, None, :] * law_force(a, self.a_s)
             np.add.at(f, oi, k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
         out["force"] = np.linalg.norm(f, axis=2)

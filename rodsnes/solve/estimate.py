@@ -184,7 +184,7 @@ class EnrichedProblem:
             return R.DIVERGED_MAX_IT
         return R.CONVERGED_ITERATING
 
-    def _solve(self, stage):
+    def solve_stage(self, stage):
         """One SNES solve of the stage from the current state: (iterations, converged)."""
         self.stage = stage
         try:
@@ -225,10 +225,10 @@ class EnrichedProblem:
         if gauge:
             p.hold_sliding()
         p.state.X.copy(self.X0)
-        its, ok = self._solve("interior")
+        its, ok = self.solve_stage("interior")
         if not ok:
             self.place(mesh, x_nodes, q_nodes)
-        more, converged = self._solve("whole")
+        more, converged = self.solve_stage("whole")
         x, q = gathered_state(p)
         return x, q, its + more, self.factorisations, converged
 
