@@ -107,3 +107,24 @@ def test_parse_rejects_other_text():
         bs.parse_log_view("no PETSc here\n")
     with pytest.raises(ValueError):       # a log without a Newton solve
         bs.parse_log_view(SYNTHETIC.replace("SNESSolve", "KSPSolve"))
+
+
+def test_lu_with_much_fill_hands_over_to_mumps():
+    """solve/linear.py: PETSc's LU factors the rod's Jacobian; where contact couples much of
+    the rod (the bench coil, fill 3.6 at 200 elements) the first factorisation's fill exceeds
+    FILL_MUMPS and MUMPS factors from the next Newton step on; a chain (Mattiasson, fill 1.1)
+    stays with PETSc's LU; a package the user chose is never changed."""
+    from conftest import run_case
+    from rodsnes.solve.linear import FILL_MUMPS
+    coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
+                    rod_error_estimate="off")
+    pc = coil.solver.snes.getKSP().getPC()
+    assert coil.ok and pc.getFactorSolverType() == "mumps" and not coil.solver.lu_auto
+    chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
+                     rod_planar="off")
+    pc = chain.solver.snes.getKSP().getPC()
+    assert pc.getFactorSolverType() == "petsc" and chain.solver.lu_auto
+    assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS
+    chosen = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
+                      rod_error_estimate="off", pc_factor_mat_solver_type="petsc")
+    assert chosen.solver.snes.getKSP().getPC().getFactorSolverType() == "petsc"

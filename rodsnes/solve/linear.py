@@ -9,8 +9,24 @@ contact couplings, and on it PETSc's LU was 3-5 x faster than MUMPS at every siz
 50-75 ms against 256 ms; 2 ranks, 1e4 elements: 0.16 s against 0.94 s; tools/bench_scaling.py,
 docs/bench_scaling.md).  MUMPS stays one option away (-pc_factor_mat_solver_type mumps, and on
 several ranks -pc_type lu), and it factors the symmetric LDL^T whose inertia the stability
-count and the minimiser's shifts read (solve/stability.py), where its pivoting is needed."""
+count and the minimiser's shifts read (solve/stability.py), where its pivoting is needed.
+
+PETSc's LU is not supernodal: its time grows with the fill far faster than MUMPS's, whose
+dense fronts run on BLAS 3.  Where contact couples much of the rod (a coil whose turns touch
+along its length) the fill is high and MUMPS is the faster one; measured (one serial
+factorisation, this 2-core machine):
+
+    Jacobian                               fill of PETSc's LU   PETSc LU   MUMPS LU
+    cantilever, 1000 elements              1.13                 4.2 ms     36 ms
+    plectoneme at 10 turns, 60 elements    1.79                 6.1 ms     9.4 ms
+    bench coil, 1000 elements              4.49                 610 ms     298 ms
+
+so a serial factorisation whose fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed)
+exceeds FILL_MUMPS hands the rest of the run to MUMPS (use_mumps_when_filled), unless the user
+chose the package."""
 from petsc4py import PETSc
+
+FILL_MUMPS = 3.0        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
 
 
 def option_default(name, value):
@@ -31,7 +47,8 @@ def mumps_fill_room(problem, prefix=""):
 def lu_defaults(comm, prefix=""):
     """preonly + LU for the KSP of options prefix ``prefix`` (module docstring): PETSc's LU on
     one rank, PETSc's LU of the whole matrix on every rank (redundant) on several, unless the
-    user chose a preconditioner or a factorisation package (then LU by it, MUMPS if none)."""
+    user chose a preconditioner or a factorisation package (then LU by it, MUMPS if none).
+    Returns whether the package is rodsnes' choice (use_mumps_when_filled may change it)."""
     opts = PETSc.Options()
     option_default(prefix + "ksp_type", "preonly")
     chosen = opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "pc_factor_mat_solver_type")
@@ -45,9 +62,29 @@ def lu_defaults(comm, prefix=""):
         option_default(prefix + "pc_type", "redundant")
         option_default(prefix + "redundant_pc_type", "lu")
         option_default(prefix + "redundant_pc_factor_mat_solver_type", "petsc")
+    return not chosen
 
 
 def direct_solver_defaults(problem, prefix=""):
-    """lu_defaults on the problem's communicator, with mumps_fill_room for MUMPS."""
-    lu_defaults(problem.layout.comm, prefix)
+    """lu_defaults on the problem's communicator, with mumps_fill_room for MUMPS; returns
+    whether the package is rodsnes' choice."""
+    auto = lu_defaults(problem.layout.comm, prefix)
     mumps_fill_room(problem, prefix)
+    return auto
+
+
+def use_mumps_when_filled(ksp):
+    """After a factorisation by PETSc's serial LU whose fill exceeds FILL_MUMPS: the KSP's PC
+    factors by MUMPS from now on (module docstring).  Returns True when it switched."""
+    pc = ksp.getPC()
+    if pc.getType() != PETSc.PC.Type.LU or pc.getFactorSolverType() != "petsc":
+        return False
+    fill = pc.getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0)
+    if not fill > FILL_MUMPS:
+        return False
+    ops = pc.getOperators()
+    pc.reset()
+    pc.setType(PETSc.PC.Type.LU)
+    pc.setFactorSolverType("mumps")
+    pc.setOperators(*ops)
+    return True

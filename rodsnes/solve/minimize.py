@@ -45,7 +45,7 @@ from petsc4py import PETSc
 from rodsnes.model.partition import NDOF
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
-from rodsnes.solve.linear import direct_solver_defaults
+from rodsnes.solve.linear import direct_solver_defaults, use_mumps_when_filled
 from rodsnes.solve.stability import Inertia
 from rodsnes.model.mesh import lumped_weights
 
@@ -105,6 +105,7 @@ class EnergyMinimizer:
         self._trial = None          # (E, depth) of the line search's last evaluated trial
         self.last = None
         self.ksp = None
+        self.lu_auto = False        # the LU package is rodsnes' choice (linear.use_mumps_when_filled)
 
     # -- pieces -----------------------------------------------------------------------
     def _metric(self):
@@ -348,7 +349,7 @@ class EnergyMinimizer:
         if ksp is None:
             # the Newton path's linear solver (preonly + LU, solve/linear.py, unless -ksp_type,
             # -pc_type, -pc_factor_mat_solver_type ... say otherwise)
-            direct_solver_defaults(p)
+            self.lu_auto = direct_solver_defaults(p)
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
             ksp.setFromOptions()
         ksp.setOperators(p.J)
@@ -359,6 +360,8 @@ class EnergyMinimizer:
             return False
         if ksp.getConvergedReason() < 0:
             return False
+        if self.lu_auto and use_mumps_when_filled(ksp):
+            self.lu_auto = False               # contact couples much of the rod: MUMPS from now
         d.scale(-1.0)
         slope = self._same(g.dot(d))
         return bool(np.isfinite(slope) and slope < 0.0)

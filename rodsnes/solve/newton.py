@@ -27,7 +27,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.solve.arclength import Arclength
-from rodsnes.solve.linear import direct_solver_defaults, option_default
+from rodsnes.solve.linear import direct_solver_defaults, option_default, use_mumps_when_filled
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.stability import negative_eigenvalues
@@ -55,12 +55,12 @@ class NewtonSolver:
         option_default("snes_atol", "0")
         option_default("snes_stol", "1e-16")
         option_default("snes_max_it", "40")
-        direct_solver_defaults(problem)
+        self.lu_auto = direct_solver_defaults(problem)
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)
         snes.setJacobian(problem.jacobian, problem.J)
-        snes.setUpdate(problem.update)
+        snes.setUpdate(self._update)
         snes.setConvergenceHistory(length=1000, reset=True)
         snes.setConvergenceTest(self.convergence_test)
         snes.setFromOptions()
@@ -141,6 +141,13 @@ class NewtonSolver:
         if it >= maxit:
             return R.DIVERGED_MAX_IT
         return R.CONVERGED_ITERATING
+
+    def _update(self, snes, its):
+        """Before every Newton step: the problem's update (the rotations re-centred), and after
+        a factorisation by PETSc's LU with much fill, MUMPS from now (linear.py)."""
+        self.problem.update(snes, its)
+        if self.lu_auto and its > 0 and use_mumps_when_filled(snes.getKSP()):
+            self.lu_auto = False               # contact couples much of the rod
 
     def solve_at(self, lam):
         """Solve at load factor lam from the current state; returns a StepResult."""
