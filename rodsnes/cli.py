@@ -410,7 +410,8 @@ def check_newton_linear_solver(comm):
         A.setValue(i, i, 1.0)
     A.assemble()
     from rodsnes.solve.linear import lu_defaults
-    lu_defaults(comm)
+    added = []                      # the defaults go again once the check is done: the solver
+    lu_defaults(comm, added=added)  # sets them itself and must see what the user chose
     ksp = PETSc.KSP().create(comm=comm)
     try:
         ksp.setFromOptions()
@@ -419,6 +420,8 @@ def check_newton_linear_solver(comm):
     finally:
         ksp.destroy()
         A.destroy()
+        for name in added:
+            PETSc.Options().delValue(name)
 
 
 def _load_path(scene):

@@ -30,10 +30,13 @@ FILL_MUMPS = 3.0        # above this fill of PETSc's LU, MUMPS factors faster (m
 
 
 def option_default(name, value):
-    """Set -name value in the options database unless the user gave it."""
+    """Set -name value in the options database unless the user gave it; returns whether it
+    set it."""
     opts = PETSc.Options()
-    if not opts.hasName(name):
-        opts.setValue(name, value)
+    if opts.hasName(name):
+        return False
+    opts.setValue(name, value)
+    return True
 
 
 def mumps_fill_room(problem, prefix=""):
@@ -44,24 +47,24 @@ def mumps_fill_room(problem, prefix=""):
         option_default(prefix + "mat_mumps_icntl_14", "100")
 
 
-def lu_defaults(comm, prefix=""):
+def lu_defaults(comm, prefix="", added=None):
     """preonly + LU for the KSP of options prefix ``prefix`` (module docstring): PETSc's LU on
     one rank, PETSc's LU of the whole matrix on every rank (redundant) on several, unless the
     user chose a preconditioner or a factorisation package (then LU by it, MUMPS if none).
-    Returns whether the package is rodsnes' choice (use_mumps_when_filled may change it)."""
+    Returns whether the package is rodsnes' choice (use_mumps_when_filled may change it).
+    ``added``: a list that receives the names this call set (to take them back)."""
     opts = PETSc.Options()
-    option_default(prefix + "ksp_type", "preonly")
     chosen = opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "pc_factor_mat_solver_type")
     if comm.getSize() == 1:
-        option_default(prefix + "pc_type", "lu")
-        option_default(prefix + "pc_factor_mat_solver_type", "petsc")
+        defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "petsc"))
     elif chosen:
-        option_default(prefix + "pc_type", "lu")
-        option_default(prefix + "pc_factor_mat_solver_type", "mumps")
+        defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "mumps"))
     else:
-        option_default(prefix + "pc_type", "redundant")
-        option_default(prefix + "redundant_pc_type", "lu")
-        option_default(prefix + "redundant_pc_factor_mat_solver_type", "petsc")
+        defaults = (("pc_type", "redundant"), ("redundant_pc_type", "lu"),
+                    ("redundant_pc_factor_mat_solver_type", "petsc"))
+    for name, value in (("ksp_type", "preonly"),) + defaults:
+        if option_default(prefix + name, value) and added is not None:
+            added.append(prefix + name)
     return not chosen
 
 
