@@ -82,7 +82,10 @@ def use_mumps_when_filled(ksp):
     pc = ksp.getPC()
     if pc.getType() != PETSc.PC.Type.LU or pc.getFactorSolverType() != "petsc":
         return False
-    fill = pc.getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0)
+    try:
+        fill = pc.getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0)
+    except PETSc.Error:             # not factored (yet, or since a new pattern's matrix)
+        return False
     if not fill > FILL_MUMPS:
         return False
     ops = pc.getOperators()
