@@ -128,3 +128,22 @@ def test_lu_with_much_fill_hands_over_to_mumps():
     chosen = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                       rod_error_estimate="off", pc_factor_mat_solver_type="petsc")
     assert chosen.solver.snes.getKSP().getPC().getFactorSolverType() == "petsc"
+
+
+def test_fill_check_of_an_unfactored_lu_is_no_switch():
+    """Before the first factorisation of a new pattern's matrix the check says no (it runs in
+    the SNES update hook, where a PETSc error would end the Newton solve)."""
+    from petsc4py import PETSc
+    from rodsnes.solve.linear import use_mumps_when_filled
+    A = PETSc.Mat().createAIJ([4, 4], nnz=1, comm=PETSc.COMM_SELF)
+    for i in range(4):
+        A.setValue(i, i, 2.0)
+    A.assemble()
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("petsc")
+    ksp.setOperators(A)
+    assert use_mumps_when_filled(ksp) is False
+    ksp.setUp()
+    assert use_mumps_when_filled(ksp) is False          # fill 1 of a diagonal matrix
