@@ -26,6 +26,7 @@ from rodsnes.solve.newton import NewtonSolver
 from rodsnes.terms import scene_terms, contact_term
 from rodsnes.solve import estimate
 from rodsnes.solve import planar
+from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative
 from rodsnes.errors import SceneError
@@ -102,9 +103,9 @@ class Run:
         leaves the plane)."""
         if scene.rod.planar == "off":
             return None, "-rod_planar off"
-        plane, why = planar.detect(scene, self.mesh)
+        plane, why = planes.detect(scene, self.mesh)
         if plane is None and scene.rod.planar == "on":
-            raise SceneError(planar.refusal(why), ("-rod_planar",))
+            raise SceneError(planes.refusal(why), ("-rod_planar",))
         return plane, why
 
     def model(self):
@@ -238,6 +239,10 @@ class Run:
             return {}
         self.last_estimate = self.estimator.estimate(self.problem)
         return estimate.step_attrs(self.last_estimate)
+
+    def write_summary(self, summary):
+        """summary.json of this run's output directory (collective)."""
+        output.write_summary(self.outdir, self.mpi, summary)
 
     def summary(self, converged, failed_reason=None):
         s = {"case": self.scene.output.case_name, "converged": bool(converged),

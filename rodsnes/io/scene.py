@@ -1495,11 +1495,11 @@ def _check_element_turns(scene, mesh, fail):
 
 
 def _check_planar(scene, mesh, fail):
-    """-rod_planar on for a scene that is not planar (solve/planar.py: which part leaves the
+    """-rod_planar on for a scene that is not planar (model/plane.py: which part leaves the
     plane)."""
     if scene.rod.planar != "on":
         return
-    from rodsnes.solve.planar import detect, refusal
+    from rodsnes.model.plane import detect, refusal
     plane, why = detect(scene, mesh)
     if plane is None:
         fail(refusal(why), O.rod_planar)

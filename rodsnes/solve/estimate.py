@@ -397,8 +397,6 @@ def to_tolerance(run):
     """-rod_tolerance: trials from the run's coarse mesh until eta_centreline <= TOL (module
     docstring).  Every trial is a whole run into the output directory; returns whether the last
     one converged and met the tolerance, and leaves summary.json with ``tolerance``."""
-    from rodsnes.io import results as output
-    from rodsnes.run import Run
     scene, tol = run.scene, run.scene.rod.tolerance
     order_fixed = "rod_order" in scene.given
     t0 = time.perf_counter()
@@ -426,7 +424,7 @@ def to_tolerance(run):
                       f"-rod_tolerance")
             break
         p, n = nxt
-        cur = Run(replace(scene, rod=refine.enriched_rod(scene.rod, p, n)), run.comm)
+        cur = type(run)(replace(scene, rod=refine.enriched_rod(scene.rod, p, n)), run.comm)
         cur.record_scene()
     met = reason is None
     last = trials[-1]
@@ -438,7 +436,7 @@ def to_tolerance(run):
     s = cur.summary(converged=met, failed_reason=reason)
     s["tolerance"] = block
     s["wall_time_s"] = block["wall_time_s"]
-    output.write_summary(cur.outdir, cur.mpi, s)
+    cur.write_summary(s)
     run.tolerance_result = (cur, block)
     if cur.rank == 0 and not cur.quiet:
         what = (f"{last['nelem']} elements of order {last['order']}: estimated error "
