@@ -147,3 +147,24 @@ def test_fill_check_of_an_unfactored_lu_is_no_switch():
     assert use_mumps_when_filled(ksp) is False
     ksp.setUp()
     assert use_mumps_when_filled(ksp) is False          # fill 1 of a diagonal matrix
+
+
+@pytest.mark.mpi
+def test_several_ranks_hand_a_filled_pattern_to_mumps():
+    """On several ranks every rank factors the whole matrix by PETSc's LU (PCREDUNDANT), whose
+    factor petsc4py does not reach: the fill is that of the Jacobian's node graph
+    (linear.pattern_fill, equal to the serial LU's: 4.489 for the coil at 1000 elements), and
+    above FILL_MUMPS the Newton steps factor by MUMPS over the ranks."""
+    from conftest import run_case
+    from rodsnes.solve.linear import FILL_MUMPS, pattern_fill
+    coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
+                    rod_error_estimate="off")
+    pc = coil.solver.snes.getKSP().getPC()
+    assert coil.ok and pattern_fill(coil.problem) > FILL_MUMPS
+    if coil.comm.getSize() > 1:
+        assert pc.getType() == "lu" and pc.getFactorSolverType() == "mumps"
+    chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
+                     rod_planar="off")
+    pc = chain.solver.snes.getKSP().getPC()
+    assert pattern_fill(chain.problem) < FILL_MUMPS
+    assert pc.getType() == ("redundant" if chain.comm.getSize() > 1 else "lu")

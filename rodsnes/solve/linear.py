@@ -24,6 +24,7 @@ factorisation, this 2-core machine):
 so a serial factorisation whose fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed)
 exceeds FILL_MUMPS hands the rest of the run to MUMPS (use_mumps_when_filled), unless the user
 chose the package."""
+import numpy as np
 from petsc4py import PETSc
 
 FILL_MUMPS = 3.0        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
@@ -76,16 +77,52 @@ def direct_solver_defaults(problem, prefix=""):
     return auto
 
 
-def use_mumps_when_filled(ksp):
-    """After a factorisation by PETSc's serial LU whose fill exceeds FILL_MUMPS: the KSP's PC
-    factors by MUMPS from now on (module docstring).  Returns True when it switched."""
-    pc = ksp.getPC()
-    if pc.getType() != PETSc.PC.Type.LU or pc.getFactorSolverType() != "petsc":
-        return False
+def pattern_fill(problem):
+    """The fill nz(L+U) / nz(A) of PETSc's LU (nested dissection) of the Jacobian's node graph
+    (the elements and the terms' node groups), the same on every rank (global data, no
+    communication): for a matrix of dense 6 x 6 blocks the block fill is the scalar fill."""
+    mesh, n = problem.mesh, problem.mesh.n_nodes
+    groups = [mesh.conn]
+    extra = problem.node_groups(problem.patterns)
+    if extra is not None and len(extra):
+        groups.append(np.asarray(extra))
+    key = np.unique(np.concatenate([
+        (np.repeat(g, g.shape[1], axis=1) * n + np.tile(g, (1, g.shape[1]))).ravel()
+        for g in groups]))
+    rows, cols = key // n, key % n
+    ai = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))])
+    degree = np.diff(ai).astype(float)
+    vals = np.where(rows == cols, degree[rows], -1.0)      # an M-matrix: no zero pivot
+    A = PETSc.Mat().createAIJ((n, n), csr=(ai.astype(PETSc.IntType), cols.astype(PETSc.IntType),
+                                           vals), comm=PETSc.COMM_SELF)
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
     try:
-        fill = pc.getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0)
-    except PETSc.Error:             # not factored (yet, or since a new pattern's matrix)
+        ksp.setType("preonly")
+        ksp.getPC().setType("lu")
+        ksp.getPC().setFactorSolverType("petsc")
+        ksp.setOperators(A)
+        ksp.setUp()
+        return float(ksp.getPC().getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0))
+    finally:
+        ksp.destroy()
+        A.destroy()
+
+
+def use_mumps_when_filled(ksp, problem=None):
+    """After a factorisation by PETSc's serial LU whose fill exceeds FILL_MUMPS, or on several
+    ranks (PETSc's LU of the whole matrix on every rank, whose factor petsc4py does not reach)
+    when the fill of the Jacobian's pattern does (pattern_fill, ``problem`` given): the KSP's
+    PC factors by MUMPS from now on (module docstring).  Returns True when it switched."""
+    pc = ksp.getPC()
+    if pc.getType() == PETSc.PC.Type.REDUNDANT and problem is not None:
+        fill = pattern_fill(problem)
+    elif pc.getType() != PETSc.PC.Type.LU or pc.getFactorSolverType() != "petsc":
         return False
+    else:
+        try:
+            fill = pc.getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0)
+        except PETSc.Error:         # not factored (yet, or since a new pattern's matrix)
+            return False
     if not fill > FILL_MUMPS:
         return False
     ops = pc.getOperators()

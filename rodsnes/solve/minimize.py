@@ -106,6 +106,7 @@ class EnergyMinimizer:
         self.last = None
         self.ksp = None
         self.lu_auto = False        # the LU package is rodsnes' choice (linear.use_mumps_when_filled)
+        self._fill_checked = None   # the matrix whose pattern fill was checked (several ranks)
 
     # -- pieces -----------------------------------------------------------------------
     def _metric(self):
@@ -353,6 +354,11 @@ class EnergyMinimizer:
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
             ksp.setFromOptions()
         ksp.setOperators(p.J)
+        if self.lu_auto and ksp.getPC().getType() == PETSc.PC.Type.REDUNDANT and \
+                self._fill_checked is not p.J:     # several ranks: the new pattern's fill
+            self._fill_checked = p.J
+            if use_mumps_when_filled(ksp, p):
+                self.lu_auto = False
         self.factorizations += 1
         try:
             ksp.solve(g, d)

@@ -56,6 +56,7 @@ class NewtonSolver:
         option_default("snes_stol", "1e-16")
         option_default("snes_max_it", "40")
         self.lu_auto = direct_solver_defaults(problem)
+        self._fill_checked = None          # the matrix whose pattern fill was checked
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)
@@ -146,8 +147,12 @@ class NewtonSolver:
         """Before every Newton step: the problem's update (the rotations re-centred), and after
         a factorisation by PETSc's LU with much fill, MUMPS from now (linear.py)."""
         self.problem.update(snes, its)
-        if self.lu_auto and its > 0 and use_mumps_when_filled(snes.getKSP()):
-            self.lu_auto = False               # contact couples much of the rod
+        if self.lu_auto:
+            p = self.problem
+            new = self._fill_checked is not p.J     # a new pattern: its fill (several ranks)
+            self._fill_checked = p.J
+            if use_mumps_when_filled(snes.getKSP(), p if new else None):
+                self.lu_auto = False           # contact couples much of the rod
 
     def solve_at(self, lam):
         """Solve at load factor lam from the current state; returns a StepResult."""
