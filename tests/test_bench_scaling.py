@@ -111,9 +111,9 @@ def test_parse_rejects_other_text():
 
 def test_lu_with_much_fill_hands_over_to_mumps():
     """solve/linear.py: PETSc's LU factors the rod's Jacobian; where contact couples much of
-    the rod (the bench coil, fill 3.6 at 200 elements) the first factorisation's fill exceeds
-    FILL_MUMPS and MUMPS factors from the next Newton step on; a chain (Mattiasson, fill 1.1)
-    stays with PETSc's LU; a package the user chose is never changed."""
+    the rod (the bench coil, fill 3.6 at 200 elements) the pattern's fill exceeds FILL_MUMPS
+    and MUMPS factors from the first Newton step on; a chain (Mattiasson, fill 1.1) stays with
+    PETSc's LU; a package the user chose is never changed."""
     from conftest import run_case
     from rodsnes.solve.linear import FILL_MUMPS
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
@@ -124,29 +124,10 @@ def test_lu_with_much_fill_hands_over_to_mumps():
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()
     assert pc.getFactorSolverType() == "petsc" and chain.solver.lu_auto
-    assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS
+    assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS    # as predicted
     chosen = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                       rod_error_estimate="off", pc_factor_mat_solver_type="petsc")
     assert chosen.solver.snes.getKSP().getPC().getFactorSolverType() == "petsc"
-
-
-def test_fill_check_of_an_unfactored_lu_is_no_switch():
-    """Before the first factorisation of a new pattern's matrix the check says no (it runs in
-    the SNES update hook, where a PETSc error would end the Newton solve)."""
-    from petsc4py import PETSc
-    from rodsnes.solve.linear import use_mumps_when_filled
-    A = PETSc.Mat().createAIJ([4, 4], nnz=1, comm=PETSc.COMM_SELF)
-    for i in range(4):
-        A.setValue(i, i, 2.0)
-    A.assemble()
-    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("petsc")
-    ksp.setOperators(A)
-    assert use_mumps_when_filled(ksp) is False
-    ksp.setUp()
-    assert use_mumps_when_filled(ksp) is False          # fill 1 of a diagonal matrix
 
 
 @pytest.mark.mpi

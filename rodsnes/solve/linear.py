@@ -21,9 +21,9 @@ factorisation, this 2-core machine):
     plectoneme at 10 turns, 60 elements    1.79                 6.1 ms     9.4 ms
     bench coil, 1000 elements              4.49                 610 ms     298 ms
 
-so a serial factorisation whose fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed)
-exceeds FILL_MUMPS hands the rest of the run to MUMPS (use_mumps_when_filled), unless the user
-chose the package."""
+so where the fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed) of the Jacobian's
+pattern exceeds FILL_MUMPS, checked for every new pattern before its first factorisation, the
+rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose the package."""
 import numpy as np
 from petsc4py import PETSc
 
@@ -108,22 +108,16 @@ def pattern_fill(problem):
         A.destroy()
 
 
-def use_mumps_when_filled(ksp, problem=None):
-    """After a factorisation by PETSc's serial LU whose fill exceeds FILL_MUMPS, or on several
-    ranks (PETSc's LU of the whole matrix on every rank, whose factor petsc4py does not reach)
-    when the fill of the Jacobian's pattern does (pattern_fill, ``problem`` given): the KSP's
+def use_mumps_when_filled(ksp, problem):
+    """Before the first factorisation of a new pattern's matrix: where the KSP factors by
+    PETSc's LU (PCLU with the petsc package, or PCREDUNDANT, PETSc's LU of the whole matrix on
+    every rank) and the fill of the problem's Jacobian exceeds FILL_MUMPS (pattern_fill), its
     PC factors by MUMPS from now on (module docstring).  Returns True when it switched."""
     pc = ksp.getPC()
-    if pc.getType() == PETSc.PC.Type.REDUNDANT and problem is not None:
-        fill = pattern_fill(problem)
-    elif pc.getType() != PETSc.PC.Type.LU or pc.getFactorSolverType() != "petsc":
-        return False
-    else:
-        try:
-            fill = pc.getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0)
-        except PETSc.Error:         # not factored (yet, or since a new pattern's matrix)
-            return False
-    if not fill > FILL_MUMPS:
+    kind = pc.getType()
+    native = kind == PETSc.PC.Type.REDUNDANT or (
+        kind == PETSc.PC.Type.LU and pc.getFactorSolverType() == "petsc")
+    if not native or not pattern_fill(problem) > FILL_MUMPS:
         return False
     ops = pc.getOperators()
     pc.reset()

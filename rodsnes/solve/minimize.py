@@ -106,7 +106,7 @@ class EnergyMinimizer:
         self.last = None
         self.ksp = None
         self.lu_auto = False        # the LU package is rodsnes' choice (linear.use_mumps_when_filled)
-        self._fill_checked = None   # the matrix whose pattern fill was checked (several ranks)
+        self._fill_checked = None   # the matrix whose pattern fill was checked
 
     # -- pieces -----------------------------------------------------------------------
     def _metric(self):
@@ -354,11 +354,10 @@ class EnergyMinimizer:
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
             ksp.setFromOptions()
         ksp.setOperators(p.J)
-        if self.lu_auto and ksp.getPC().getType() == PETSc.PC.Type.REDUNDANT and \
-                self._fill_checked is not p.J:     # several ranks: the new pattern's fill
+        if self.lu_auto and self._fill_checked is not p.J:    # a new pattern: its LU's fill
             self._fill_checked = p.J
             if use_mumps_when_filled(ksp, p):
-                self.lu_auto = False
+                self.lu_auto = False           # contact couples much of the rod: MUMPS from now
         self.factorizations += 1
         try:
             ksp.solve(g, d)
@@ -366,8 +365,6 @@ class EnergyMinimizer:
             return False
         if ksp.getConvergedReason() < 0:
             return False
-        if self.lu_auto and use_mumps_when_filled(ksp):
-            self.lu_auto = False               # contact couples much of the rod: MUMPS from now
         d.scale(-1.0)
         slope = self._same(g.dot(d))
         return bool(np.isfinite(slope) and slope < 0.0)

@@ -144,14 +144,13 @@ class NewtonSolver:
         return R.CONVERGED_ITERATING
 
     def _update(self, snes, its):
-        """Before every Newton step: the problem's update (the rotations re-centred), and after
-        a factorisation by PETSc's LU with much fill, MUMPS from now (linear.py)."""
+        """Before every Newton step: the problem's update (the rotations re-centred), and for a
+        new pattern whose LU fills much, MUMPS from now (linear.py)."""
         self.problem.update(snes, its)
-        if self.lu_auto:
-            p = self.problem
-            new = self._fill_checked is not p.J     # a new pattern: its fill (several ranks)
+        p = self.problem
+        if self.lu_auto and self._fill_checked is not p.J:    # a new pattern: its LU's fill
             self._fill_checked = p.J
-            if use_mumps_when_filled(snes.getKSP(), p if new else None):
+            if use_mumps_when_filled(snes.getKSP(), p):
                 self.lu_auto = False           # contact couples much of the rod
 
     def solve_at(self, lam):
