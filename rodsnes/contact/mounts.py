@@ -178,9 +178,7 @@ class SupportTerm:
         for elems, B in zip(out["elems"], out["blocks"]):
             nodes = search.element_node_ids(elems, m.order, m.nelem, m.closed)
             nodes = np.concatenate([nodes, np.full((len(elems), 1), self.end)], axis=1)
-            n, k = nodes.shape
-            add_position_blocks(P, self.layout, nodes,
-                                B.transpose(0, 1, 3, 2, 4).reshape(n, 3 * k, 3 * k))
+            add_position_blocks(P, self.layout, nodes, B.transpose(0, 1, 3, 2, 4))
 
     def pattern_pairs(self):
         """Element pairs (e, last element) for every element: the end node's coupling."""

@@ -175,24 +175,61 @@ class DirichletRows:
     """A matrix seen through Dirichlet rows and columns: every block set through it
     (setValuesBlockedRCV, the one way the terms add their tangents) has the entries of
     constrained rows and columns zeroed first; ``finish`` puts 1 on their diagonal.  The result
-    is MatZeroRowsColumns(P, rows, 1) of the sum, built before assembly, so it also works where
-    that operation does not exist (MPISBAIJ) and keeps a symmetric matrix symmetric.
+    is MatZeroRowsColumns(P, rows, 1) of the sum, built before assembly: bit for bit the same
+    entries (a masked entry adds +-0.0 to an entry that zeroEntries left at +0.0: it stays
+    +0.0), without the O(nnz) sweep of MatZeroRowsColumns, and also where that operation does
+    not exist (MPISBAIJ); it keeps a symmetric matrix symmetric.
+
+    Only the groups that touch a constrained node are copied and masked; the runs of untouched
+    groups between them go in as views, in their order (the sums of ADD_VALUES are order
+    dependent), so the elastic tangent of 10^4 elements with clamped ends copies two elements.
 
     mask: (global blocks, 6) bool, True on the constrained dofs (PETSc block numbering)."""
 
+    MAX_RUNS = 32       # more runs of touched groups than this: one masked copy of all of V
+
     def __init__(self, mat, mask):
         self.mat, self.mask = mat, mask
-        self.touched = mask.any(axis=1)
+        self.touched = np.zeros(len(mask), dtype=bool)       # blocks with a constrained dof
+        self.touched[np.flatnonzero(mask.ravel()) // mask.shape[1]] = True
 
     def setValuesBlockedRCV(self, R, C, V, addv=None):
         R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
-        hit = np.flatnonzero(self.touched[R2].any(axis=1) | self.touched[C2].any(axis=1))
-        if len(hit):
-            V = np.array(V, copy=True)
-            keep_r = ~self.mask[R2[hit]].reshape(len(hit), -1)
-            keep_c = ~self.mask[C2[hit]].reshape(len(hit), -1)
-            V[hit] *= keep_r[:, :, None] & keep_c[:, None, :]
-        self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+        hit = self._touching(R2)
+        if C is not R:
+            hit |= self._touching(C2)
+        runs = _runs(hit)
+        if not len(runs):
+            self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+        elif len(runs) > self.MAX_RUNS:
+            self.mat.setValuesBlockedRCV(R, C, self._masked(R2, C2, V, hit), addv=addv)
+        else:
+            start = 0
+            for a, b in runs:
+                if a > start:
+                    self.mat.setValuesBlockedRCV(R[start:a], C[start:a], V[start:a], addv=addv)
+                Vh = self._masked(R2[a:b], C2[a:b], V[a:b], None)
+                self.mat.setValuesBlockedRCV(R[a:b], C[a:b], Vh, addv=addv)
+                start = b
+            if start < len(R):
+                self.mat.setValuesBlockedRCV(R[start:], C[start:], V[start:], addv=addv)
+
+    def _touching(self, I2):
+        """Which groups (rows of the block ids I2) hold a constrained node."""
+        hit = np.zeros(len(I2), dtype=bool)
+        hit[np.flatnonzero(np.take(self.touched, I2.ravel())) // max(I2.shape[1], 1)] = True
+        return hit
+
+    def _masked(self, R2, C2, V, hit):
+        """A copy of the groups V with the constrained rows and columns zeroed (hit: the groups
+        that need it, None for all)."""
+        V = np.array(V, copy=True)
+        idx = np.flatnonzero(hit) if hit is not None else slice(None)
+        n = len(V) if hit is None else len(idx)
+        keep_r = ~self.mask[R2[idx]].reshape(n, -1)
+        keep_c = ~self.mask[C2[idx]].reshape(n, -1)
+        V[idx] *= keep_r[:, :, None] & keep_c[:, None, :]
+        return V
 
     def finish(self, rows_global):
         """Before assembly: 1 on the diagonal of this rank's constrained rows (global scalar
@@ -203,6 +240,12 @@ class DirichletRows:
 
     def __getattr__(self, name):
         return getattr(self.mat, name)
+
+
+def _runs(hit):
+    """The maximal runs [a, b) of True in the bool array hit, as an (m, 2) array."""
+    d = np.diff(np.concatenate([[0], hit.view(np.int8), [0]]))
+    return np.stack([np.flatnonzero(d == 1), np.flatnonzero(d == -1)], axis=1)
 
 
 def _upper_blocks(ai, aj, row0):
@@ -230,13 +273,31 @@ def _scalar_csr(ai, aj, bs):
     return ai_s.astype(PETSc.IntType), c.astype(PETSc.IntType)
 
 
+POSITION_CHUNK = 64    # node groups per insertion of add_position_blocks (a 1 MB temporary)
+
+
 def add_position_blocks(P, layout, nodes, mat):
-    """Add (ADD_VALUES) the position-only tangents mat (n, 3k, 3k), rows and columns ordered
-    (node, component), of the natural node groups nodes (n, k) into the block matrix P: each
-    3 x 3 block into the position part of its 6 x 6 block."""
+    """Add (ADD_VALUES) the position-only tangents mat of the natural node groups nodes (n, k)
+    into the block matrix P: each 3 x 3 block into the position part of its 6 x 6 block.
+    mat: (n, 3k, 3k), rows and columns ordered (node, component), or the same as (n, k, 3, k, 3)
+    (any strides: a transposed view is not copied whole).
+
+    The groups go in POSITION_CHUNK at a time, in their order, through one reused
+    (chunk, k, 6, k, 6) block whose rotation parts stay zero: the same insertions as one dense
+    (n, k, 6, k, 6) array, so the same sums bit for bit, without an array 4 x the tangents'
+    size (the coil at 10^4 elements: hundreds of MB) written and read back out of cache.
+    Blocked insertion, not scalar (setValuesRCV): on 2 ranks MPIBAIJ adds the scalar stash
+    before the block stash, which would change the order of the sums on rows owned elsewhere,
+    and through every wrapper (DirichletRows, planar.ComponentView) the one insertion path."""
     rows = layout.nat2petsc[nodes].astype(PETSc.IntType)
     n, k = rows.shape
-    K6 = np.zeros((n, k, NDOF, k, NDOF))
-    K6[:, :, 0:3, :, 0:3] = mat.reshape(n, k, 3, k, 3)
-    P.setValuesBlockedRCV(rows, rows, K6.reshape(n, k * NDOF, k * NDOF),
-                          addv=PETSc.InsertMode.ADD)
+    if not n:
+        return
+    m = mat.reshape(n, k, 3, k, 3) if mat.ndim == 3 else mat
+    c = min(POSITION_CHUNK, n)
+    K6 = np.zeros((c, k, NDOF, k, NDOF))
+    for a in range(0, n, c):
+        b = min(n, a + c)
+        K6[:b - a, :, 0:3, :, 0:3] = m[a:b]
+        P.setValuesBlockedRCV(rows[a:b], rows[a:b], K6[:b - a].reshape(b - a, k * NDOF, k * NDOF),
+                              addv=PETSc.InsertMode.ADD)

@@ -458,28 +458,24 @@ class RodProblem:
 
     def jacobian(self, snes, X, J, P, symmetric=False, view=None):
         """The tangent at X into P: the consistent Newton tangent, or with symmetric the chart
-        Hessian of the energy (stability.py).  Dirichlet rows and columns hold the identity:
-        zeroed after assembly (MatZeroRowsColumns), or for SBAIJ, which lacks that operation
-        in parallel, in every block before it enters the matrix (partition.DirichletRows).
+        Hessian of the energy (stability.py).  Dirichlet rows and columns hold the identity,
+        MatZeroRowsColumns(P, rows, 1) of the sum, but built in every block before it enters
+        the matrix (partition.DirichletRows: bit for bit the same, without the O(nnz) sweep
+        after assembly, and also for SBAIJ, which lacks that operation in parallel).
         ``view``: P seen through it (planar.ComponentView: a block of the components of every
         node, masked as DirichletRows does)."""
-        masked = view is not None or "sbaij" in P.getType()
         r, q = self.state.local_config(X)
         _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True,
                                              symmetric=symmetric)
         P.zeroEntries()
-        T = view if view is not None else (
-            DirichletRows(P, self.constraints.block_mask) if masked else P)
+        T = view if view is not None else DirichletRows(P, self.constraints.block_mask)
         g = self.layout.gconn.astype(PETSc.IntType)
         T.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
         for t in self.terms:
             t.add_jacobian(self.lam, r, q, T, symmetric=symmetric)
-        if masked:
-            T.finish(self.constraints.rows_global)
+        T.finish(self.constraints.rows_global)
         P.assemble()
         self._check_no_mallocs(P)
-        if not masked:
-            P.zeroRowsColumns(self.constraints.is_rows, 1.0)
         if J != P:
             J.assemble()
 

@@ -1,0 +1,181 @@
+"""Jacobian assembly: the Dirichlet rows and columns masked in every block before insertion
+(partition.DirichletRows) give bit for bit the matrix of MatZeroRowsColumns(P, rows, 1) applied
+to the assembled sum, and the contact's position blocks (partition.add_position_blocks) enter
+only their 3 x 3 position parts, bit for bit as the dense 6 x 6 blocks did.  Open and closed
+rods, with and without contact, 1 and 2 ranks (mpi)."""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from conftest import build_run, place, run_case
+from rodsnes.model import partition
+from rodsnes.model.partition import NDOF, DirichletRows, add_position_blocks
+
+
+def perturbed(run, lam=1.0, seed=0, size=1e-3):
+    """The run's state moved by a small random step (every dof) at load factor lam: a state
+    with nonzero tangent entries everywhere, not an equilibrium."""
+    p = run.problem
+    rng = np.random.default_rng(seed + PETSc.COMM_WORLD.getRank())
+    with p.state.X as a:
+        a += size * rng.normal(size=a.shape)
+    p.lam = lam
+    return run
+
+
+def coiled_rollup(**extra):
+    """rollup_contact's rod (12 elements) on a circle of 1.05 turns whose free end presses
+    into the clamped start (as tests/test_contact.py)."""
+    run = run_case("rollup_contact", rod_nelem=12, load_steps=1, load_end_moment="0,0,0", **extra)
+    m = run.mesh
+    R = m.length / (2 * np.pi * 1.05)
+    ph = m.s_nodes / R
+    x = np.stack([R * np.sin(ph), R * (1 - np.cos(ph)) - 0.12 * m.s_nodes / m.length, 0 * ph], 1)
+    place(run, x, np.stack([np.cos(ph), np.sin(ph), 0 * ph], 1))
+    return run
+
+
+def zero_rows_columns_reference(p, P, symmetric=False):
+    """The definition: elastic and terms' tangents summed into P as they are, assembled, then
+    MatZeroRowsColumns(P, rows, 1)."""
+    X = p.state.X
+    r, q = p.state.local_config(X)
+    _, _, H = p.elastic.element_terms(q[p.lconn], r[p.lconn], tangent=True, symmetric=symmetric)
+    P.zeroEntries()
+    g = p.layout.gconn.astype(PETSc.IntType)
+    P.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
+    for t in p.terms:
+        t.add_jacobian(p.lam, r, q, P, symmetric=symmetric)
+    P.assemble()
+    P.zeroRowsColumns(p.constraints.is_rows, 1.0)
+
+
+def owned_dense(P):
+    """The owned rows of P as a dense array (all columns)."""
+    lo, hi = P.getOwnershipRange()
+    n = P.getSize()[1]
+    return P.getValues(np.arange(lo, hi, dtype=PETSc.IntType), np.arange(n, dtype=PETSc.IntType))
+
+
+def assert_bitwise_equal(A, B):
+    assert A.shape == B.shape
+    assert np.array_equal(A.view(np.int64), B.view(np.int64)), \
+        f"max |diff| {np.abs(A - B).max()} in {np.count_nonzero(A != B)} entries"
+
+
+def masked_against_reference(run, symmetric=False):
+    p = run.problem
+    p.ensure_pattern()
+    J = p.J
+    ref = J.duplicate()
+    zero_rows_columns_reference(p, ref, symmetric)
+    p.jacobian(None, p.state.X, J, J, symmetric=symmetric)
+    A, B = owned_dense(J), owned_dense(ref)
+    assert_bitwise_equal(A, B)
+    ref.destroy()
+    return A
+
+
+def constrained_rows_are_identity(run, A):
+    """The masked matrix has the identity on this rank's constrained rows (and it is not all
+    zero elsewhere: the test compares something)."""
+    p = run.problem
+    lo = p.J.getOwnershipRange()[0]
+    for row in p.constraints.rows_global:
+        e = np.zeros(A.shape[1])
+        e[row] = 1.0
+        assert np.array_equal(A[row - lo], e)
+    assert np.count_nonzero(A) > 10 * A.shape[0]
+
+
+SCENES = {
+    "mattiasson": lambda: perturbed(build_run("mattiasson", rod_nelem=10, rod_error_estimate="off")),
+    "helix": lambda: perturbed(build_run("helix", rod_nelem=10)),
+    "michell": lambda: perturbed(build_run("michell", rod_nelem=10), lam=0.5),
+    "rollup_contact": lambda: coiled_rollup(),
+}
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene", sorted(SCENES))
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_masked_blocks_give_the_zero_rows_columns_matrix(scene, symmetric):
+    run = SCENES[scene]()
+    A = masked_against_reference(run, symmetric)
+    constrained_rows_are_identity(run, A)
+
+
+@pytest.mark.mpi
+def test_contact_state_has_contact_blocks_in_the_compared_matrix():
+    """The rollup_contact state of the comparison really carries contact tangents: the
+    matrix differs from the one without the contact term."""
+    run = coiled_rollup()
+    p = run.problem
+    F = p.F.duplicate()
+    p.residual(None, p.state.X, F)
+    assert run.contact.summary()["active_points"] > 0
+    A = masked_against_reference(run)
+    terms = p.terms
+    p.terms = [t for t in terms if t is not run.contact]
+    try:
+        p.jacobian(None, p.state.X, p.J, p.J)
+        assert not np.array_equal(owned_dense(p.J), A)
+    finally:
+        p.terms = terms
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("max_runs", [0, DirichletRows.MAX_RUNS])
+def test_many_constrained_nodes_in_runs_and_in_one_copy(monkeypatch, max_runs):
+    """Constrained dofs on interior nodes (several runs of touched elements, split across the
+    ranks): in runs (views between masked copies) and beyond MAX_RUNS (one masked copy)."""
+    monkeypatch.setattr(DirichletRows, "MAX_RUNS", max_runs)
+    run = perturbed(build_run("mattiasson", rod_nelem=16, rod_error_estimate="off"))
+    c = run.problem.constraints
+    for node, comp in ((7, 1), (8, 2), (20, 0), (33, 1), (34, 0)):
+        c.hold(node, comp, 0.0)
+    A = masked_against_reference(run)
+    constrained_rows_are_identity(run, A)
+
+
+def dense_position_blocks(P, layout, nodes, mat):
+    """The former add_position_blocks: each 3 x 3 block in a dense 6 x 6 block."""
+    rows = layout.nat2petsc[nodes].astype(PETSc.IntType)
+    n, k = rows.shape
+    K6 = np.zeros((n, k, NDOF, k, NDOF))
+    K6[:, :, 0:3, :, 0:3] = mat.reshape(n, k, 3, k, 3)
+    P.setValuesBlockedRCV(rows, rows, K6.reshape(n, k * NDOF, k * NDOF),
+                          addv=PETSc.InsertMode.ADD)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("chunk", [3, None])
+def test_position_blocks_add_as_the_dense_blocks_did(monkeypatch, chunk):
+    """Random position tangents of random node groups (some on constrained nodes, some
+    repeated) added through DirichletRows on top of the elastic tangent: the same matrix
+    bit for bit as the dense 6 x 6 blocks, in bounded chunks or in one."""
+    if chunk is not None:
+        monkeypatch.setattr(partition, "POSITION_CHUNK", chunk)
+    run = perturbed(build_run("mattiasson", rod_nelem=6, rod_error_estimate="off"))
+    p, lay = run.problem, run.layout
+    nn = lay.n_global
+    rng = np.random.default_rng(1)          # the same groups on every rank
+    nodes = rng.integers(0, nn, size=(11, 4))
+    nodes[0] = [0, 1, 2, nn - 1]            # the clamped start
+    mats = rng.normal(size=(11, 12, 12)) * (1 + PETSc.COMM_WORLD.getRank())
+    # the whole graph couples: a dense pattern, so every group is preallocated
+    J = lay.create_matrix(np.arange(nn)[None, :])
+    out = []
+    for add in (dense_position_blocks, add_position_blocks):
+        T = DirichletRows(J, p.constraints.block_mask)
+        J.zeroEntries()
+        r, q = p.state.local_config()
+        _, _, H = p.elastic.element_terms(q[p.lconn], r[p.lconn], tangent=True)
+        g = lay.gconn.astype(PETSc.IntType)
+        T.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
+        add(T, lay, nodes, mats)
+        T.finish(p.constraints.rows_global)
+        J.assemble()
+        out.append(owned_dense(J))
+    assert_bitwise_equal(out[1], out[0])
+    assert np.count_nonzero(out[1]) > 0
