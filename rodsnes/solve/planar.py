@@ -36,8 +36,8 @@ from petsc4py import PETSc
 from rodsnes.model.partition import NDOF, _upper_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
-from rodsnes.solve.linear import direct_solver_defaults, mumps_fill_room, option_default
-from rodsnes.solve.stability import Inertia, zero_shift
+from rodsnes.solve.linear import direct_solver_defaults, option_default
+from rodsnes.solve.stability import Inertia
 
 # the out-of-plane share of a residual that is still round-off (relative to |g|)
 GUARD = 1e-8
@@ -107,81 +107,21 @@ class ComponentView:
         return getattr(self.mat, name)
 
 
-class BlockInertia:
+class BlockInertia(Inertia):
     """stability.Inertia on the (comps, comps) block of the energy Hessian: the block assembled
     into an SBAIJ matrix of block size 3 (kept with its MUMPS analysis while the terms'
-    patterns stay), LDL^T with ICNTL(13) = 1, the negative pivots counted.  Same interface as
-    Inertia (assemble, factor, solve, count; factor and solve take vectors of the block)."""
+    patterns stay), LDL^T with ICNTL(13) = 1, the negative pivots counted; factor and solve
+    take vectors of the block."""
 
     def __init__(self, problem, comps, prefix=STABILITY_PREFIX):
-        self.problem, self.comps, self.prefix = problem, np.asarray(comps), prefix
-        self.patterns = self.H = self.pc = None
-        self.diagonal = None
-        self.counts = self.builds = 0
+        super().__init__(problem, prefix)
+        self.comps = np.asarray(comps)
 
-    def _build(self, patterns):
-        p = self.problem
-        self.destroy()
-        self.H = create_block_matrix(p, patterns, symmetric=True)
-        pc = PETSc.PC().create(comm=p.layout.comm)
-        pc.setOptionsPrefix(self.prefix)
-        pc.setType(PETSc.PC.Type.CHOLESKY)
-        pc.setFactorSolverType("mumps")
-        option_default(self.prefix + "mat_mumps_icntl_13", "1")
-        mumps_fill_room(p, self.prefix)
-        pc.setFromOptions()
-        self.pc, self.patterns = pc, patterns
-        self.builds += 1
+    def _matrix(self, patterns):
+        return create_block_matrix(self.problem, patterns, symmetric=True)
 
-    def assemble(self, patterns=None):
-        p = self.problem
-        if patterns is None:
-            patterns = p.patterns_at()
-        if not same_patterns(patterns, self.patterns):
-            self._build(patterns)
-        p.jacobian(None, p.state.X, self.H, self.H, symmetric=True,
-                   view=ComponentView(self.H, self.comps, p.constraints))
-        if self.diagonal is not None:
-            self.diagonal.destroy()
-        self.diagonal = self.H.getDiagonal()
-        return self.H
-
-    def factor(self, shift=None):
-        """LDL^T of H + diag(shift) (shift: a Vec of the block; None: zero_shift); the negative
-        pivots, or -1 when the factorisation failed.  Collective."""
-        H = self.H
-        d = self.diagonal.copy()
-        if shift is None:
-            d.shift(zero_shift(H))
-        else:
-            d.axpy(1.0, shift)
-        H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
-        d.destroy()
-        self.pc.setOperators(H)
-        self.counts += 1
-        try:
-            self.pc.setUp()
-        except PETSc.Error:
-            self.pc.reset()
-            self.pc.setOperators(H)
-            return -1
-        F = self.pc.getFactorMatrix()
-        if F.getMumpsInfog(1) < 0:
-            return -1
-        return int(F.getMumpsInfog(12))
-
-    def solve(self, b, x):
-        self.pc.apply(b, x)
-
-    def count(self):
-        self.assemble()
-        return self.factor()
-
-    def destroy(self):
-        for obj in (self.pc, self.H):
-            if obj is not None:
-                obj.destroy()
-        self.pc = self.H = None
+    def _view(self):
+        return ComponentView(self.H, self.comps, self.problem.constraints)
 
 
 class PlanarInertia:

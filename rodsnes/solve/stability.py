@@ -39,24 +39,34 @@ class Inertia:
     unstable branch near its bifurcation (test_restart), where the consistent tangent
     converges."""
 
-    def __init__(self, problem):
-        self.problem = problem
+    def __init__(self, problem, prefix="stability_"):
+        self.problem, self.prefix = problem, prefix
         self.patterns = None
         self.H = None
         self.pc = None
+        self.diagonal = None
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
+
+    def _matrix(self, patterns):
+        """The SBAIJ matrix the Hessian goes into (the problem's layout)."""
+        p = self.problem
+        return p.layout.create_matrix(p.node_groups(patterns), symmetric=True)
+
+    def _view(self):
+        """What the Hessian is assembled through (None: H itself, Dirichlet rows masked)."""
+        return None
 
     def _build(self, patterns):
         p = self.problem
         self.destroy()
-        self.H = p.layout.create_matrix(p.node_groups(patterns), symmetric=True)
+        self.H = self._matrix(patterns)
         pc = PETSc.PC().create(comm=p.layout.comm)
-        pc.setOptionsPrefix("stability_")
+        pc.setOptionsPrefix(self.prefix)
         pc.setType(PETSc.PC.Type.CHOLESKY)
         pc.setFactorSolverType("mumps")
-        option_default("stability_mat_mumps_icntl_13", "1")
-        mumps_fill_room(p, "stability_")
+        option_default(self.prefix + "mat_mumps_icntl_13", "1")
+        mumps_fill_room(p, self.prefix)
         pc.setFromOptions()
         self.pc, self.patterns = pc, patterns
         self.builds += 1
@@ -71,7 +81,9 @@ class Inertia:
             patterns = p.patterns_at()
         if not same_patterns(patterns, self.patterns):
             self._build(patterns)
-        p.jacobian(None, p.state.X, self.H, self.H, symmetric=True)
+        p.jacobian(None, p.state.X, self.H, self.H, symmetric=True, view=self._view())
+        if self.diagonal is not None:
+            self.diagonal.destroy()
         self.diagonal = self.H.getDiagonal()
         return self.H
 
