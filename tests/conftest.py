@@ -115,6 +115,20 @@ def place(run, x, t):
         a[:, 3:6] = 0.0
 
 
+def coiled_rollup(comm=None, outdir=None, **extra):
+    """The rollup_contact rod (12 elements) with no load, put on a circle of 1.05 turns whose
+    free end overlaps the clamped start by a fraction of the contact diameter (``extra``: more
+    options)."""
+    run = run_case("rollup_contact", comm=comm, outdir=outdir,
+                   **{**dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0"), **extra})
+    m = run.mesh
+    R = m.length / (2 * np.pi * 1.05)
+    ph = m.s_nodes / R
+    x = np.stack([R * np.sin(ph), R * (1 - np.cos(ph)) - 0.12 * m.s_nodes / m.length, 0 * ph], 1)
+    place(run, x, np.stack([np.cos(ph), np.sin(ph), 0 * ph], 1))
+    return run
+
+
 def tangent_against_finite_differences(p, J, seed, h=1e-7):
     """Central differences of the assembled residual of problem p at its state along a random
     direction v (zero on the constrained rows): returns (fd, J v, v) as PETSc vectors."""

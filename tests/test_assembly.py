@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from conftest import build_run, place, run_case
+from conftest import build_run, coiled_rollup
 from rodsnes.model import partition
 from rodsnes.model.partition import NDOF, DirichletRows, add_position_blocks
 
@@ -20,18 +20,6 @@ def perturbed(run, lam=1.0, seed=0, size=1e-3):
     with p.state.X as a:
         a += size * rng.normal(size=a.shape)
     p.lam = lam
-    return run
-
-
-def coiled_rollup(**extra):
-    """rollup_contact's rod (12 elements) on a circle of 1.05 turns whose free end presses
-    into the clamped start (as tests/test_contact.py)."""
-    run = run_case("rollup_contact", rod_nelem=12, load_steps=1, load_end_moment="0,0,0", **extra)
-    m = run.mesh
-    R = m.length / (2 * np.pi * 1.05)
-    ph = m.s_nodes / R
-    x = np.stack([R * np.sin(ph), R * (1 - np.cos(ph)) - 0.12 * m.s_nodes / m.length, 0 * ph], 1)
-    place(run, x, np.stack([np.cos(ph), np.sin(ph), 0 * ph], 1))
     return run
 
 

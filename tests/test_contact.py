@@ -6,23 +6,10 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from conftest import natural_residuals, place, run_case, tangent_against_finite_differences
+from conftest import (coiled_rollup as coiled, natural_residuals, run_case,
+                      tangent_against_finite_differences)
 from rodsnes.contact import search
 from rodsnes.model.partition import NDOF
-
-SETUP = dict(rod_nelem=12, load_steps=1, load_end_moment="0,0,0")
-
-
-def coiled(comm=None, outdir=None, **extra):
-    """The rollup_contact rod with no load, then put on a circle of 1.05 turns whose free end
-    overlaps the clamped start by a fraction of the contact diameter (``extra``: more options)."""
-    run = run_case("rollup_contact", comm=comm, outdir=outdir, **{**SETUP, **extra})
-    m = run.mesh
-    R = m.length / (2 * np.pi * 1.05)
-    ph = m.s_nodes / R
-    x = np.stack([R * np.sin(ph), R * (1 - np.cos(ph)) - 0.12 * m.s_nodes / m.length, 0 * ph], 1)
-    place(run, x, np.stack([np.cos(ph), np.sin(ph), 0 * ph], 1))
-    return run
 
 
 @pytest.mark.mpi
@@ -155,7 +142,7 @@ def test_newton_step_may_not_raise_the_energy():
     constrained dof, and for loads without a potential (tests/test_relax.py: follower force)."""
     run = coiled()
     p, c = run.problem, run.contact
-    assert p.energy_descent                    # no end moment here (SETUP): nothing without a potential
+    assert p.energy_descent                    # no end moment here (coiled_rollup): nothing without a potential
     X = p.state.X
     p.update(None, 0)
     p.residual(None, X, p.F)
