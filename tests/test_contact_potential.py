@@ -394,6 +394,18 @@ def test_rollup_contact_solves_and_newton_converges_fast():
     assert h[1] < 1e-6 * h[0] and h[2] <= 100 * h[1] ** 2 and h[3] <= s.floor, h
 
 
+def evaluation(X, p, closed, L, eps, mu, reach, own, onset=None):
+    """(rod, pairs, the arguments of PotentialKernel.evaluate) of a kernel_states() state: the
+    candidate pairs of its own elements (``own``; None: all)."""
+    rod = potential_rod(X, p, closed, L, eps, mu, reach=reach, onset=onset)
+    pairs = rod.pairs(X)
+    ids = rod.ids
+    if own is not None:
+        pairs = pairs[np.isin(pairs[:, 0], own)]
+        ids = own
+    return rod, pairs, (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+
+
 def kernel_states():
     """(name, rod, own elements or None) for the compiled-against-numpy comparison: the
     plectoneme's line contact and end loop, dense random coils of orders 1-4, open and closed
@@ -440,13 +452,7 @@ def test_compiled_kernel_equals_the_numpy_path(onset):
     from rodsnes.contact import potential_compiled
     assert potential_compiled.available(), "the compiled potential kernel is not built"
     for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
-        rod = potential_rod(X, p, closed, L, eps, mu, reach=reach, onset=onset)
-        pairs = rod.pairs(X)
-        ids = rod.ids
-        if own is not None:
-            pairs = pairs[np.isin(pairs[:, 0], own)]
-            ids = own
-        args = (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+        rod, pairs, args = evaluation(X, p, closed, L, eps, mu, reach, own, onset=onset)
         kern = {}
         for kind in ("numpy", "compiled"):
             kern[kind] = PotentialKernel(p, rod.k.nqc, eps, mu, rod.delta, L, rod.nelem, closed,
@@ -484,13 +490,7 @@ def test_chunks_of_the_pass_over_the_near_pairs_do_not_change_the_result(kind):
         from rodsnes.contact import potential_compiled
         assert potential_compiled.available(), "the compiled potential kernel is not built"
     for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
-        rod = potential_rod(X, p, closed, L, eps, mu, reach=reach)
-        pairs = rod.pairs(X)
-        ids = rod.ids
-        if own is not None:
-            pairs = pairs[np.isin(pairs[:, 0], own)]
-            ids = own
-        args = (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+        rod, pairs, args = evaluation(X, p, closed, L, eps, mu, reach, own)
         out = {}
         for chunk in (1, 7, None):
             k = PotentialKernel(p, rod.k.nqc, eps, mu, rod.delta, L, rod.nelem, closed, kernel=kind)
@@ -527,13 +527,7 @@ def test_pattern_pairs_are_the_pairs_with_a_couple_of_points_within_reach():
     contact (the pattern's default reach, 2 eps)."""
     from rodsnes.contact.search import capsules_within, element_capsules
     for name, X, p, closed, L, eps, mu, reach, own in kernel_states():
-        rod = potential_rod(X, p, closed, L, eps, mu, reach=reach)
-        pairs = rod.pairs(X)
-        ids = rod.ids
-        if own is not None:
-            pairs = pairs[np.isin(pairs[:, 0], own)]
-            ids = own
-        args = (ids, X[rod.conn[ids]], rod.ids, X[rod.conn], pairs)
+        rod, pairs, args = evaluation(X, p, closed, L, eps, mu, reach, own)
         k = {kind: PotentialKernel(p, rod.k.nqc, eps, mu, rod.delta, L, rod.nelem, closed,
                                    kernel=kind) for kind in ("numpy", "compiled")}
         rows = k["numpy"].evaluate(*args, tangent=False, report=False)["active"]
