@@ -27,3 +27,11 @@ def open_library(module):
         return ctypes.CDLL(path)
     except OSError:
         return None
+
+
+def load(module, declare):
+    """declare(lib): the ctypes functions, with their argument types, of the built extension
+    ``module``; False when it is not built or does not load (the caller then uses its numpy
+    path).  The kernels' modules cache it (functools.cache on their _load)."""
+    lib = open_library(module)
+    return False if lib is None else declare(lib)

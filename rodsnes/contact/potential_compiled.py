@@ -22,12 +22,11 @@ C entry points (int64 indices, C-contiguous float64 arrays):
         two_eps, a_s, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
 """
 import ctypes
+import functools
 
 import numpy as np
 
 from rodsnes import compiled
-
-_LIB = None             # (residual, tangent) ctypes functions, False once loading failed
 
 
 def library_path():
@@ -35,27 +34,28 @@ def library_path():
     return compiled.library_path("rodsnes.contact._potential_kernel")
 
 
+def _declare(lib):
+    """(residual, tangent) ctypes functions of the built library."""
+    f64 = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
+    i64 = np.ctypeslib.ndpointer(dtype=np.int64, flags="C_CONTIGUOUS")
+    n, x = ctypes.c_int64, ctypes.c_double
+    res = lib.rodsnes_potential_residual
+    res.argtypes = [ctypes.c_int, n, n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x,
+                    ctypes.c_int,
+                    f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
+                    f64, f64, f64]
+    res.restype = n
+    tan = lib.rodsnes_potential_tangent
+    tan.argtypes = [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, x, x,
+                    i64, i64, i64, f64, n, f64, f64]
+    tan.restype = n
+    return res, tan
+
+
+@functools.lru_cache(maxsize=None)
 def _load():
-    global _LIB
-    if _LIB is None:
-        _LIB = False
-        lib = compiled.open_library("rodsnes.contact._potential_kernel")
-        if lib is not None:
-            f64 = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
-            i64 = np.ctypeslib.ndpointer(dtype=np.int64, flags="C_CONTIGUOUS")
-            n, x = ctypes.c_int64, ctypes.c_double
-            res = lib.rodsnes_potential_residual
-            res.argtypes = [ctypes.c_int, n, n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x,
-                            ctypes.c_int,
-                            f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
-                            f64, f64, f64]
-            res.restype = n
-            tan = lib.rodsnes_potential_tangent
-            tan.argtypes = [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, x, x,
-                            i64, i64, i64, f64, n, f64, f64]
-            tan.restype = n
-            _LIB = (res, tan)
-    return _LIB
+    """(residual, tangent), or False when the library is not built or does not load."""
+    return compiled.load("rodsnes.contact._potential_kernel", _declare)
 
 
 def available():

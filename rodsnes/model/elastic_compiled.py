@@ -21,13 +21,13 @@ C entry point:
                               double *energy, double *vec, double *H);
 """
 import ctypes
+import functools
 
 import numpy as np
 
 from rodsnes import compiled
 
 _MAX_NODES = 8          # MAXNN in _elastic_kernel.c
-_LIB = None             # ctypes function, False once loading failed
 
 
 def _optional(ptr):
@@ -44,20 +44,21 @@ def library_path():
     return compiled.library_path("rodsnes.model._elastic_kernel")
 
 
+def _declare(lib):
+    """The ctypes function of the built library, with its argument types."""
+    arr = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
+    fn = lib.rodsnes_elastic_terms
+    c_int, c_dbl = ctypes.c_int, ctypes.c_double
+    fn.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
+                   arr, arr, arr, c_int, c_int, arr, arr, _optional(arr)]
+    fn.restype = c_int
+    return fn
+
+
+@functools.lru_cache(maxsize=None)
 def _load():
-    global _LIB
-    if _LIB is None:
-        _LIB = False
-        lib = compiled.open_library("rodsnes.model._elastic_kernel")
-        if lib is not None:
-            arr = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
-            fn = lib.rodsnes_elastic_terms
-            c_int, c_dbl = ctypes.c_int, ctypes.c_double
-            fn.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
-                           arr, arr, arr, c_int, c_int, arr, arr, _optional(arr)]
-            fn.restype = c_int
-            _LIB = fn
-    return _LIB
+    """The kernel's ctypes function, or False when the library is not built or does not load."""
+    return compiled.load("rodsnes.model._elastic_kernel", _declare)
 
 
 def available():
