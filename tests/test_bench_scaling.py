@@ -119,11 +119,11 @@ def test_lu_with_much_fill_hands_over_to_mumps():
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                     rod_error_estimate="off")
     pc = coil.solver.snes.getKSP().getPC()
-    assert coil.ok and pc.getFactorSolverType() == "mumps" and not coil.solver.lu_auto
+    assert coil.ok and pc.getFactorSolverType() == "mumps" and not coil.solver.lu.auto
     chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()
-    assert pc.getFactorSolverType() == "petsc" and chain.solver.lu_auto
+    assert pc.getFactorSolverType() == "petsc" and chain.solver.lu.auto
     assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS    # as predicted
     chosen = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                       rod_error_estimate="off", pc_factor_mat_solver_type="petsc")

@@ -125,3 +125,20 @@ def use_mumps_when_filled(ksp, problem):
     pc.setFactorSolverType("mumps")
     pc.setOperators(*ops)
     return True
+
+
+class LUChoice:
+    """The LU package of one KSP while it is rodsnes' choice (``auto``, lu_defaults): every new
+    pattern's matrix is checked once (use_mumps_when_filled); after a hand-over to MUMPS, or
+    when the user chose, nothing more is checked."""
+
+    def __init__(self, auto):
+        self.auto = bool(auto)
+        self._checked = None            # the matrix whose pattern was checked
+
+    def check(self, ksp, problem):
+        """Before the factorisation of the problem's Jacobian by ``ksp``.  Collective."""
+        if self.auto and self._checked is not problem.J:
+            self._checked = problem.J
+            if use_mumps_when_filled(ksp, problem):
+                self.auto = False       # contact couples much of the rod: MUMPS from now

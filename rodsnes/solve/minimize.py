@@ -45,7 +45,7 @@ from petsc4py import PETSc
 from rodsnes.model.partition import NDOF
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
-from rodsnes.solve.linear import direct_solver_defaults, use_mumps_when_filled
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults
 from rodsnes.solve.stability import Inertia
 from rodsnes.model.mesh import lumped_weights
 
@@ -105,8 +105,7 @@ class EnergyMinimizer:
         self._trial = None          # (E, depth) of the line search's last evaluated trial
         self.last = None
         self.ksp = None
-        self.lu_auto = False        # the LU package is rodsnes' choice (linear.use_mumps_when_filled)
-        self._fill_checked = None   # the matrix whose pattern fill was checked
+        self.lu = None              # linear.LUChoice of the Newton step's KSP
 
     # -- pieces -----------------------------------------------------------------------
     def _metric(self):
@@ -350,14 +349,11 @@ class EnergyMinimizer:
         if ksp is None:
             # the Newton path's linear solver (preonly + LU, solve/linear.py, unless -ksp_type,
             # -pc_type, -pc_factor_mat_solver_type ... say otherwise)
-            self.lu_auto = direct_solver_defaults(p)
+            self.lu = LUChoice(direct_solver_defaults(p))
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
             ksp.setFromOptions()
         ksp.setOperators(p.J)
-        if self.lu_auto and self._fill_checked is not p.J:    # a new pattern: its LU's fill
-            self._fill_checked = p.J
-            if use_mumps_when_filled(ksp, p):
-                self.lu_auto = False           # contact couples much of the rod: MUMPS from now
+        self.lu.check(ksp, p)
         self.factorizations += 1
         try:
             ksp.solve(g, d)

@@ -27,7 +27,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.solve.arclength import Arclength
-from rodsnes.solve.linear import direct_solver_defaults, option_default, use_mumps_when_filled
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, option_default
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.stability import negative_eigenvalues
@@ -55,8 +55,7 @@ class NewtonSolver:
         option_default("snes_atol", "0")
         option_default("snes_stol", "1e-16")
         option_default("snes_max_it", "40")
-        self.lu_auto = direct_solver_defaults(problem)
-        self._fill_checked = None          # the matrix whose pattern fill was checked
+        self.lu = LUChoice(direct_solver_defaults(problem))
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)
@@ -147,11 +146,7 @@ class NewtonSolver:
         """Before every Newton step: the problem's update (the rotations re-centred), and for a
         new pattern whose LU fills much, MUMPS from now (linear.py)."""
         self.problem.update(snes, its)
-        p = self.problem
-        if self.lu_auto and self._fill_checked is not p.J:    # a new pattern: its LU's fill
-            self._fill_checked = p.J
-            if use_mumps_when_filled(snes.getKSP(), p):
-                self.lu_auto = False           # contact couples much of the rod
+        self.lu.check(snes.getKSP(), self.problem)
 
     def solve_at(self, lam):
         """Solve at load factor lam from the current state; returns a StepResult."""
