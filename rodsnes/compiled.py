@@ -31,7 +31,12 @@ def open_library(module):
 
 def load(module, declare):
     """declare(lib): the ctypes functions, with their argument types, of the built extension
-    ``module``; False when it is not built or does not load (the caller then uses its numpy
-    path).  The kernels' modules cache it (functools.cache on their _load)."""
+    ``module``; False when it is not built, does not load or lacks a declared function (built
+    from an older source; the caller then uses its numpy path).  The kernels' modules cache it (functools.cache on their _load)."""
     lib = open_library(module)
-    return False if lib is None else declare(lib)
+    if lib is None:
+        return False
+    try:
+        return declare(lib)
+    except AttributeError:          # a library built from an older source: rebuild (make install)
+        return False

@@ -75,6 +75,12 @@ def test_compiled_equals_reference(p, nq, bound):
     # and the batched numpy kernel, on the consistent tangent
     assert_same(elastic_compiled.element_terms(rod, qe, xe),
                 rod.element_terms_numpy(qe, xe), f"p={p} nq={nq} bound={bound} vs numpy")
+    # the energy alone (the line searches'), per element and summed as ElasticRod.energy does
+    en = elastic_compiled.element_energy(rod, qe, xe)
+    assert np.abs(en - ref[0]).max() <= TOL * np.abs(ref[0]).max(), f"p={p} nq={nq} energy alone"
+    W, _, _ = rod.law(rod.strains(qe, xe), rod.e0)
+    assert rod.kernel == "compiled"
+    assert abs(rod.energy(qe, xe) - np.sum(W @ rod.wJ)) <= TOL * np.sum(np.abs(W @ rod.wJ))
 
 
 def test_sign_of_nodal_quaternions_is_irrelevant():
@@ -118,3 +124,25 @@ def test_no_elements():
     rod.set_reference(np.zeros((0, 3, 6)))
     E, vec, H = elastic_compiled.element_terms(rod, np.zeros((0, 4, 4)), np.zeros((0, 4, 3)))
     assert E.shape == (0,) and vec.shape == (0, 4, 6) and H.shape == (0, 24, 24)
+    assert elastic_compiled.element_energy(rod, np.zeros((0, 4, 4)), np.zeros((0, 4, 3))).shape == (0,)
+    assert rod.energy(np.zeros((0, 4, 4)), np.zeros((0, 4, 3))) == 0.0
+
+
+def test_reused_arrays_give_the_same_terms():
+    """``reuse`` writes into arrays kept on the rod (RodProblem's residual and Jacobian): the
+    same terms as fresh arrays, the same arrays from call to call of one size, new ones when the
+    element count changes."""
+    rng = np.random.default_rng(7)
+    rod, qe, xe = make_rod(3, 4, 30, rng, bound=False)
+    fresh = rod.element_terms(qe, xe)
+    a = rod.element_terms(qe, xe, reuse=True)
+    assert_same(a, fresh, "reused")
+    b = rod.element_terms(qe[::-1], xe[::-1], reuse=True)
+    assert b[2] is a[2] and b[1] is a[1]
+    assert_same(b, rod.element_terms(qe[::-1], xe[::-1]), "reused, other state")
+    r = rod.element_terms(qe, xe, tangent=False, reuse=True)
+    assert r[2] is None and r[1] is a[1]
+    c = rod.element_terms(qe[:10], xe[:10], rod.e0[:10], reuse=True)
+    assert c[2].shape == (10, 24, 24)
+    with pytest.raises(ValueError, match="out does not match"):
+        elastic_compiled.element_terms(rod, qe, xe, out=c)

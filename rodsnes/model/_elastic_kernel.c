@@ -460,3 +460,71 @@ int rodsnes_elastic_terms(int ne, int nn, int nq, const double *N, const double 
     }
     return 0;
 }
+
+/* Energy alone (the line searches' trials): e = Nz / |p|^2 and W at every point, without the
+ * derivatives of the strains.  Same arithmetic for Nz as strain_numerators. */
+static ALWAYS_INLINE double element_energy(const int NN, const Setup *st, const double *qin,
+                                           const double *xin, const double *e0)
+{
+    double q[MAXNN][4];
+    for (int a = 0; a < NN; a++) {
+        const double *qa = qin + 4 * a;
+        const double dot = qa[0] * qin[0] + qa[1] * qin[1] + qa[2] * qin[2] + qa[3] * qin[3];
+        const double sg = (dot < 0.0) ? -1.0 : 1.0;
+        for (int i = 0; i < 4; i++) q[a][i] = sg * qa[i];
+    }
+    double E = 0.0;
+    for (int g = 0; g < st->nq; g++) {
+        const double *N = st->N + g * NN, *dN = st->dN + g * NN;
+        double p[4] = {0, 0, 0, 0}, dp[4] = {0, 0, 0, 0}, dr[3] = {0, 0, 0};
+        for (int a = 0; a < NN; a++) {
+            for (int i = 0; i < 4; i++) {
+                p[i] += N[a] * q[a][i];
+                dp[i] += dN[a] * q[a][i];
+            }
+            for (int i = 0; i < 3; i++) dr[i] += dN[a] * xin[3 * a + i];
+        }
+        const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
+        const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
+        const double pvpv = dot3(pv, pv), s = p0 * p0 - pvpv, inv = 1.0 / (p0 * p0 + pvpv);
+        double Rt[3][3], pxdp[3], e[6], S[6], Cb[4], W;
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                Rt[i][j] = 2.0 * pv[i] * pv[j];
+        for (int i = 0; i < 3; i++) Rt[i][i] += s;
+        Rt[0][1] += 2.0 * p0 * pv[2];  Rt[0][2] -= 2.0 * p0 * pv[1];
+        Rt[1][0] -= 2.0 * p0 * pv[2];  Rt[1][2] += 2.0 * p0 * pv[0];
+        Rt[2][0] += 2.0 * p0 * pv[1];  Rt[2][1] -= 2.0 * p0 * pv[0];
+        cross3(pv, dpv, pxdp);
+        for (int k = 0; k < 3; k++) {
+            e[k] = dot3(Rt[k], dr) * inv;
+            e[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]) * inv;
+        }
+        constitutive_law(st, e, e0 + 6 * g, S, &W, Cb);
+        E += st->wJ[g] * W;
+    }
+    return E;
+}
+
+#define ENERGY_LOOP(NN)                                                                    \
+    for (int e = 0; e < ne; e++)                                                           \
+        energy[e] = element_energy(NN, &st, qe + (long)e * 4 * (NN), xe + (long)e * 3 * (NN), \
+                                   e0 + (long)e * 6 * nq)
+
+/* The energy of every element (ne), arguments as rodsnes_elastic_terms.  Returns 0, or -1. */
+int rodsnes_elastic_energy(int ne, int nn, int nq, const double *N, const double *dN,
+                           const double *wJ, const double *C, int limit, double kappa_max,
+                           double mu_kappa, const double *qe, const double *xe,
+                           const double *e0, double *energy)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
+    switch (nn) {
+    case 2: ENERGY_LOOP(2); break;
+    case 3: ENERGY_LOOP(3); break;
+    case 4: ENERGY_LOOP(4); break;
+    case 5: ENERGY_LOOP(5); break;
+    default: ENERGY_LOOP(nn); break;
+    }
+    return 0;
+}

@@ -281,8 +281,11 @@ class ElasticRod:
         return float(np.sqrt(np.einsum("...i,...i->...", u, u)).max()) if u.size else 0.0
 
     def energy(self, qe, xe, e0=None):
-        """E = sum_e sum_q wJ W(e, e0)."""
+        """E = sum_e sum_q wJ W(e, e0): in C where the compiled kernel is the rod's
+        kernel (the line searches' energy), else in numpy."""
         e0 = self.e0 if e0 is None else e0
+        if self.kernel == "compiled" and len(qe):
+            return float(np.sum(elastic_compiled.element_energy(self, qe, xe, e0)))
         W, _, _ = self.law(self.strains(qe, xe), e0)
         return float(np.sum(W @ self.wJ))
 
@@ -292,9 +295,12 @@ class ElasticRod:
         return self.law(self.strains(qe, xe), e0)[1]
 
     @logged("ElasticKernel")
-    def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False):
+    def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False, reuse=False):
         """Element residuals (ne, p+1, 6) and tangents (ne, 6(p+1), 6(p+1)) in the
         Newton unknowns (r, theta) per node, plus the energy of each element.
+        ``reuse``: the compiled kernel writes into arrays kept on the rod from its last call of
+        the same size (no fresh 46 MB for 10^4 cubic tangents each time; the caller consumes
+        them before the next call: RodProblem's residual and Jacobian).
 
         The residual seen by SNES at a trial increment theta is the spatial moment
         F(theta) = J_l(theta)^{-T} grad f(theta) (f = E o exp chart), so its exact derivative
@@ -303,10 +309,21 @@ class ElasticRod:
         the energy in the exponential chart (for inertia / stability: equal at equilibrium).
         Computed by the kernel chosen at construction (class docstring)."""
         if self.kernel == "compiled":
-            return elastic_compiled.element_terms(self, qe, xe, e0, tangent, symmetric)
+            out = self._workspace(len(qe), tangent) if reuse else None
+            return elastic_compiled.element_terms(self, qe, xe, e0, tangent, symmetric, out=out)
         if self.kernel == "reference":
             return self.element_terms_reference(qe, xe, e0, tangent, symmetric)
         return self.element_terms_numpy(qe, xe, e0, tangent, symmetric)
+
+    def _workspace(self, ne, tangent):
+        """(energy, vec, H or None) arrays kept for ``reuse`` (made anew when ne changes)."""
+        nn = self.p + 1
+        ws = getattr(self, "_ws", None)
+        if ws is None or len(ws[0]) != ne:
+            ws = self._ws = [np.empty(ne), np.empty((ne, nn, 6)), None]
+        if tangent and ws[2] is None:
+            ws[2] = np.empty((ne, 6 * nn, 6 * nn))
+        return ws[0], ws[1], ws[2] if tangent else None
 
     def element_terms_numpy(self, qe, xe, e0=None, tangent=True, symmetric=False):
         """element_terms as batched matrix products over (element x point): the first and

@@ -19,6 +19,8 @@ C entry point:
                               const double *qe, const double *xe, const double *e0,
                               int tangent, int symmetric,
                               double *energy, double *vec, double *H);
+    int rodsnes_elastic_energy(int ne, int nn, int nq, ... the same ..., const double *e0,
+                               double *energy);          (the energy alone: line searches)
 """
 import ctypes
 import functools
@@ -52,7 +54,11 @@ def _declare(lib):
     fn.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
                    arr, arr, arr, c_int, c_int, arr, arr, _optional(arr)]
     fn.restype = c_int
-    return fn
+    en = lib.rodsnes_elastic_energy
+    en.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
+                   arr, arr, arr, arr]
+    en.restype = c_int
+    return fn, en
 
 
 @functools.lru_cache(maxsize=None)
@@ -73,11 +79,9 @@ def _f64(a, shape, name):
     return a
 
 
-def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False):
-    """(energy (ne,), vec (ne, p+1, 6), H (ne, 6(p+1), 6(p+1)) or None) of ElasticRod rod:
-    the same as rod.element_terms(qe, xe, e0, tangent, symmetric), computed in C."""
-    fn = _load()
-    if not fn:
+def _inputs(rod, qe, xe, e0):
+    """The kernel's common arguments (after ne, nn, nq) and (ne, nn, nq)."""
+    if not _load():
         raise RuntimeError("the compiled elastic kernel is not built (run pip install -e .)")
     e0 = rod.e0 if e0 is None else e0
     if e0 is None:
@@ -90,14 +94,40 @@ def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False):
     qe = _f64(qe, (ne, nn, 4), "qe")
     xe = _f64(xe, (ne, nn, 3), "xe")
     e0 = np.ascontiguousarray(np.broadcast_to(np.asarray(e0, dtype=np.float64), (ne, nq, 6)))
-    energy = np.empty(ne)
-    vec = np.empty((ne, nn, 6))
-    H = np.empty((ne, 6 * nn, 6 * nn)) if tangent else None
     limit = rod.kappa_max is not None
-    info = fn(ne, nn, nq, _f64(rod.N, (nq, nn), "N"), _f64(rod.dN, (nq, nn), "dN"),
-              _f64(rod.wJ, (nq,), "wJ"), _f64(rod.C, (6,), "C"), int(limit),
-              float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa),
-              qe, xe, e0, int(bool(tangent)), int(bool(symmetric)), energy, vec, H)
+    args = (_f64(rod.N, (nq, nn), "N"), _f64(rod.dN, (nq, nn), "dN"),
+            _f64(rod.wJ, (nq,), "wJ"), _f64(rod.C, (6,), "C"), int(limit),
+            float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa), qe, xe, e0)
+    return args, (ne, nn, nq)
+
+
+def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None):
+    """(energy (ne,), vec (ne, p+1, 6), H (ne, 6(p+1), 6(p+1)) or None) of ElasticRod rod:
+    the same as rod.element_terms(qe, xe, e0, tangent, symmetric), computed in C; ``out``:
+    (energy, vec, H or None) arrays of those shapes to write into."""
+    args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
+    if out is not None:
+        energy, vec, H = out
+        if energy.shape != (ne,) or vec.shape != (ne, nn, 6) or \
+                (tangent and (H is None or H.shape != (ne, 6 * nn, 6 * nn))):
+            raise ValueError("out does not match the elements")
+        H = H if tangent else None
+    else:
+        energy = np.empty(ne)
+        vec = np.empty((ne, nn, 6))
+        H = np.empty((ne, 6 * nn, 6 * nn)) if tangent else None
+    info = _load()[0](ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)), energy, vec, H)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_terms failed ({info})")
     return energy, vec, H
+
+
+def element_energy(rod, qe, xe, e0=None):
+    """The energy of every element (ne,) of ElasticRod rod, in C without the strains'
+    derivatives: the same as rod.element_terms(...)[0] to round-off."""
+    args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
+    energy = np.empty(ne)
+    info = _load()[1](ne, nn, nq, *args, energy)
+    if info != 0:
+        raise RuntimeError(f"rodsnes_elastic_energy failed ({info})")
+    return energy

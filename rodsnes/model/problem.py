@@ -441,7 +441,8 @@ class RodProblem:
         """The residual at X into F: the rod's, then every term's (``terms``: these only, e.g.
         load_terms), Dirichlet rows x - target."""
         r, q = self.state.local_config(X)
-        energy, vec, _ = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=False)
+        energy, vec, _ = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=False,
+                                                    reuse=True)
         Floc = self._scatter @ vec.reshape(-1, NDOF)        # sum of element rows per local node
         for t in (self.terms if terms is None else terms):
             t.add_residual(self.lam, r, q, Floc)
@@ -466,7 +467,7 @@ class RodProblem:
         node, masked as DirichletRows does)."""
         r, q = self.state.local_config(X)
         _, _, H = self.elastic.element_terms(q[self.lconn], r[self.lconn], tangent=True,
-                                             symmetric=symmetric)
+                                             symmetric=symmetric, reuse=True)
         P.zeroEntries()
         T = view if view is not None else DirichletRows(P, self.constraints.block_mask)
         g = self.layout.gconn.astype(PETSc.IntType)

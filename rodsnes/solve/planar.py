@@ -83,19 +83,30 @@ class ComponentView:
         rows = np.asarray(constraints.rows_global, dtype=np.int64)
         keep = where[rows % NDOF] >= 0
         self.rows = 3 * (rows[keep] // NDOF) + where[rows[keep] % NDOF]
+        self._cuts = {}
 
     def setValuesBlockedRCV(self, R, C, V, addv=None):
         R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
         kr, kc = R2.shape[1], C2.shape[1]
-        c = self.comps
-        V = np.asarray(V).reshape(len(R2), kr, NDOF, kc, NDOF)[:, :, c][:, :, :, :, c]
-        V = np.ascontiguousarray(V.reshape(len(R2), 3 * kr, 3 * kc))
+        # the (comps, comps) entries of every block by one gather of the flattened blocks
+        V = np.asarray(V).reshape(len(R2), NDOF * kr * NDOF * kc)
+        V = V[:, self._cut(kr, kc)].reshape(len(R2), 3 * kr, 3 * kc)
         hit = np.flatnonzero(self.touched[R2].any(axis=1) | self.touched[C2].any(axis=1))
         if len(hit):
             keep_r = ~self.mask[R2[hit]].reshape(len(hit), -1)
             keep_c = ~self.mask[C2[hit]].reshape(len(hit), -1)
             V[hit] *= keep_r[:, :, None] & keep_c[:, None, :]
         self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+
+    def _cut(self, kr, kc):
+        """Flat indices of the (comps, comps) entries in a (NDOF kr, NDOF kc) block, row by row
+        (kept per block shape)."""
+        key = (kr, kc)
+        if key not in self._cuts:
+            r = (NDOF * np.arange(kr)[:, None] + self.comps[None, :]).ravel()
+            c = (NDOF * np.arange(kc)[:, None] + self.comps[None, :]).ravel()
+            self._cuts[key] = (NDOF * kc * r[:, None] + c[None, :]).ravel()
+        return self._cuts[key]
 
     def finish(self, rows_global=None):
         """Before assembly: 1 on the diagonal of this rank's constrained rows of the block."""
