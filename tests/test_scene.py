@@ -505,6 +505,17 @@ def test_petsc_and_rodsnes_options_not_flagged(opts):
     check_unknown_options()   # default: global database
 
 
+def test_options_of_rodsnes_own_solvers_go_to_petsc(opts):
+    """-stability_ (the inertia's LDL^T), -estimate_, -planar_ and -planar_stability_ prefix
+    PETSc's options of rodsnes' own solvers: accepted when a PETSc option follows, refused
+    otherwise (a misspelt rodsnes option such as -stability_x is not left to PETSc)."""
+    check_unknown_options(opts({"stability_mat_mumps_icntl_7": "5", "estimate_snes_max_it": "50",
+                                "planar_pc_factor_mat_solver_type": "mumps",
+                                "planar_stability_mat_mumps_icntl_14": "80", "stability": None}))
+    for bad in ("stability_x", "estimate_foo", "planar_bogus", "planar_stability_q"):
+        assert "unknown option -" + bad in str(_unknown(opts, {bad: "1"}))
+
+
 # --- help --------------------------------------------------------------------------
 def test_help_text_lists_every_option_once():
     text = help_text()

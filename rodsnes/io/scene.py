@@ -363,10 +363,23 @@ PETSC_PREFIXES = (
     "memory_", "saws", "python", "use_gpu", "device", "citations", "skip_petscrc", "history",
     "viewer", "tao_", "ts_", "is_", "ao_", "pf_", "random_", "matload_", "matmatmult_",
     "matptap_", "bv_", "eps_", "st_", "svd_", "nep_", "pep_", "mfn_", "ds_", "fn_", "rg_",
-    "sub_", "fieldsplit_", "mg_", "redundant_", "stability_", "estimate_", "planar_")
-"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc (stability_: the
-inertia count's LDL^T, estimate_: the error estimate's SNES, planar_: the planar run's in-plane
-solves)."""
+    "sub_", "fieldsplit_", "mg_", "redundant_")
+"""Options with these prefixes belong to PETSc/SLEPc and are left to PETSc."""
+
+SOLVER_PREFIXES = ("planar_stability_", "stability_", "estimate_", "planar_")
+"""Options prefixes of rodsnes' own PETSc solvers (stability_: the inertia count's LDL^T,
+estimate_: the error estimate's SNES, planar_: the planar run's in-plane solves,
+planar_stability_: its LDL^T): -stability_mat_mumps_icntl_7 5 is PETSc's option
+-mat_mumps_icntl_7 of that solver."""
+
+
+def is_petsc_option(name):
+    """Whether option ``name`` (lower case, no dash) is left to PETSc: a PETSc prefix, alone or
+    after one of rodsnes' solver prefixes, and no rodsnes prefix otherwise."""
+    for pre in SOLVER_PREFIXES:
+        if name.startswith(pre):
+            return name[len(pre):].startswith(PETSC_PREFIXES)
+    return not name.startswith(RODSNES_PREFIXES) and name.startswith(PETSC_PREFIXES)
 
 
 # ----------------------------------------------------------------------------
@@ -1195,7 +1208,7 @@ def check_unknown_options(options=None):
             msgs.append("-%s was retired with %s" % (low, RETIRED[low]))
             bad.append("-" + name)
             continue
-        if not low.startswith(RODSNES_PREFIXES) and low.startswith(PETSC_PREFIXES):
+        if is_petsc_option(low):
             continue
         close = _suggest(low.lstrip("-"), list(known))
         if close:
