@@ -132,3 +132,17 @@ def test_so3_round_trips():
     from scipy.linalg import expm
     for t in th[:5]:
         assert np.allclose(expm(so3.hat(t)), so3.rot(so3.qexp(t)), atol=1e-12)
+
+
+def test_quaternion_product_is_the_product_of_rotations():
+    """R(a * b) = R(a) R(b) for unit quaternions, batched and broadcast (one against many), and
+    qexp near 0 (its series branch) agrees with the rotation matrix series."""
+    a = so3.qexp(RNG.normal(size=(40, 3)))
+    b = so3.qexp(RNG.normal(size=(40, 3)))
+    assert np.allclose(so3.rot(so3.qmul(a, b)), so3.rot(a) @ so3.rot(b), atol=1e-13)
+    one = so3.qmul(a[3], b)
+    assert one.shape == (40, 4)
+    assert np.allclose(so3.rot(one), so3.rot(a[3]) @ so3.rot(b), atol=1e-13)
+    assert np.allclose(so3.qmul(a[:, None, :], b[None, :5, :]).shape, (40, 5, 4))
+    tiny = np.array([[3e-9, -1e-9, 2e-9], [0.0, 0.0, 0.0]])
+    assert np.allclose(so3.rot(so3.qexp(tiny)), np.eye(3) + so3.hat(tiny), atol=1e-16)
