@@ -299,6 +299,9 @@ class Run:
         parts.append(self.model() + " (in-plane unknowns only)" if self.plane is not None
                      else "3-D (" + self.planar_why + ")")
         parts += [t.describe() for t in self.problem.terms if t.describe()]
+        if rod.kernel == "auto" and self.problem.elastic.kernel != "compiled":
+            parts.append("elastic kernel in numpy, 10-20 x slower: the compiled one is not built "
+                         "or older than its source (make install)")
         return "; ".join(parts)
 
     def execute(self):

@@ -146,3 +146,20 @@ def test_reused_arrays_give_the_same_terms():
     assert c[2].shape == (10, 24, 24)
     with pytest.raises(ValueError, match="out does not match"):
         elastic_compiled.element_terms(rod, qe, xe, out=c)
+
+
+def test_a_library_older_than_its_source_falls_back_and_the_run_says_so(monkeypatch):
+    """A built library that lacks a function its module declares (built from an older source)
+    does not load: the numpy kernel runs, and the run's first line says why and what to do."""
+    from rodsnes import compiled
+    from conftest import build_run
+
+    def declare(lib):
+        return lib.no_such_function_in_this_library
+    assert compiled.load("rodsnes.model._elastic_kernel", declare) is False
+    monkeypatch.setattr(elastic, "compiled_available", lambda: False)
+    run = build_run("mattiasson")
+    assert run.problem.elastic.kernel == "numpy"
+    assert "elastic kernel in numpy" in run.header() and "make install" in run.header()
+    monkeypatch.undo()
+    assert "elastic kernel" not in build_run("mattiasson").header()
