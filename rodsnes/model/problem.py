@@ -91,7 +91,10 @@ class RodState:
     def local_config(self, X=None):
         """Positions (n_local,3) and rotations q (n_local,4) at the vector X (default: state)."""
         xl = self.layout.to_local(self.X if X is None else X)
-        return xl[:, 0:3], so3.qmul(so3.qexp(xl[:, 3:6]), self.q_ref)
+        th = xl[:, 3:6]
+        if not th.any():            # at a recentred iterate: exp(0) q_ref = q_ref, bit for bit
+            return xl[:, 0:3], self.q_ref.copy()
+        return xl[:, 0:3], so3.qmul(so3.qexp(th), self.q_ref)
 
 
 class Constraints:
