@@ -166,3 +166,9 @@ def _fresh_options():
     clear_options()
     yield
     clear_options()
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked slow first (in their files' order), then the rest: under pytest-xdist
+    the longest tests start at once instead of last, when one worker would run them alone."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
