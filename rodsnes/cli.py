@@ -395,7 +395,7 @@ def _closest(word, names):
 def check_newton_linear_solver(comm):
     """Set up the Newton path's linear solver as the options make it (NewtonSolver's defaults
     preonly + LU, solve/linear.py, then the options database) on a small matrix of the Jacobian's type
-    (BAIJ, 6 x 6 blocks, two per rank): a KSP, PC or factorisation package that does not exist
+    (BAIJ, 6 x 6 blocks, or -mat_type's; two blocks per rank): a KSP, PC or factorisation package that does not exist
     or cannot factor rodsnes' matrices raises its PETSc.Error here, before the Run is built and
     writes anything, instead of failing every load step.  Collective."""
     from petsc4py import PETSc
@@ -403,7 +403,8 @@ def check_newton_linear_solver(comm):
     A = PETSc.Mat().create(comm=comm)
     A.setOptionsPrefix("rodsnes_solver_check_")         # no -mat_view of this matrix
     A.setSizes(((2 * ndof, None), (2 * ndof, None)), bsize=ndof)
-    A.setType(PETSc.Mat.Type.BAIJ)
+    # the Jacobian's type: BAIJ, or what -mat_type makes it (partition.Layout.create_matrix)
+    A.setType(PETSc.Options().getString("mat_type", PETSc.Mat.Type.BAIJ))
     A.setPreallocationNNZ(ndof)
     lo, hi = A.getOwnershipRange()
     for i in range(lo, hi):

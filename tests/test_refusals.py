@@ -494,3 +494,22 @@ def test_an_interrupted_run_says_so(tmp_path, sig):
     assert s["last_step"] == last["step"] >= 3
     assert f"({last['step']}, load {last['attrs']['load']:.6f})" in s["failure"]
     assert f"-restart {d}" in s["failure"]
+
+
+def test_the_solver_check_uses_the_jacobians_mat_type():
+    """-mat_type aij makes the Jacobian AIJ (partition.Layout.create_matrix), which packages
+    that cannot take BAIJ factor: the set-up check builds its matrix of that type, so
+    -mat_type aij -pc_factor_mat_solver_type superlu is not refused; without -mat_type it is."""
+    from petsc4py import PETSc
+
+    from rodsnes.cli import check_newton_linear_solver
+    opts = PETSc.Options()
+    opts["pc_factor_mat_solver_type"] = "superlu"
+    try:
+        with pytest.raises(PETSc.Error):
+            check_newton_linear_solver(PETSc.COMM_SELF)
+        opts["mat_type"] = "aij"
+        check_newton_linear_solver(PETSc.COMM_SELF)
+    finally:
+        for name in ("pc_factor_mat_solver_type", "mat_type"):
+            opts.delValue(name)
