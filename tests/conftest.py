@@ -169,6 +169,11 @@ def _fresh_options():
 
 
 def pytest_collection_modifyitems(config, items):
-    """The tests marked slow first (in their files' order), then the rest: under pytest-xdist
-    the longest tests start at once instead of last, when one worker would run them alone."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """Files with more tests marked slow first, each file's tests together and in their order
+    (module fixtures are made once): under pytest-xdist (--dist loadfile) the longest files
+    start at once instead of last, when one worker would run them alone."""
+    slow = {}
+    for item in items:
+        slow[item.fspath] = slow.get(item.fspath, 0) + (item.get_closest_marker("slow") is not None)
+    first = {f: i for i, f in enumerate(dict.fromkeys(item.fspath for item in items))}
+    items.sort(key=lambda item: (-slow[item.fspath], first[item.fspath]))
