@@ -17,29 +17,16 @@ on an otherwise idle machine, and say which.
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 
+from bench_scaling import machine     # '<cpu model>, <n> cores' (tools/, beside this file)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 COLUMNS = ("case", "path", "load steps", "Newton iterations", "wall s", "stable at every step",
            "end")
-
-
-def machine():
-    """CPU model (from /proc/cpuinfo where there is one) and core count."""
-    model = platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    model = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} cores"
 
 
 def case_names(cases_dir):
