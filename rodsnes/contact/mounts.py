@@ -108,7 +108,7 @@ class SupportTerm:
         nodes and the end node.  Collective."""
         k = self.kernel
         X = r_loc[self.lconn]                                        # (no, p+1, 3)
-        xq = np.einsum("qa,eac->eqc", k.Nq, X)
+        xq = np.matmul(k.Nq, X)                                      # (no, nqc, 3)
         p_end = self.end_position(r_loc)
         no, n1 = X.shape[0], X.shape[1]
         out = {"energy": 0.0, "vec": np.zeros((no, n1, 3)), "end_force": np.zeros(3),
@@ -119,10 +119,13 @@ class SupportTerm:
             if not no or not m.any():
                 out["gap"].append(np.full((no, k.nqc), -np.inf))
                 continue
-            energy, g, grad, _ = penalty(xq[m], self.wds[m], p, e, k.eps, k.mu, hessian=False)
             gap = np.full((no, k.nqc), -np.inf)
-            gap[m] = g
+            x_m = xq[m]
+            gap[m] = k.eps - half_line_distance(x_m, p, e, projector=False)[0]
             out["gap"].append(gap)
+            if not (gap > 0.0).any():            # no point presses into this mount: no force
+                continue
+            energy, g, grad, _ = penalty(x_m, self.wds[m], p, e, k.eps, k.mu, hessian=False)
             out["energy"] += energy
             G = np.zeros((no, k.nqc, 3))
             G[m] = grad
