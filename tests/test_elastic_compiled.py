@@ -163,3 +163,38 @@ def test_a_library_older_than_its_source_falls_back_and_the_run_says_so(monkeypa
     assert "elastic kernel in numpy" in run.header() and "make install" in run.header()
     monkeypatch.undo()
     assert "elastic kernel" not in build_run("mattiasson").header()
+
+
+def test_foreign_calls_check_arrays_before_the_call_and_let_signals_through():
+    """compiled.Foreign turns arrays into addresses in Python, before the C call: a wrong dtype
+    or layout is a TypeError, and an exception raised meanwhile (the Interrupted of a SIGINT)
+    reaches the caller as itself; with numpy's ndpointer argtypes that work ran inside ctypes'
+    argument conversion and the interrupt came out as ctypes.ArgumentError, a traceback
+    instead of the interrupted run's exit (tests/test_refusals.py::test_an_interrupted_run_says_so,
+    an intermittent failure)."""
+    import ctypes
+
+    from rodsnes import compiled
+    energy = elastic_compiled._load()[1]
+    rng = np.random.default_rng(2)
+    rod, qe, xe = make_rod(2, 3, 5, rng, bound=False)
+    args, (ne, nn, nq) = elastic_compiled._inputs(rod, qe, xe, None)
+    out = np.empty(ne)
+    assert energy(ne, nn, nq, *args, out) == 0
+    assert np.allclose(out, rod.element_terms_reference(qe, xe)[0], rtol=1e-12)
+    with pytest.raises(TypeError, match="C-contiguous float64"):
+        energy(ne, nn, nq, *args, np.empty(ne, dtype=np.float32))
+    with pytest.raises(TypeError, match="C-contiguous float64"):
+        energy(ne, nn, nq, *args, np.empty((ne, 2))[:, 0])
+
+    class Interrupted(KeyboardInterrupt):
+        pass
+
+    class Signalled(np.ndarray):
+        @property
+        def __array_interface__(self):
+            raise Interrupted(2)
+
+    with pytest.raises(Interrupted):
+        energy(ne, nn, nq, *args, np.empty(ne).view(Signalled))
+    assert not issubclass(Interrupted, ctypes.ArgumentError)

@@ -35,20 +35,18 @@ def library_path():
 
 
 def _declare(lib):
-    """(residual, tangent) ctypes functions of the built library."""
-    f64 = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
-    i64 = np.ctypeslib.ndpointer(dtype=np.int64, flags="C_CONTIGUOUS")
+    """(residual, tangent): the C functions of the built library with their signatures
+    (compiled.Foreign)."""
+    f64, i64 = compiled.F64, compiled.I64
     n, x = ctypes.c_int64, ctypes.c_double
-    res = lib.rodsnes_potential_residual
-    res.argtypes = [ctypes.c_int, n, n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x,
-                    ctypes.c_int,
-                    f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
-                    f64, f64, f64]
-    res.restype = n
-    tan = lib.rodsnes_potential_tangent
-    tan.argtypes = [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, x, x,
-                    i64, i64, i64, f64, n, f64, f64]
-    tan.restype = n
+    res = compiled.Foreign(lib.rodsnes_potential_residual,
+                           [ctypes.c_int, n, n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x,
+                            ctypes.c_int,
+                            f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
+                            f64, f64, f64], n)
+    tan = compiled.Foreign(lib.rodsnes_potential_tangent,
+                           [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, x, x,
+                            i64, i64, i64, f64, n, f64, f64], n)
     return res, tan
 
 

@@ -32,32 +32,18 @@ from rodsnes import compiled
 _MAX_NODES = 8          # MAXNN in _elastic_kernel.c
 
 
-def _optional(ptr):
-    """ndpointer type that also accepts None (passed as NULL)."""
-    class Optional(ptr):
-        @classmethod
-        def from_param(cls, obj):
-            return None if obj is None else ptr.from_param(obj)
-    return Optional
-
-
 def library_path():
     """Path of the built shared library (the extension module file), or None."""
     return compiled.library_path("rodsnes.model._elastic_kernel")
 
 
 def _declare(lib):
-    """The ctypes function of the built library, with its argument types."""
-    arr = np.ctypeslib.ndpointer(dtype=np.float64, flags="C_CONTIGUOUS")
-    fn = lib.rodsnes_elastic_terms
-    c_int, c_dbl = ctypes.c_int, ctypes.c_double
-    fn.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
-                   arr, arr, arr, c_int, c_int, arr, arr, _optional(arr)]
-    fn.restype = c_int
-    en = lib.rodsnes_elastic_energy
-    en.argtypes = [c_int, c_int, c_int, arr, arr, arr, arr, c_int, c_dbl, c_dbl,
-                   arr, arr, arr, arr]
-    en.restype = c_int
+    """The C functions of the built library, with their signatures (compiled.Foreign)."""
+    c_int, c_dbl, f64 = ctypes.c_int, ctypes.c_double, compiled.F64
+    common = [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64, f64]
+    fn = compiled.Foreign(lib.rodsnes_elastic_terms, common + [c_int, c_int, f64, f64, f64],
+                          c_int)
+    en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
     return fn, en
 
 
