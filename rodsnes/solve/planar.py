@@ -33,7 +33,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from rodsnes.model.partition import NDOF, _upper_blocks
+from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import direct_solver_defaults, option_default
@@ -70,14 +70,14 @@ def create_block_matrix(problem, patterns, symmetric):
 class ComponentView:
     """The block-size-3 matrix ``mat`` seen as the 6-dof matrix of the problem: every block
     set through it (setValuesBlockedRCV, the one way the problem and its terms add tangents)
-    is cut to the components ``comps`` of each node, with the entries of Dirichlet rows and
-    columns zeroed (as partition.DirichletRows); finish() puts 1 on their diagonal.  The result
-    is the (comps, comps) block of the problem's matrix with MatZeroRowsColumns applied."""
+    is cut to the components ``comps`` of each node and goes in through partition.DirichletRows
+    on the cut mask (Dirichlet rows and columns zeroed); finish() puts 1 on their diagonal.
+    The result is the (comps, comps) block of the problem's matrix with MatZeroRowsColumns
+    applied."""
 
     def __init__(self, mat, comps, constraints):
         self.mat, self.comps = mat, np.asarray(comps)
-        self.mask = constraints.block_mask[:, self.comps]        # (blocks, 3)
-        self.touched = self.mask.any(axis=1)
+        self.dirichlet = DirichletRows(mat, constraints.block_mask[:, self.comps])
         where = np.full(NDOF, -1)
         where[self.comps] = np.arange(3)
         rows = np.asarray(constraints.rows_global, dtype=np.int64)
@@ -86,17 +86,11 @@ class ComponentView:
         self._cuts = {}
 
     def setValuesBlockedRCV(self, R, C, V, addv=None):
-        R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
-        kr, kc = R2.shape[1], C2.shape[1]
+        kr, kc = R.reshape(len(R), -1).shape[1], C.reshape(len(C), -1).shape[1]
         # the (comps, comps) entries of every block by one gather of the flattened blocks
-        V = np.asarray(V).reshape(len(R2), NDOF * kr * NDOF * kc)
-        V = V[:, self._cut(kr, kc)].reshape(len(R2), 3 * kr, 3 * kc)
-        hit = np.flatnonzero(self.touched[R2].any(axis=1) | self.touched[C2].any(axis=1))
-        if len(hit):
-            keep_r = ~self.mask[R2[hit]].reshape(len(hit), -1)
-            keep_c = ~self.mask[C2[hit]].reshape(len(hit), -1)
-            V[hit] *= keep_r[:, :, None] & keep_c[:, None, :]
-        self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+        V = np.asarray(V).reshape(len(R), NDOF * kr * NDOF * kc)
+        V = V[:, self._cut(kr, kc)].reshape(len(R), 3 * kr, 3 * kc)
+        self.dirichlet.setValuesBlockedRCV(R, C, V, addv=addv)
 
     def _cut(self, kr, kc):
         """Flat indices of the (comps, comps) entries in a (NDOF kr, NDOF kc) block, row by row
@@ -110,9 +104,7 @@ class ComponentView:
 
     def finish(self, rows_global=None):
         """Before assembly: 1 on the diagonal of this rank's constrained rows of the block."""
-        if len(self.rows):
-            r = self.rows.astype(PETSc.IntType)[:, None]
-            self.mat.setValuesRCV(r, r, np.ones((len(r), 1, 1)), addv=PETSc.InsertMode.ADD)
+        self.dirichlet.finish(self.rows)
 
     def __getattr__(self, name):
         return getattr(self.mat, name)
