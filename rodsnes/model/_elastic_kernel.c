@@ -80,30 +80,40 @@ typedef struct {
     double Gp[12], Up[12], Ud[12];   /* 3x4 row-major: dg/dp, d(2w)/dp, d(2w)/dp' */
 } Strain;
 
-static ALWAYS_INLINE void strain_numerators(const double *p, const double *dp, const double *dr,
-                                     Strain *z)
+/* The strain numerators alone: Rt = Rq(p)^T = s I + 2 pv pv^T - 2 p0 pv^x (s = p0^2 - |pv|^2),
+ * Nz = (Rt r', 2 w) with 2 w = 2 (p0 pv' - p0' pv - pv x pv'); returns |p|^2.  The energy pass
+ * (element_energy) needs no more; strain_numerators adds their derivatives. */
+static ALWAYS_INLINE double numerators(const double *p, const double *dp, const double *dr,
+                                       double Rt[3][3], double *Nz)
 {
     const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
     const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
     const double pvpv = dot3(pv, pv);
     const double s = p0 * p0 - pvpv;
-    z->n2 = p0 * p0 + pvpv;
-    z->inv = 1.0 / z->n2;
-    z->inv2 = z->inv * z->inv;
-    /* Rt = Rq(p)^T = s I + 2 pv pv^T - 2 p0 pv^x */
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++)
-            z->Rt[i][j] = 2.0 * pv[i] * pv[j];
-    for (int i = 0; i < 3; i++) z->Rt[i][i] += s;
-    z->Rt[0][1] += 2.0 * p0 * pv[2];  z->Rt[0][2] -= 2.0 * p0 * pv[1];
-    z->Rt[1][0] -= 2.0 * p0 * pv[2];  z->Rt[1][2] += 2.0 * p0 * pv[0];
-    z->Rt[2][0] += 2.0 * p0 * pv[1];  z->Rt[2][1] -= 2.0 * p0 * pv[0];
+            Rt[i][j] = 2.0 * pv[i] * pv[j];
+    for (int i = 0; i < 3; i++) Rt[i][i] += s;
+    Rt[0][1] += 2.0 * p0 * pv[2];  Rt[0][2] -= 2.0 * p0 * pv[1];
+    Rt[1][0] -= 2.0 * p0 * pv[2];  Rt[1][2] += 2.0 * p0 * pv[0];
+    Rt[2][0] += 2.0 * p0 * pv[1];  Rt[2][1] -= 2.0 * p0 * pv[0];
     for (int k = 0; k < 3; k++)
-        z->Nz[k] = dot3(z->Rt[k], dr);
+        Nz[k] = dot3(Rt[k], dr);
     double pxdp[3];
     cross3(pv, dpv, pxdp);
     for (int k = 0; k < 3; k++)
-        z->Nz[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]);
+        Nz[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]);
+    return p0 * p0 + pvpv;
+}
+
+static ALWAYS_INLINE void strain_numerators(const double *p, const double *dp, const double *dr,
+                                     Strain *z)
+{
+    const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
+    const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
+    z->n2 = numerators(p, dp, dr, z->Rt, z->Nz);
+    z->inv = 1.0 / z->n2;
+    z->inv2 = z->inv * z->inv;
     /* dg/dp = 2 [p0 r' - pv x r',  pv r'^T - r' pv^T + (pv.r') I + p0 r'^x]
      * d(2w)/dp = 2 [pv', -p0' I + pv'^x],  d(2w)/dp' = 2 [-pv, p0 I - pv^x] */
     const double pvdr = dot3(pv, dr);
@@ -300,6 +310,33 @@ static inline void b_matrix(const double *q, double *B)
     B[9] = h * q[2];  B[10] = -h * q[1]; B[11] = h * q[0];
 }
 
+/* Nodal quaternions with aligned signs: q_a = sign(q_a . q_0) q_a (q and -q are one rotation). */
+static ALWAYS_INLINE void align_signs(const int NN, const double *qin, double q[MAXNN][4])
+{
+    for (int a = 0; a < NN; a++) {
+        const double *qa = qin + 4 * a;
+        const double dot = qa[0] * qin[0] + qa[1] * qin[1] + qa[2] * qin[2] + qa[3] * qin[3];
+        const double sg = (dot < 0.0) ? -1.0 : 1.0;
+        for (int i = 0; i < 4; i++) q[a][i] = sg * qa[i];
+    }
+}
+
+/* p, p' and r' at a Gauss point with shape functions N, dN (xin: nodal positions, (NN, 3)). */
+static ALWAYS_INLINE void interpolate(const int NN, const double *N, const double *dN,
+                                      double q[MAXNN][4], const double *xin, double *p,
+                                      double *dp, double *dr)
+{
+    for (int i = 0; i < 4; i++) p[i] = dp[i] = 0.0;
+    for (int i = 0; i < 3; i++) dr[i] = 0.0;
+    for (int a = 0; a < NN; a++) {
+        for (int i = 0; i < 4; i++) {
+            p[i] += N[a] * q[a][i];
+            dp[i] += dN[a] * q[a][i];
+        }
+        for (int i = 0; i < 3; i++) dr[i] += dN[a] * xin[3 * a + i];
+    }
+}
+
 /* One element: energy, residual (nn, 6) and, if H != NULL, tangent (6nn x 6nn).
  * NN is a compile-time constant where this is inlined (see element_terms below). */
 static ALWAYS_INLINE void element(
@@ -307,17 +344,11 @@ static ALWAYS_INLINE void element(
     int symmetric, double *energy, double *vec, double *H)
 {
     const int nq = st->nq, tangent = (H != NULL);
-    double q[MAXNN][4], x[MAXNN][3], graw[MAXNN][7];
+    double q[MAXNN][4], graw[MAXNN][7];
     double Hqq[MAXNN][MAXNN][16], Hqx[MAXNN][MAXNN][12], Hxx[MAXNN][MAXNN][9];
-    /* align signs: q_a . q_0 >= 0 */
-    for (int a = 0; a < NN; a++) {
-        const double *qa = qin + 4 * a;
-        const double dot = qa[0] * qin[0] + qa[1] * qin[1] + qa[2] * qin[2] + qa[3] * qin[3];
-        const double sg = (dot < 0.0) ? -1.0 : 1.0;
-        for (int i = 0; i < 4; i++) q[a][i] = sg * qa[i];
-        for (int i = 0; i < 3; i++) x[a][i] = xin[3 * a + i];
+    align_signs(NN, qin, q);
+    for (int a = 0; a < NN; a++)
         for (int i = 0; i < 7; i++) graw[a][i] = 0.0;
-    }
     if (tangent) {
         for (int a = 0; a < NN; a++)
             for (int b = 0; b < NN; b++) {
@@ -330,14 +361,8 @@ static ALWAYS_INLINE void element(
     PointTerms t;
     for (int g = 0; g < nq; g++) {
         const double *N = st->N + g * NN, *dN = st->dN + g * NN, w = st->wJ[g];
-        double p[4] = {0, 0, 0, 0}, dp[4] = {0, 0, 0, 0}, dr[3] = {0, 0, 0};
-        for (int a = 0; a < NN; a++) {
-            for (int i = 0; i < 4; i++) {
-                p[i] += N[a] * q[a][i];
-                dp[i] += dN[a] * q[a][i];
-            }
-            for (int i = 0; i < 3; i++) dr[i] += dN[a] * x[a][i];
-        }
+        double p[4], dp[4], dr[3];
+        interpolate(NN, N, dN, q, xin, p, dp, dr);
         point_terms(st, p, dp, dr, e0 + 6 * g, tangent, &t);
         E += w * t.W;
         for (int a = 0; a < NN; a++) {
@@ -462,44 +487,18 @@ int rodsnes_elastic_terms(int ne, int nn, int nq, const double *N, const double 
 }
 
 /* Energy alone (the line searches' trials): e = Nz / |p|^2 and W at every point, without the
- * derivatives of the strains.  Same arithmetic for Nz as strain_numerators. */
+ * derivatives of the strains (numerators, as the full pass computes them). */
 static ALWAYS_INLINE double element_energy(const int NN, const Setup *st, const double *qin,
                                            const double *xin, const double *e0)
 {
     double q[MAXNN][4];
-    for (int a = 0; a < NN; a++) {
-        const double *qa = qin + 4 * a;
-        const double dot = qa[0] * qin[0] + qa[1] * qin[1] + qa[2] * qin[2] + qa[3] * qin[3];
-        const double sg = (dot < 0.0) ? -1.0 : 1.0;
-        for (int i = 0; i < 4; i++) q[a][i] = sg * qa[i];
-    }
+    align_signs(NN, qin, q);
     double E = 0.0;
     for (int g = 0; g < st->nq; g++) {
-        const double *N = st->N + g * NN, *dN = st->dN + g * NN;
-        double p[4] = {0, 0, 0, 0}, dp[4] = {0, 0, 0, 0}, dr[3] = {0, 0, 0};
-        for (int a = 0; a < NN; a++) {
-            for (int i = 0; i < 4; i++) {
-                p[i] += N[a] * q[a][i];
-                dp[i] += dN[a] * q[a][i];
-            }
-            for (int i = 0; i < 3; i++) dr[i] += dN[a] * xin[3 * a + i];
-        }
-        const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
-        const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
-        const double pvpv = dot3(pv, pv), s = p0 * p0 - pvpv, inv = 1.0 / (p0 * p0 + pvpv);
-        double Rt[3][3], pxdp[3], e[6], S[6], Cb[4], W;
-        for (int i = 0; i < 3; i++)
-            for (int j = 0; j < 3; j++)
-                Rt[i][j] = 2.0 * pv[i] * pv[j];
-        for (int i = 0; i < 3; i++) Rt[i][i] += s;
-        Rt[0][1] += 2.0 * p0 * pv[2];  Rt[0][2] -= 2.0 * p0 * pv[1];
-        Rt[1][0] -= 2.0 * p0 * pv[2];  Rt[1][2] += 2.0 * p0 * pv[0];
-        Rt[2][0] += 2.0 * p0 * pv[1];  Rt[2][1] -= 2.0 * p0 * pv[0];
-        cross3(pv, dpv, pxdp);
-        for (int k = 0; k < 3; k++) {
-            e[k] = dot3(Rt[k], dr) * inv;
-            e[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]) * inv;
-        }
+        double p[4], dp[4], dr[3], Rt[3][3], Nz[6], e[6], S[6], Cb[4], W;
+        interpolate(NN, st->N + g * NN, st->dN + g * NN, q, xin, p, dp, dr);
+        const double inv = 1.0 / numerators(p, dp, dr, Rt, Nz);
+        for (int k = 0; k < 6; k++) e[k] = Nz[k] * inv;
         constitutive_law(st, e, e0 + 6 * g, S, &W, Cb);
         E += st->wJ[g] * W;
     }
