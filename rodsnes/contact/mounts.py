@@ -57,7 +57,12 @@ def penalty(x, wds, p, e, eps, mu, hessian=True):
     """(mu/2) sum_q wds_q <g_q>^2 with g = eps - dist(x_q, H) for the half-line H = {p + t e}:
     energy, g (M,), gradient dE/dx (M, 3) and (with ``hessian``, else None) Hessian H (M, 3, 3)
     per point (module docstring; d/dp is minus the gradient, and -H, H)."""
-    dist, n, A = half_line_distance(x, p, e, projector=hessian)
+    return penalty_at(*half_line_distance(x, p, e, projector=hessian), wds, eps, mu)
+
+
+def penalty_at(dist, n, A, wds, eps, mu):
+    """penalty() from the points' distance, normal and (None: no Hessian) projector."""
+    hessian = A is not None
     g = eps - dist
     act = g > 0.0
     gp = np.where(act, g, 0.0)
@@ -120,12 +125,12 @@ class SupportTerm:
                 out["gap"].append(np.full((no, k.nqc), -np.inf))
                 continue
             gap = np.full((no, k.nqc), -np.inf)
-            x_m = xq[m]
-            gap[m] = k.eps - half_line_distance(x_m, p, e, projector=False)[0]
+            dist, n, _ = half_line_distance(xq[m], p, e, projector=False)
+            gap[m] = k.eps - dist
             out["gap"].append(gap)
             if not (gap > 0.0).any():            # no point presses into this mount: no force
                 continue
-            energy, g, grad, _ = penalty(x_m, self.wds[m], p, e, k.eps, k.mu, hessian=False)
+            energy, g, grad, _ = penalty_at(dist, n, None, self.wds[m], k.eps, k.mu)
             out["energy"] += energy
             G = np.zeros((no, k.nqc, 3))
             G[m] = grad

@@ -172,6 +172,7 @@ class ElasticRod:
         self.G = G.reshape(nq, 11, nn * 7)
         self._batched_constants()
         self.kernel = self._choose_kernel(kernel)
+        self._ws = None             # the compiled kernel's output arrays for ``reuse``
 
     # -- set-up ---------------------------------------------------------------------
     def _batched_constants(self):
@@ -318,7 +319,7 @@ class ElasticRod:
     def _workspace(self, ne, tangent):
         """(energy, vec, H or None) arrays kept for ``reuse`` (made anew when ne changes)."""
         nn = self.p + 1
-        ws = getattr(self, "_ws", None)
+        ws = self._ws
         if ws is None or len(ws[0]) != ne:
             ws = self._ws = [np.empty(ne), np.empty((ne, nn, 6)), None]
         if tangent and ws[2] is None:
