@@ -79,7 +79,7 @@ class Run:
         self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
-        self.estimator = estimate.ErrorEstimator.of(scene, comm)
+        self.estimator = estimate.ErrorEstimator.of(scene, comm, self.path == "minimize")
         self.last_estimate = None
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
                 "radius": rod.radius, "nelem": rod.nelem, "order": rod.order}

@@ -111,11 +111,12 @@ def test_parse_rejects_other_text():
 
 def test_lu_with_much_fill_hands_over_to_mumps():
     """solve/linear.py: PETSc's LU factors the rod's Jacobian; where contact couples much of
-    the rod (the bench coil, fill 3.6 at 200 elements) the pattern's fill exceeds FILL_MUMPS
-    and MUMPS factors from the first Newton step on; a chain (Mattiasson, fill 1.1) stays with
-    PETSc's LU; a package the user chose is never changed."""
+    the rod (the bench coil, fill 2.95 at 200 elements with AMD) the pattern's fill exceeds
+    FILL_MUMPS and MUMPS factors from the first Newton step on; a chain (Mattiasson, fill 1.1)
+    stays with PETSc's LU, ordered by AMD; a package the user chose is never changed."""
     from conftest import run_case
-    from rodsnes.solve.linear import FILL_MUMPS
+    from petsc4py import PETSc
+    from rodsnes.solve.linear import FILL_MUMPS, ORDERING
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                     rod_error_estimate="off")
     pc = coil.solver.snes.getKSP().getPC()
@@ -125,6 +126,7 @@ def test_lu_with_much_fill_hands_over_to_mumps():
     pc = chain.solver.snes.getKSP().getPC()
     assert pc.getFactorSolverType() == "petsc" and chain.solver.lu.auto
     assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS    # as predicted
+    assert PETSc.Options().getString("pc_factor_mat_ordering_type") == ORDERING == "amd"
     chosen = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                       rod_error_estimate="off", pc_factor_mat_solver_type="petsc")
     assert chosen.solver.snes.getKSP().getPC().getFactorSolverType() == "petsc"
@@ -134,7 +136,7 @@ def test_lu_with_much_fill_hands_over_to_mumps():
 def test_several_ranks_hand_a_filled_pattern_to_mumps():
     """On several ranks every rank factors the whole matrix by PETSc's LU (PCREDUNDANT), whose
     factor petsc4py does not reach: the fill is that of the Jacobian's node graph
-    (linear.pattern_fill, equal to the serial LU's: 4.489 for the coil at 1000 elements), and
+    (linear.pattern_fill, equal to the serial LU's: 3.355 for the coil at 1000 elements), and
     above FILL_MUMPS the Newton steps factor by MUMPS over the ranks."""
     from conftest import run_case
     from rodsnes.solve.linear import FILL_MUMPS, pattern_fill

@@ -359,6 +359,36 @@ def test_the_pattern_check_of_a_newton_step_reads_the_evaluation(model):
     assert c.pattern_covers(r, p.pattern_of(c))
 
 
+@pytest.mark.mpi
+@pytest.mark.parametrize("model", ["projection", "potential"])
+def test_a_new_pattern_is_the_iterates_own(model):
+    """When an iterate couples a pair outside the Jacobian's pattern, the new pattern is the
+    iterate's (ContactTerm.covering_pattern: the pairs that can touch there and those its
+    tangent couples): a pair of the old pattern whose elements are far apart is not kept (a
+    ply sliding over a long load step had grown a kept pattern to 2.3 x its nonzeros)."""
+    run = coiled(**LAW[model])
+    c, p = run.contact, run.problem
+    r, _ = p.state.local_config()
+    p.refresh_pattern()
+    have = p.pattern_of(c)
+    n = run.mesh.nelem
+    key = have[:, 0] * n + have[:, 1]
+    a, b = np.triu_indices(n, 2)
+    free = ~np.isin(a * n + b, key)
+    assert free.any()
+    far = np.array([[a[free][0], b[free][0]]])         # a pair that cannot touch here
+    need = np.concatenate(c.comm.allgather(c.coupled_pairs(r)))
+    drop = need[np.argmax(np.abs(need[:, 0] - need[:, 1]))]
+    stale = np.concatenate([have[key != drop[0] * n + drop[1]], far])
+    p._new_matrix([stale if t is c else pat for t, pat in zip(p.terms, p.patterns)])
+    assert not c.pattern_covers(r, p.pattern_of(c))
+    p.ensure_pattern()
+    now = p.pattern_of(c)
+    assert c.pattern_covers(r, now) and np.array_equal(now, c.covering_pattern(r))
+    assert not ((now[:, 0] == far[0, 0]) & (now[:, 1] == far[0, 1])).any()
+    assert np.array_equal(now, have)          # the pattern made at the start of a load step
+
+
 @pytest.mark.parametrize("model", ["projection", "potential"])
 def test_a_penalty_change_drops_the_kept_evaluation(model):
     """mu is part of the kept evaluation's validity: set_penalty drops it, and a kernel whose

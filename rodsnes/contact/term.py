@@ -319,11 +319,14 @@ class ContactTerm(Term):
     def pattern(self, r_loc):
         return self.pattern_pairs(r_loc)
 
-    def grown_pattern(self, r_loc, have):
-        """The pairs ``have``, the pairs the tangent at r_loc couples on any rank and the
-        pairs that can touch there (pattern_pairs).  Collective."""
+    def covering_pattern(self, r_loc):
+        """The pairs that can touch at r_loc (pattern_pairs) and those the tangent there
+        couples on any rank.  The pattern it replaces is not kept: a ply that slides over a
+        long load step leaves pairs behind that only fill the factorisation (the plectoneme
+        from 8.5 to 8.8 turns: the kept pattern grew to 2.3 x its nonzeros and the
+        minimisation took 28 s against 20 s).  Collective."""
         coupled = np.concatenate(self.comm.allgather(self.coupled_pairs(r_loc)))
-        return np.unique(np.concatenate([self.pattern_pairs(r_loc), coupled, have]), axis=0)
+        return np.unique(np.concatenate([self.pattern_pairs(r_loc), coupled]), axis=0)
 
     def watched_nodes(self, r_loc=None):
         """near_local, evaluated at r_loc first when given.  Collective then."""

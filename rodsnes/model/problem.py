@@ -405,9 +405,9 @@ class RodProblem:
 
     def ensure_pattern(self):
         """Before every Jacobian: every coupling of the iterate's tangent must be preallocated
-        (Term.pattern_covers), else a new matrix with the grown patterns (Term.grown_pattern:
-        the contact pairs the iterate couples, the pairs that can touch there and the old
-        pattern) is made before the Jacobian is assembled.  No entry is ever inserted beyond
+        (Term.pattern_covers), else a new matrix with the patterns of the iterate
+        (Term.covering_pattern: the contact pairs it couples and the pairs that can touch
+        there) is made before the Jacobian is assembled.  No entry is ever inserted beyond
         the preallocation (see contact/term.py: PETSc 3.18 MPIBAIJ puts such an entry in a
         wrong column)."""
         if not self.moving_pattern:
@@ -415,7 +415,7 @@ class RodProblem:
         r, _ = self.state.local_config()
         if all(t.pattern_covers(r, pat) for t, pat in zip(self.terms, self.patterns)):
             return
-        want = [t.grown_pattern(r, pat) for t, pat in zip(self.terms, self.patterns)]
+        want = [t.covering_pattern(r) for t in self.terms]
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
 

@@ -66,9 +66,9 @@ class Term:
         """Whether ``pattern`` holds every coupling of the tangent at r.  Collective."""
         return True
 
-    def grown_pattern(self, r, pattern):
-        """A pattern that holds ``pattern`` and every coupling at r.  Collective."""
-        return pattern
+    def covering_pattern(self, r):
+        """A pattern that holds every coupling of the tangent at r.  Collective."""
+        return self.pattern(r)
 
     # -- step limits ----------------------------------------------------------------------
     def watched_nodes(self, r=None):

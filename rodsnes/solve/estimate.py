@@ -38,6 +38,8 @@ from rodsnes.model import mesh as rodmesh
 from rodsnes.model import partition, refine
 from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
+from rodsnes.model.scales import force_scale
+from rodsnes.solve.minimize import EnergyMinimizer
 from rodsnes.terms import scene_terms
 from rodsnes.solve.linear import direct_solver_defaults, option_default
 
@@ -73,7 +75,7 @@ class EnrichedProblem:
     MAX_IT = 200
     INTERIOR_SHARE = 1e-2       # the interior stage ends when its |F| < this x the whole |F|
 
-    def __init__(self, scene, comm, order, nelem):
+    def __init__(self, scene, comm, order, nelem, minimize=False):
         self.scene = replace(scene, rod=refine.enriched_rod(scene.rod, order, nelem))
         self.mesh = rodmesh.build_mesh(self.scene.rod, scene.bc)
         self.layout = partition.Layout(comm, self.mesh)
@@ -86,6 +88,11 @@ class EnrichedProblem:
         self.X0 = self.problem.state.X.duplicate()     # the carried state
         self.snes = self._snes()
         self.problem.on_pattern_change = self._set_matrix
+        self.minimizer = None
+        if minimize:        # the whole stage as the run's load steps: minimise the energy
+            ld = self.scene.loads
+            self.minimizer = EnergyMinimizer(self.problem, force_scale(self.scene), rtol=ld.rtol,
+                                             max_it=ld.max_it)
 
     # -- SNES --------------------------------------------------------------------------
     def _snes(self):
@@ -188,8 +195,13 @@ class EnrichedProblem:
         return R.CONVERGED_ITERATING
 
     def solve_stage(self, stage):
-        """One SNES solve of the stage from the current state: (iterations, converged)."""
+        """One solve of the stage from the current state: (iterations, converged).  The whole
+        stage of a run that minimises is its minimisation (minimize.EnergyMinimizer), to the
+        run's tolerance on a stable equilibrium; every other stage is an SNES solve."""
         self.stage = stage
+        if stage == "whole" and self.minimizer is not None:
+            res = self.minimizer.solve_at(self.problem.lam)
+            return res.its, res.converged
         try:
             self.snes.solve(None, self.problem.state.X)
             ok = self.snes.getConvergedReason() > 0
@@ -261,12 +273,13 @@ class ErrorEstimator:
     on the run's elements, made at the first step and kept."""
 
     @classmethod
-    def of(cls, scene, comm):
-        """The estimator a scene asks for (-rod_error_estimate), None for off."""
-        return None if scene.rod.error_estimate == "off" else cls(scene, comm)
+    def of(cls, scene, comm, minimize=False):
+        """The estimator a scene asks for (-rod_error_estimate), None for off; ``minimize``:
+        the run's load steps minimise the energy, and so does the estimate's whole stage."""
+        return None if scene.rod.error_estimate == "off" else cls(scene, comm, minimize)
 
-    def __init__(self, scene, comm):
-        self.scene, self.comm = scene, comm
+    def __init__(self, scene, comm, minimize=False):
+        self.scene, self.comm, self.minimize = scene, comm, minimize
         self.enriched = None
         self.seconds = 0.0              # spent estimating, all steps
         self.count = 0
@@ -277,7 +290,8 @@ class ErrorEstimator:
         t0 = time.perf_counter()
         rod = self.scene.rod
         if self.enriched is None:
-            self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem)
+            self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem,
+                                            minimize=self.minimize)
         x, q = gathered_state(problem)
         e = self.enriched
         xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, terms=problem.terms,
@@ -364,7 +378,8 @@ def order_estimates(run):
     for p in sorted(set(ORDERS) | {o + 1 for o in ORDERS}):
         if p in sols:
             continue
-        e = EnrichedProblem(run.scene, run.comm, p, mesh.nelem)
+        e = EnrichedProblem(run.scene, run.comm, p, mesh.nelem,
+                            minimize=run.path == "minimize")
         xe, qe, _, _, _ = e.solve_from(mesh, x, q, lam, terms=run.problem.terms, gauge=run.problem.gauge is not None)
         sols[p] = (e.mesh, xe, qe)
         e.destroy()

@@ -2,24 +2,30 @@
 user's -ksp_type, -pc_type, -pc_factor_mat_solver_type, -mat_mumps_icntl_* win).
 
 The Newton steps (the minimiser's and the Newton path's SNES) factor the Jacobian by PETSc's
-own sparse LU (6 x 6 blocks, nested-dissection ordering); on more than one rank every rank
-factors the whole matrix (PCREDUNDANT).  A rod's Jacobian is a chain of small blocks plus the
-contact couplings, and on it PETSc's LU was 3-5 x faster than MUMPS at every size measured
+own sparse LU (6 x 6 blocks, approximate-minimum-degree ordering); on more than one rank every
+rank factors the whole matrix (PCREDUNDANT).  A rod's Jacobian is a chain of small blocks plus
+the contact couplings, and on it PETSc's LU was 3-5 x faster than MUMPS at every size measured
 (plectoneme, 60 elements: 1.8 ms against 4.2 ms per factorisation; cantilever, 1e4 elements:
 50-75 ms against 256 ms; 2 ranks, 1e4 elements: 0.16 s against 0.94 s; tools/bench_scaling.py,
 docs/bench_scaling.md).  MUMPS stays one option away (-pc_factor_mat_solver_type mumps, and on
 several ranks -pc_type lu), and it factors the symmetric LDL^T whose inertia the stability
 count and the minimiser's shifts read (solve/stability.py), where its pivoting is needed.
 
+The ordering is AMD, not PETSc's default nested dissection: on a chain the two are alike
+(3-D cantilever, 1e4 elements: 37 against 46 ms per factorisation), but where contact couples
+strands the minimum-degree ordering fills far less (plectoneme at 8.5 turns, 60 elements:
+fill 1.13 against 1.56, 1.7 against 3.6 ms; over the run from 8.5 to 8.8 turns the
+factorisations took 10.5 s against 21.5 s).
+
 PETSc's LU is not supernodal: its time grows with the fill far faster than MUMPS's, whose
 dense fronts run on BLAS 3.  Where contact couples much of the rod (a coil whose turns touch
-along its length) the fill is high and MUMPS is the faster one; measured (one serial
-factorisation, this 2-core machine):
+along its length) the fill is high and MUMPS is the faster one; measured (per Newton iteration
+or factorisation, serial, this 2-core machine, AMD ordering):
 
     Jacobian                               fill of PETSc's LU   PETSc LU   MUMPS LU
-    cantilever, 1000 elements              1.13                 4.2 ms     36 ms
-    plectoneme at 10 turns, 60 elements    1.79                 6.1 ms     9.4 ms
-    bench coil, 1000 elements              4.49                 610 ms     298 ms
+    plectoneme at 8.5 turns, 60 elements   1.13                 1.7 ms     5.1 ms
+    bench coil, 200 elements               2.95                 49 ms      28 ms
+    bench coil, 1000 elements              3.35                 296 ms     210 ms
 
 so where the fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed) of the Jacobian's
 pattern exceeds FILL_MUMPS, checked for every new pattern before its first factorisation, the
@@ -27,7 +33,8 @@ rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose 
 import numpy as np
 from petsc4py import PETSc
 
-FILL_MUMPS = 3.0        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
+FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
+ORDERING = "amd"        # PETSc's LU: approximate minimum degree (module docstring)
 
 
 def option_default(name, value):
@@ -57,12 +64,14 @@ def lu_defaults(comm, prefix="", added=None):
     opts = PETSc.Options()
     chosen = opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "pc_factor_mat_solver_type")
     if comm.getSize() == 1:
-        defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "petsc"))
+        defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "petsc"),
+                    ("pc_factor_mat_ordering_type", ORDERING))
     elif chosen:
         defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "mumps"))
     else:
         defaults = (("pc_type", "redundant"), ("redundant_pc_type", "lu"),
-                    ("redundant_pc_factor_mat_solver_type", "petsc"))
+                    ("redundant_pc_factor_mat_solver_type", "petsc"),
+                    ("redundant_pc_factor_mat_ordering_type", ORDERING))
     for name, value in (("ksp_type", "preonly"),) + defaults:
         if option_default(prefix + name, value) and added is not None:
             added.append(prefix + name)
@@ -78,7 +87,7 @@ def direct_solver_defaults(problem, prefix=""):
 
 
 def pattern_fill(problem):
-    """The fill nz(L+U) / nz(A) of PETSc's LU (nested dissection) of the Jacobian's node graph
+    """The fill nz(L+U) / nz(A) of PETSc's LU (ORDERING) of the Jacobian's node graph
     (the elements and the terms' node groups), the same on every rank (global data, no
     communication): for a matrix of dense 6 x 6 blocks the block fill is the scalar fill."""
     mesh, n = problem.mesh, problem.mesh.n_nodes
@@ -100,6 +109,7 @@ def pattern_fill(problem):
         ksp.setType("preonly")
         ksp.getPC().setType("lu")
         ksp.getPC().setFactorSolverType("petsc")
+        ksp.getPC().setFactorOrdering(ORDERING)
         ksp.setOperators(A)
         ksp.setUp()
         return float(ksp.getPC().getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0))
