@@ -57,8 +57,9 @@ FINALIZE_READ = ("options_left", "options_view", "malloc_dump", "malloc_view", "
                  "objects_dump", "log_view", "log_all", "log_summary", "log_trace", "history")
 """PETSc options read at PetscInitialize or PetscFinalize, never left over in a run."""
 
-LATE_READ = re.compile(r"(^|_)(view|converged_reason|monitor\w*)$|_view_|_test_")
-"""PETSc options read during or at the end of a solve: reported only after the run."""
+LATE_READ = re.compile(r"(^|_)(view|converged_reason|monitor\w*)$|_view_|_test_|^estimate_")
+"""PETSc options read during or at the end of a solve, or by the error estimate after the
+last load step (-estimate_*): reported only after the run."""
 
 NUMERIC_SUFFIXES = ("_rtol", "_atol", "_stol", "_dtol", "_max_it", "_max_funcs",
                     "_divergence_tolerance", "_gmres_restart", "_asm_overlap", "_damping",
@@ -395,20 +396,31 @@ def _closest(word, names):
 def check_newton_linear_solver(comm):
     """Set up the Newton path's linear solver as the options make it (NewtonSolver's defaults
     preonly + LU, solve/linear.py, then the options database) on a small matrix of the Jacobian's type
-    (BAIJ, 6 x 6 blocks, or -mat_type's; two blocks per rank): a KSP, PC or factorisation package that does not exist
+    (BAIJ, 6 x 6 blocks, or -mat_type's; three blocks per rank): a KSP, PC or factorisation package that does not exist
     or cannot factor rodsnes' matrices raises its PETSc.Error here, before the Run is built and
     writes anything, instead of failing every load step.  Collective."""
     from petsc4py import PETSc
     ndof = 6
     A = PETSc.Mat().create(comm=comm)
     A.setOptionsPrefix("rodsnes_solver_check_")         # no -mat_view of this matrix
-    A.setSizes(((2 * ndof, None), (2 * ndof, None)), bsize=ndof)
+    A.setSizes(((3 * ndof, None), (3 * ndof, None)), bsize=ndof)
     # the Jacobian's type: BAIJ, or what -mat_type makes it (partition.Layout.create_matrix)
     A.setType(PETSc.Options().getString("mat_type", PETSc.Mat.Type.BAIJ))
-    A.setPreallocationNNZ(ndof)
+    n = A.getSize()[0]
+    A.setPreallocationNNZ((3 * ndof, n))
+    # symmetric positive definite, every node coupled to the first (an arrow, which a
+    # fill-reducing ordering permutes): an ordering or a factorisation that cannot take the
+    # Jacobian's couplings fails here too (PETSc's ICC of BAIJ refuses any ordering but natural)
     lo, hi = A.getOwnershipRange()
     for i in range(lo, hi):
-        A.setValue(i, i, 1.0)
+        hub = i % ndof
+        if i < ndof:
+            A.setValue(i, i, float(n // ndof + 1))
+            for j in range(i + ndof, n, ndof):
+                A.setValue(i, j, -1.0)
+        else:
+            A.setValue(i, i, 2.0)
+            A.setValue(i, hub, -1.0)
     A.assemble()
     from rodsnes.solve.linear import lu_defaults
     added = []                      # the defaults go again once the check is done: the solver

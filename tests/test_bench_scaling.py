@@ -116,7 +116,7 @@ def test_lu_with_much_fill_hands_over_to_mumps():
     stays with PETSc's LU, ordered by AMD; a package the user chose is never changed."""
     from conftest import run_case
     from petsc4py import PETSc
-    from rodsnes.solve.linear import FILL_MUMPS, ORDERING
+    from rodsnes.solve.linear import FILL_MUMPS, ORDERING, pattern_fill
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                     rod_error_estimate="off")
     pc = coil.solver.snes.getKSP().getPC()
@@ -127,6 +127,9 @@ def test_lu_with_much_fill_hands_over_to_mumps():
     assert pc.getFactorSolverType() == "petsc" and chain.solver.lu.auto
     assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS    # as predicted
     assert PETSc.Options().getString("pc_factor_mat_ordering_type") == ORDERING == "amd"
+    fill = pc.getFactorMatrix().getInfo()["fill_ratio_needed"]
+    assert fill == pytest.approx(pattern_fill(chain.problem, "amd"), rel=1e-12)
+    assert fill != pytest.approx(pattern_fill(chain.problem, "nd"), rel=1e-3)
     chosen = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                       rod_error_estimate="off", pc_factor_mat_solver_type="petsc")
     assert chosen.solver.snes.getKSP().getPC().getFactorSolverType() == "petsc"

@@ -401,6 +401,10 @@ def test_options_that_act_are_not_reported(capsys, tmp_path):
     assert rc == 0 and "warning" not in err, err
     rc, _, err = rodsnes(capsys, *MICHELL, "-load_stop", "0.04", out=tmp_path / "ring")
     assert rc == 0 and "warning" not in err, err          # -bc_start free on a ring is what it is
+    # the error estimate reads its options after the last load step
+    rc, _, err = rodsnes(capsys, *MATT, "-estimate_pc_factor_mat_solver_type", "mumps",
+                         "-load_stop", "0.2", out=tmp_path / "estimate")
+    assert rc == 0 and "warning" not in err, err
 
 
 # ------------------------------------------------------------------------ unstable ends
@@ -513,3 +517,45 @@ def test_the_solver_check_uses_the_jacobians_mat_type():
     finally:
         for name in ("pc_factor_mat_solver_type", "mat_type"):
             opts.delValue(name)
+
+
+def test_petscs_lu_is_ordered_by_amd_and_no_other_preconditioner_is():
+    """solve/linear.py: PETSc's own LU (PCLU with the petsc package, or PCREDUNDANT over it) is
+    ordered by AMD unless the user gave an ordering, which on several ranks is carried over to
+    the redundant LU; another preconditioner gets no ordering (PETSc's ICC of a BAIJ matrix
+    takes only the natural one), and an ordering it cannot take is refused by the set-up
+    check, whose matrix a fill-reducing ordering permutes."""
+    from petsc4py import PETSc
+
+    from rodsnes.cli import check_newton_linear_solver
+    from rodsnes.solve import linear
+    opts = PETSc.Options()
+    names = ("ksp_type", "pc_type", "pc_factor_mat_solver_type", "pc_factor_mat_ordering_type",
+             "redundant_pc_factor_mat_ordering_type")
+    saved = {n: opts.getString(n) for n in names if opts.hasName(n)}
+
+    def clear():
+        for n in names:
+            opts.delValue(n)
+    try:
+        clear()
+        linear.lu_defaults(PETSc.COMM_SELF)
+        assert opts.getString("pc_factor_mat_ordering_type") == "amd" == linear.lu_ordering("")
+        clear()
+        opts["pc_type"] = "icc"
+        linear.lu_defaults(PETSc.COMM_SELF)
+        assert not opts.hasName("pc_factor_mat_ordering_type") and linear.lu_ordering("") is None
+        check_newton_linear_solver(PETSc.COMM_SELF)
+        opts["pc_factor_mat_ordering_type"] = "amd"
+        with pytest.raises(PETSc.Error, match="reordering"):
+            check_newton_linear_solver(PETSc.COMM_SELF)
+        clear()
+        opts["pc_type"] = "redundant"
+        opts["pc_factor_mat_ordering_type"] = "rcm"
+        linear.ordering_default("")
+        assert opts.getString("redundant_pc_factor_mat_ordering_type") == "rcm"
+        assert linear.lu_ordering("") == "rcm"
+    finally:
+        clear()
+        for n, v in saved.items():
+            opts[n] = v

@@ -11,10 +11,13 @@ started there, gives u_{p+1}.  Its error is O(h^(p+2)) against O(h^(p+1)), so
 (s: 8 points per element of the fine sampling, refine.sample_points) estimate the true errors
 |x_p(L) - x(L)| and max_s |x_p(s) - x(s)| in length units, with
 (1 - r) e <= eta <= (1 + r) e for r = e_{p+1} / e_p (within a factor 3 whenever r <= 2/3).
-u_{p+1} is found by SNES (prefix -estimate_) from the carried state in two stages
-(EnrichedProblem): the new nodes alone with the carried ones held, then the whole problem with
-full Newton steps until a correction is below 1 % of the distance travelled from the carried
-state (the estimate is then good to ~1 %).
+u_{p+1} is found from the carried state in two stages (EnrichedProblem): the new nodes alone
+with the carried ones held (SNES, prefix -estimate_), then the whole problem: where the run
+minimises the energy, the same minimisation as its load steps (minimize.EnergyMinimizer, its
+Newton step's KSP under -estimate_, to the run's tolerance, on a stable equilibrium: it lands
+in the order p+1 minimum of the carried state's basin, whatever the round-off); otherwise SNES
+with full Newton steps until a correction is below 1 % of the distance travelled from the
+carried state (the estimate is then good to ~1 %).
 Why p+1 rather than h/2: h/2 doubles the unknowns (cost x2 per estimate) and its error ratio
 2^-(p+1) is what p+1 gives at (p+1)/p times the unknowns; p+1 keeps the same elements, so the
 contact pairs, the partition and the element turn limits of the run carry over unchanged.
@@ -70,8 +73,8 @@ class EnrichedProblem:
     than the distance to the solution (2.2e-2 against 2.5e-4); no line search on |F| recovers."""
 
     MAX_IT_INTERIOR = 10
-    # the whole stage: the plectoneme's two-ply (soft modes, contact step limits) needs 53
-    # Newton iterations from the carried state at 10 turns, 1.1 s of a 250 s run
+    # the whole stage (-estimate_snes_max_it; the minimiser goes on past it while the energy
+    # still falls): the plectoneme's two-ply at 10 turns takes 51 iterations, 1.0 s
     MAX_IT = 200
     INTERIOR_SHARE = 1e-2       # the interior stage ends when its |F| < this x the whole |F|
 
@@ -90,9 +93,10 @@ class EnrichedProblem:
         self.problem.on_pattern_change = self._set_matrix
         self.minimizer = None
         if minimize:        # the whole stage as the run's load steps: minimise the energy
-            ld = self.scene.loads
-            self.minimizer = EnergyMinimizer(self.problem, force_scale(self.scene), rtol=ld.rtol,
-                                             max_it=ld.max_it)
+            max_it = PETSc.Options().getInt(PREFIX + "snes_max_it", self.MAX_IT)
+            self.minimizer = EnergyMinimizer(self.problem, force_scale(self.scene),
+                                             rtol=self.scene.loads.rtol, max_it=max_it,
+                                             prefix=PREFIX)
 
     # -- SNES --------------------------------------------------------------------------
     def _snes(self):
@@ -200,7 +204,9 @@ class EnrichedProblem:
         run's tolerance on a stable equilibrium; every other stage is an SNES solve."""
         self.stage = stage
         if stage == "whole" and self.minimizer is not None:
+            n0 = self.minimizer.factorizations
             res = self.minimizer.solve_at(self.problem.lam)
+            self.factorisations += self.minimizer.factorizations - n0
             return res.its, res.converged
         try:
             self.snes.solve(None, self.problem.state.X)
@@ -226,8 +232,9 @@ class EnrichedProblem:
         """Newton on this discretisation at load lam from the carried state (place), each term
         adopting what the run's same term has adapted (``terms``, Term.adopt: the run's current
         penalty, so that the estimate measures the discretisation, not the penalty): the interior stage, the nodes of ``mesh`` held, then the whole
-        problem (class docstring), until a Newton correction is below rtol times the way
-        travelled from the carried state: the estimate is then good to about rtol.  An interior
+        problem (class docstring): minimised to the run's tolerance (``minimize``), or by Newton
+        until a correction is below rtol times the way travelled from the carried state (the
+        estimate is then good to about rtol).  An interior
         stage that fails is dropped (the whole stage starts from the carried state).  Returns
         (x (n,3), q (n,4), iterations, factorisations, converged).  Collective."""
         p = self.problem
@@ -250,6 +257,11 @@ class EnrichedProblem:
     def destroy(self):
         self.snes.destroy()
         self.X0.destroy()
+        if self.minimizer is not None:
+            self.minimizer.destroy()
+        if self.problem.inertia is not None:
+            self.problem.inertia.destroy()
+            self.problem.inertia = None
 
 
 def _largest_move(V):

@@ -58,24 +58,63 @@ def mumps_fill_room(problem, prefix=""):
 def lu_defaults(comm, prefix="", added=None):
     """preonly + LU for the KSP of options prefix ``prefix`` (module docstring): PETSc's LU on
     one rank, PETSc's LU of the whole matrix on every rank (redundant) on several, unless the
-    user chose a preconditioner or a factorisation package (then LU by it, MUMPS if none).
+    user chose a preconditioner or a factorisation package (then LU by it, MUMPS if none);
+    wherever that makes PETSc's own LU, its ordering (ordering_default).
     Returns whether the package is rodsnes' choice (use_mumps_when_filled may change it).
     ``added``: a list that receives the names this call set (to take them back)."""
     opts = PETSc.Options()
     chosen = opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "pc_factor_mat_solver_type")
     if comm.getSize() == 1:
-        defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "petsc"),
-                    ("pc_factor_mat_ordering_type", ORDERING))
+        defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "petsc"))
     elif chosen:
         defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "mumps"))
     else:
         defaults = (("pc_type", "redundant"), ("redundant_pc_type", "lu"),
-                    ("redundant_pc_factor_mat_solver_type", "petsc"),
-                    ("redundant_pc_factor_mat_ordering_type", ORDERING))
+                    ("redundant_pc_factor_mat_solver_type", "petsc"))
     for name, value in (("ksp_type", "preonly"),) + defaults:
         if option_default(prefix + name, value) and added is not None:
             added.append(prefix + name)
+    ordering_default(prefix, added)
     return not chosen
+
+
+def native_lu_ordering_key(prefix=""):
+    """The option that orders PETSc's own LU in the KSP of prefix ``prefix`` as the options
+    database makes it (<prefix>pc_factor_mat_ordering_type for PCLU with the petsc package,
+    <prefix>redundant_pc_factor_mat_ordering_type for PCREDUNDANT over it), None where that KSP
+    does not factor by PETSc's LU (MUMPS, ICC, ILU, an iterative solver ...)."""
+    opts = PETSc.Options()
+    kind = opts.getString(prefix + "pc_type", "")
+    if kind == "redundant":
+        inner = prefix + "redundant_"
+        if (opts.getString(inner + "pc_type", "lu") == "lu"
+                and opts.getString(inner + "pc_factor_mat_solver_type", "petsc") == "petsc"):
+            return inner + "pc_factor_mat_ordering_type"
+        return None
+    if kind == "lu" and opts.getString(prefix + "pc_factor_mat_solver_type", "petsc") == "petsc":
+        return prefix + "pc_factor_mat_ordering_type"
+    return None
+
+
+def ordering_default(prefix="", added=None):
+    """PETSc's own LU in the KSP of prefix ``prefix`` ordered by ORDERING unless the user gave
+    an ordering: -<prefix>pc_factor_mat_ordering_type, which on several ranks (PCREDUNDANT) is
+    carried over to the redundant LU.  Nothing for any other preconditioner (PETSc's ICC and
+    Cholesky of a BAIJ matrix take no ordering but the natural one)."""
+    key = native_lu_ordering_key(prefix)
+    if key is None:
+        return
+    opts = PETSc.Options()
+    value = opts.getString(prefix + "pc_factor_mat_ordering_type", ORDERING)
+    if option_default(key, value) and added is not None:
+        added.append(key)
+
+
+def lu_ordering(prefix=""):
+    """The ordering PETSc's own LU uses in the KSP of prefix ``prefix`` (PETSc's default nd
+    where no option says), None where that KSP does not factor by it."""
+    key = native_lu_ordering_key(prefix)
+    return None if key is None else PETSc.Options().getString(key, "nd")
 
 
 def direct_solver_defaults(problem, prefix=""):
@@ -86,8 +125,8 @@ def direct_solver_defaults(problem, prefix=""):
     return auto
 
 
-def pattern_fill(problem):
-    """The fill nz(L+U) / nz(A) of PETSc's LU (ORDERING) of the Jacobian's node graph
+def pattern_fill(problem, ordering=ORDERING):
+    """The fill nz(L+U) / nz(A) of PETSc's LU (ordered by ``ordering``) of the Jacobian's node graph
     (the elements and the terms' node groups), the same on every rank (global data, no
     communication): for a matrix of dense 6 x 6 blocks the block fill is the scalar fill."""
     mesh, n = problem.mesh, problem.mesh.n_nodes
@@ -109,7 +148,7 @@ def pattern_fill(problem):
         ksp.setType("preonly")
         ksp.getPC().setType("lu")
         ksp.getPC().setFactorSolverType("petsc")
-        ksp.getPC().setFactorOrdering(ORDERING)
+        ksp.getPC().setFactorOrdering(ordering)
         ksp.setOperators(A)
         ksp.setUp()
         return float(ksp.getPC().getFactorMatrix().getInfo().get("fill_ratio_needed", 0.0))
@@ -127,7 +166,8 @@ def use_mumps_when_filled(ksp, problem):
     kind = pc.getType()
     native = kind == PETSc.PC.Type.REDUNDANT or (
         kind == PETSc.PC.Type.LU and pc.getFactorSolverType() == "petsc")
-    if not native or not pattern_fill(problem) > FILL_MUMPS:
+    if not native or not pattern_fill(problem, lu_ordering(ksp.getOptionsPrefix() or "")
+                                      or ORDERING) > FILL_MUMPS:
         return False
     ops = pc.getOperators()
     pc.reset()

@@ -82,8 +82,9 @@ class MinimizeResult:
 class EnergyMinimizer:
     """Inertia-controlled Newton on the total energy at one load factor (module docstring)."""
 
-    def __init__(self, problem, force_scale, rtol=1e-10, max_it=200, quiet=True):
+    def __init__(self, problem, force_scale, rtol=1e-10, max_it=200, quiet=True, prefix=""):
         self.problem = problem
+        self.prefix = prefix        # options prefix of the Newton step's KSP
         self.comm = problem.layout.comm.tompi4py()
         if problem.inertia is None:
             problem.inertia = Inertia(problem)
@@ -106,6 +107,13 @@ class EnergyMinimizer:
         self.last = None
         self.ksp = None
         self.lu = None              # linear.LUChoice of the Newton step's KSP
+
+    def destroy(self):
+        """Free the PETSc objects this minimiser made (its KSP, metric, kept mode)."""
+        for obj in (self.ksp, self.metric, self._mode):
+            if obj is not None:
+                obj.destroy()
+        self.ksp = self._mode = None
 
     # -- pieces -----------------------------------------------------------------------
     def _metric(self):
@@ -349,8 +357,9 @@ class EnergyMinimizer:
         if ksp is None:
             # the Newton path's linear solver (preonly + LU, solve/linear.py, unless -ksp_type,
             # -pc_type, -pc_factor_mat_solver_type ... say otherwise)
-            self.lu = LUChoice(direct_solver_defaults(p))
+            self.lu = LUChoice(direct_solver_defaults(p, self.prefix))
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
+            ksp.setOptionsPrefix(self.prefix)
             ksp.setFromOptions()
         ksp.setOperators(p.J)
         self.lu.check(ksp, p)

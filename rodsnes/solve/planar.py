@@ -268,7 +268,10 @@ class PlanarSystem:
     def _inner_ksp(self):
         if self.ksp is None:
             opts = PETSc.Options()
-            for key in ("ksp_type", "pc_type", "pc_factor_mat_solver_type"):
+            for key in ("ksp_type", "pc_type", "pc_factor_mat_solver_type",
+                        "pc_factor_mat_ordering_type", "redundant_pc_type",
+                        "redundant_pc_factor_mat_solver_type",
+                        "redundant_pc_factor_mat_ordering_type"):
                 if opts.hasName(key):            # the 3-D step's choice, the user's or its default
                     option_default(PREFIX + key, opts.getString(key))
             direct_solver_defaults(self.problem, PREFIX)
