@@ -57,9 +57,11 @@ FINALIZE_READ = ("options_left", "options_view", "malloc_dump", "malloc_view", "
                  "objects_dump", "log_view", "log_all", "log_summary", "log_trace", "history")
 """PETSc options read at PetscInitialize or PetscFinalize, never left over in a run."""
 
-LATE_READ = re.compile(r"(^|_)(view|converged_reason|monitor\w*)$|_view_|_test_|^estimate_")
-"""PETSc options read during or at the end of a solve, or by the error estimate after the
-last load step (-estimate_*): reported only after the run."""
+LATE_READ = re.compile(r"(^|_)(view|converged_reason|monitor\w*)$|_view_|_test_")
+"""PETSc options read during or at the end of a solve: reported only after the run (so are
+those of rodsnes' own solvers, scene.SOLVER_PREFIXES, which are made during the run: the
+stability count's and the planar step's at the first load step, the error estimate's after
+the last)."""
 
 NUMERIC_SUFFIXES = ("_rtol", "_atol", "_stol", "_dtol", "_max_it", "_max_funcs",
                     "_divergence_tolerance", "_gmres_restart", "_asm_overlap", "_damping",
@@ -362,7 +364,8 @@ def _petsc_library():
 def unused_petsc_warnings(given, late):
     """Warnings for the options of ``given`` (the names the user set) that nothing has read:
     ``late`` False: before the solve, leaving out those read only at the end of a solve
-    (LATE_READ); True: after the run, those.  Options read at PetscFinalize are left alone."""
+    or by a solver made during the run (LATE_READ, scene.SOLVER_PREFIXES); True: after the
+    run, those.  Options read at PetscFinalize are left alone."""
     from rodsnes.io import scene as scn
     left = options_left()
     if left is None:
@@ -373,7 +376,7 @@ def unused_petsc_warnings(given, late):
     for name, value in sorted(left):
         low = name.lower()
         if (low not in given or low in rodsnes or low in FINALIZE_READ
-                or bool(LATE_READ.search(low)) != late):
+                or (bool(LATE_READ.search(low)) or low.startswith(scn.SOLVER_PREFIXES)) != late):
             continue
         shown = f"-{name}" + (f" {value}" if value else "")
         close = _closest(low, COMMON_PETSC_OPTIONS)
@@ -413,14 +416,13 @@ def check_newton_linear_solver(comm):
     # Jacobian's couplings fails here too (PETSc's ICC of BAIJ refuses any ordering but natural)
     lo, hi = A.getOwnershipRange()
     for i in range(lo, hi):
-        hub = i % ndof
-        if i < ndof:
+        if i < ndof:                    # the first node: coupled to every other
             A.setValue(i, i, float(n // ndof + 1))
             for j in range(i + ndof, n, ndof):
                 A.setValue(i, j, -1.0)
-        else:
+        else:                           # every other node: coupled to the first
             A.setValue(i, i, 2.0)
-            A.setValue(i, hub, -1.0)
+            A.setValue(i, i % ndof, -1.0)
     A.assemble()
     from rodsnes.solve.linear import lu_defaults
     added = []                      # the defaults go again once the check is done: the solver
