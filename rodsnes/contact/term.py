@@ -237,7 +237,8 @@ class ContactTerm(Term):
             pairs = cand[search.spheres_within(cen[io], rad[io], c_other[ia], r_other[ia], self.reach)]
         else:
             pairs = cand
-        used = np.isin(other, pairs[:, 1])
+        used = np.zeros(len(other), dtype=bool)        # other: sorted unique
+        used[np.searchsorted(other, pairs[:, 1])] = True
         out = self.kernel.evaluate(self.own_ids, x_own, other[used], x_other[used], pairs,
                                    tangent=False, report=False)
         out["nodes"] = nodes
@@ -325,8 +326,11 @@ class ContactTerm(Term):
         long load step leaves pairs behind that only fill the factorisation (the plectoneme
         from 8.5 to 8.8 turns: the kept pattern grew to 2.3 x its nonzeros and the
         minimisation took 28 s against 20 s).  Collective."""
-        coupled = np.concatenate(self.comm.allgather(self.coupled_pairs(r_loc)))
-        return np.unique(np.concatenate([self.pattern_pairs(r_loc), coupled]), axis=0)
+        n = self.mesh.nelem
+        near = self.pattern_pairs(r_loc)
+        keys = np.concatenate([near[:, 0] * n + near[:, 1]]
+                              + self.comm.allgather(self._coupled_keys(r_loc)))
+        return np.stack(np.divmod(np.unique(keys), n), axis=1).astype(np.int64)
 
     def watched_nodes(self, r_loc=None):
         """near_local, evaluated at r_loc first when given.  Collective then."""
@@ -393,25 +397,35 @@ class ContactTerm(Term):
         """This rank's element pairs (a, b), a <= b, that the tangent at r_loc couples: every
         (slave, master) in contact and, with the closest-point law, the three pairs of every
         switch point (slave, A, B).  Collective (the evaluation)."""
+        n = self.mesh.nelem
+        return np.stack(np.divmod(self._coupled_keys(r_loc), n), axis=1)
+
+    def _coupled_keys(self, r_loc):
+        """coupled_pairs as sorted unique keys a n + b (n elements): one integer per pair,
+        so that sorting and membership are 1-D (np.unique(axis=0) sorts structured rows,
+        ten times slower at the plectoneme's few hundred pairs)."""
         out = self.evaluate(r_loc, tangent=True)
         rows = [np.asarray(out["active"], dtype=np.int64).reshape(-1, 2)]
         sw = np.asarray(out["switch"], dtype=np.int64).reshape(-1, 3)
         if len(sw):
             rows += [sw[:, [0, 1]], sw[:, [0, 2]], sw[:, [1, 2]]]
-        pairs = np.sort(np.concatenate(rows), axis=1)
-        return np.unique(pairs, axis=0) if len(pairs) else pairs
+        pairs = np.concatenate(rows)
+        lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+        return np.unique(lo * self.mesh.nelem + hi)
 
     def pattern_covers(self, r_loc, have):
         """Whether the element pairs ``have`` (sorted unique rows a <= b: the Jacobian's
         preallocated pattern) hold every pair that the tangent at r_loc couples
         (coupled_pairs; each rank checks its own; the mounts' pairs are in every pattern).
         Collective."""
-        pairs = self.coupled_pairs(r_loc)
+        keys = self._coupled_keys(r_loc)
         ok = True
-        if len(pairs):
+        if len(keys):
             n = self.mesh.nelem
-            ok = len(have) > 0 and bool(np.isin(pairs[:, 0] * n + pairs[:, 1],
-                                                have[:, 0] * n + have[:, 1]).all())
+            held = have[:, 0] * n + have[:, 1] if len(have) else np.zeros(0, dtype=np.int64)
+            # rows sorted lexicographically with 0 <= b < n: their keys are sorted
+            at = np.searchsorted(held, keys)
+            ok = bool(len(held) and at.max() < len(held) and np.array_equal(held[at], keys))
         return self.comm.allreduce(ok, op=MPI.LAND)
 
     def node_groups(self, pairs):
