@@ -1,8 +1,9 @@
 """One rodsnes run: build everything from a Scene, step the load, write results.
 
 Files (DIR = -output_dir): result.h5 (one group per converged step, flushed per step),
-rod.xdmf (+ rod.h5, ParaView), summary.json (rewritten atomically after every step, so a
-failed or killed run leaves the last converged state described on disk).
+rod.xdmf (+ rod.h5, ParaView), summary.json (rewritten atomically after steps, within
+SUMMARY_SHARE of the wall time, and at the end, on failure and on an interruption, so a
+failed or interrupted run leaves its last converged state described on disk).
 
 A run of a conservative scene that ends on an unstable equilibrium (negative eigenvalues of the
 energy Hessian, counted by the minimiser or by -stability) has failed unless unstable
@@ -31,6 +32,11 @@ from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative
 from rodsnes.errors import SceneError
 from rodsnes.io.scene import scene_record, record_mismatches
+
+# largest share of the wall time spent rewriting summary.json after load steps: its list of
+# steps grows with the run (12 ms a write at 526 steps), so a write after every step would
+# cost O(steps^2); it is always written at the end, on failure and on an interruption
+SUMMARY_SHARE = 0.01
 
 
 class Run:
@@ -79,6 +85,7 @@ class Run:
         self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
+        self._summary_seconds = 0.0  # spent writing summary.json after steps (SUMMARY_SHARE)
         self.estimator = estimate.ErrorEstimator.of(scene, comm, self.path == "minimize")
         self.last_estimate = None
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
@@ -321,7 +328,10 @@ class Run:
             energy = self._write(res)
             self.history.append({"load": res.lam, **self._step_record(res)})
             self._log(res, energy)
-            output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
+            if self._summary_due():
+                t0 = time.perf_counter()
+                output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
+                self._summary_seconds += time.perf_counter() - t0
 
         def on_fail(res, dlam):
             if not self.quiet and self.rank == 0:
@@ -418,11 +428,21 @@ class Run:
         compare against (collective)."""
         self.writer.add_meta({"scene": scene_record(self.scene)})
 
+    def _summary_due(self):
+        """Whether summary.json is rewritten after this step: while the rewrites so far took at
+        most SUMMARY_SHARE of the run's wall time (rank 0's clock decides for every rank: the
+        write is collective).  Collective."""
+        elapsed = time.perf_counter() - self.t_start
+        return bool(self.mpi.bcast(self._summary_seconds <= SUMMARY_SHARE * elapsed, root=0))
+
     def record_interruption(self, signal_name):
         """summary.json after a SIGINT/SIGTERM: the last step's summary marked interrupted
         (output.mark_interrupted; not collective, so any rank may call it).  Returns it."""
         base = {"case": self.scene.output.case_name, "load": self.lam0,
                 "load_steps": len(self.history), "dofs": NDOF * self.mesh.n_nodes,
                 "ranks": self.comm.getSize(), "steps": self.history}
-        return output.mark_interrupted(self.outdir, signal_name, base=base,
-                                       extra={"wall_time_s": time.perf_counter() - self.t_start})
+        extra = {"wall_time_s": time.perf_counter() - self.t_start}
+        if self.history:            # the steps since summary.json was last written
+            extra.update(steps=self.history, load_steps=len(self.history),
+                         load=self.history[-1]["load"], newton_iterations=self.solver.total_its)
+        return output.mark_interrupted(self.outdir, signal_name, base=base, extra=extra)

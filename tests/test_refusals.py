@@ -498,6 +498,9 @@ def test_an_interrupted_run_says_so(tmp_path, sig):
     assert s["interrupted"] is True and s["signal"] == sig.name and s["converged"] is False
     last = output.read_step(str(d), -1)                  # the steps written stay readable
     assert s["last_step"] == last["step"] >= 3
+    # the history is the run's own, not that of the last periodic rewrite (the signal may fall
+    # between a step's write and its entry in the history)
+    assert last["step"] - 1 <= s["load_steps"] == len(s["steps"]) <= last["step"]
     assert f"({last['step']}, load {last['attrs']['load']:.6f})" in s["failure"]
     assert f"-restart {d}" in s["failure"]
 
