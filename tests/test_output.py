@@ -354,3 +354,42 @@ def test_path_report_tables_a_path(tmp_path):
     assert dist["active"] == on.sum() and dist["max"] == f.max()
     assert dist["median"] == pytest.approx(np.median(f[on]))
     assert dist["intervals"] == [(qs[on][0], qs[on][-1])]
+
+
+def _xdmf_content(d):
+    """rod.xdmf's text and every dataset of rod.h5 (name -> array)."""
+    with h5py.File(d / "rod.h5", "r") as f:
+        data = {}
+        f.visititems(lambda name, obj: data.__setitem__(name, obj[()])
+                     if isinstance(obj, h5py.Dataset) else None)
+    return (d / "rod.xdmf").read_text(), data
+
+
+def test_xdmf_rewrite_reads_only_new_steps(tmp_path, monkeypatch):
+    """A rewrite with the writer's cache (XdmfCache) gives rod.xdmf and rod.h5 as a rewrite from
+    result.h5 alone does, and reads from result.h5 the first step (the reference) and the steps
+    not converted before; another reference empties the cache; a cache bounded below one step's
+    data keeps nothing."""
+    write_run(tmp_path, steps=4)
+    fresh = tmp_path / "fresh"
+    shutil.copytree(tmp_path, fresh)
+    assert output.write_xdmf(fresh) == 4
+    text, data = _xdmf_content(fresh)
+    cache = output.XdmfCache()
+    output.write_xdmf(tmp_path, cache=cache)
+    assert sorted(cache.data) == [0, 1, 2, 3] and cache.nbytes > 0
+    read = []
+    orig = output._read_group
+    monkeypatch.setattr(output, "_read_group", lambda f, k: read.append(k) or orig(f, k))
+    output.write_xdmf(tmp_path, cache=cache)
+    assert read == [0]                           # the reference only
+    text2, data2 = _xdmf_content(tmp_path)
+    assert text2 == text and data2.keys() == data.keys()
+    assert all(np.array_equal(data2[k], data[k]) for k in data)
+    cache.get(0, np.zeros((N, 3)))               # another reference: nothing kept
+    assert cache.data == {} and cache.nbytes == 0
+    small = output.XdmfCache(limit=1)
+    read.clear()
+    output.write_xdmf(tmp_path, cache=small)
+    output.write_xdmf(tmp_path, cache=small)
+    assert small.data == {} and read == [0, 1, 2, 3] * 2
