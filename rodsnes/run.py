@@ -86,6 +86,7 @@ class Run:
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
         self._summary_seconds = 0.0  # spent writing summary.json after steps (SUMMARY_SHARE)
+        self._last_summary = None    # the summary made after the last step (written or not)
         self.estimator = estimate.ErrorEstimator.of(scene, comm, self.path == "minimize")
         self.last_estimate = None
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
@@ -328,9 +329,12 @@ class Run:
             energy = self._write(res)
             self.history.append({"load": res.lam, **self._step_record(res)})
             self._log(res, energy)
+            # made after every step (collective, ~0.3 ms), written when due: an interruption
+            # writes the last one made (record_interruption cannot make one: not collective)
+            self._last_summary = self.summary(converged=False)
             if self._summary_due():
                 t0 = time.perf_counter()
-                output.write_summary(self.outdir, self.mpi, self.summary(converged=False))
+                output.write_summary(self.outdir, self.mpi, self._last_summary)
                 self._summary_seconds += time.perf_counter() - t0
 
         def on_fail(res, dlam):
@@ -441,8 +445,9 @@ class Run:
         base = {"case": self.scene.output.case_name, "load": self.lam0,
                 "load_steps": len(self.history), "dofs": NDOF * self.mesh.n_nodes,
                 "ranks": self.comm.getSize(), "steps": self.history}
-        extra = {"wall_time_s": time.perf_counter() - self.t_start}
-        if self.history:            # the steps since summary.json was last written
-            extra.update(steps=self.history, load_steps=len(self.history),
-                         load=self.history[-1]["load"], newton_iterations=self.solver.total_its)
+        extra = {}
+        last = self._last_summary
+        if last is not None:        # the last step's summary, whether or not it was written
+            extra = dict(last, steps=list(last["steps"][:last["load_steps"]]))
+        extra["wall_time_s"] = time.perf_counter() - self.t_start
         return output.mark_interrupted(self.outdir, signal_name, base=base, extra=extra)

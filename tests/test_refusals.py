@@ -501,6 +501,9 @@ def test_an_interrupted_run_says_so(tmp_path, sig):
     # the history is the run's own, not that of the last periodic rewrite (the signal may fall
     # between a step's write and its entry in the history)
     assert last["step"] - 1 <= s["load_steps"] == len(s["steps"]) <= last["step"]
+    # and the rest of it (load, energy) is that of the same step, not of the last rewrite
+    step = output.read_step(str(d), s["load_steps"])
+    assert s["load"] == step["attrs"]["load"] and s["energy"] == step["attrs"]["energy"]
     assert f"({last['step']}, load {last['attrs']['load']:.6f})" in s["failure"]
     assert f"-restart {d}" in s["failure"]
 
