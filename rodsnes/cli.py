@@ -512,7 +512,9 @@ def main(argv=None):
         except Interrupted as sig:
             return _interrupted(run, sig)
         except PETSc.Error as err:
-            _say(rank, "error", petsc_error_message(err, opts, comm))
+            message = petsc_error_message(err, opts, comm)
+            run.record_error(message)
+            _say(rank, "error", message)
             return EXIT_REFUSED
     for line in unused_petsc_warnings(given, late=True):
         _say(rank, "warning", line)

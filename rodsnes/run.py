@@ -87,6 +87,7 @@ class Run:
         self.history = []
         self._summary_seconds = 0.0  # spent writing summary.json after steps (SUMMARY_SHARE)
         self._last_summary = None    # the summary made after the last step (written or not)
+        self.live_trial = None       # -rod_tolerance: the trial running now (estimate.to_tolerance)
         self.estimator = estimate.ErrorEstimator.of(scene, comm, self.path == "minimize")
         self.last_estimate = None
         meta = {"case_name": scene.output.case_name, "closed": bool(rod.closed), "length": L,
@@ -439,9 +440,35 @@ class Run:
         elapsed = time.perf_counter() - self.t_start
         return bool(self.mpi.bcast(self._summary_seconds <= SUMMARY_SHARE * elapsed, root=0))
 
+    def _live(self):
+        """The Run whose steps are being written: a -rod_tolerance trial, or this one."""
+        return self.live_trial if self.live_trial is not None else self
+
+    def record_error(self, message):
+        """summary.json after an error that ended the run (rank 0, not collective): the
+        summary made after the last step, marked failed with ``message`` (nothing before the
+        first step).  Never raises: the error itself is what the user must see."""
+        live = self._live()
+        if live is not self:
+            return live.record_error(message)
+        last = self._last_summary
+        if self.rank != 0 or last is None:
+            return
+        try:
+            output.write_summary(self.outdir, None, dict(
+                last, steps=list(last["steps"][:last["load_steps"]]), converged=False,
+                failure=f"stopped by an error: {message}; the converged steps stay in result.h5",
+                wall_time_s=time.perf_counter() - self.t_start))
+        except Exception:  # noqa: BLE001 - the run's own error is reported by the caller
+            pass
+
     def record_interruption(self, signal_name):
         """summary.json after a SIGINT/SIGTERM: the last step's summary marked interrupted
-        (output.mark_interrupted; not collective, so any rank may call it).  Returns it."""
+        (output.mark_interrupted; not collective, so any rank may call it); of the trial
+        running now with -rod_tolerance.  Returns it."""
+        live = self._live()
+        if live is not self:
+            return live.record_interruption(signal_name)
         base = {"case": self.scene.output.case_name, "load": self.lam0,
                 "load_steps": len(self.history), "dofs": NDOF * self.mesh.n_nodes,
                 "ranks": self.comm.getSize(), "steps": self.history}

@@ -370,7 +370,8 @@ def test_xdmf_rewrite_reads_only_new_steps(tmp_path, monkeypatch):
     result.h5 alone does, and reads from result.h5 the first step (the reference) and the steps
     not converted before; another reference empties the cache; a cache bounded below one step's
     data keeps nothing."""
-    write_run(tmp_path, steps=4)
+    w = write_run(tmp_path, steps=4)
+    assert sorted(w._xdmf_cache.data) == [0, 1, 2, 3]     # the writer's rewrites keep them
     fresh = tmp_path / "fresh"
     shutil.copytree(tmp_path, fresh)
     assert output.write_xdmf(fresh) == 4

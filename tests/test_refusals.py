@@ -508,6 +508,55 @@ def test_an_interrupted_run_says_so(tmp_path, sig):
     assert f"-restart {d}" in s["failure"]
 
 
+@pytest.mark.parametrize("stop", ["SIGTERM", "error"])
+def test_a_stopped_run_describes_its_last_step(capsys, tmp_path, monkeypatch, stop):
+    """summary.json is rewritten only within a share of the wall time; a run stopped by a
+    signal or by an error still describes its last converged step (the summary made after it),
+    not an older rewrite: here no rewrite happens before the stop after step 4."""
+    from petsc4py import PETSc
+    from rodsnes.run import Run
+
+    def due(self):
+        if self.step == 4:
+            if stop == "error":
+                raise PETSc.Error(73)
+            raise cli.Interrupted(signal.SIGTERM)
+        return False
+    monkeypatch.setattr(Run, "_summary_due", due)
+    d = tmp_path / "out"
+    rc, _, err = rodsnes(capsys, *MATT, "-load_path", "newton", "-load_steps", "10", out=d)
+    assert rc == (128 + signal.SIGTERM if stop == "SIGTERM" else 2), err
+    s = summary(d)
+    last = output.read_step(str(d), -1)
+    assert s["load_steps"] == len(s["steps"]) == last["step"] == 4
+    assert s["load"] == last["attrs"]["load"] and s["energy"] == last["attrs"]["energy"]
+    assert s["converged"] is False
+    assert ("stopped by an error" if stop == "error" else "interrupted by SIGTERM") in s["failure"]
+
+
+def test_an_interrupted_tolerance_trial_describes_itself(capsys, tmp_path, monkeypatch):
+    """With -rod_tolerance every trial is a run into the same directory: an interruption in
+    the second trial describes that trial (its mesh, its steps), not the first."""
+    from rodsnes.run import Run
+    trials = []
+
+    def due(self):
+        if self not in trials:
+            trials.append(self)
+        if len(trials) == 2 and self.step == 3:
+            raise cli.Interrupted(signal.SIGTERM)
+        return False
+    monkeypatch.setattr(Run, "_summary_due", due)
+    d = tmp_path / "out"
+    rc, _, err = rodsnes(capsys, *MATT, "-load_path", "newton", "-load_steps", "10",
+                         "-rod_tolerance", "1e-7", out=d)
+    assert rc == 128 + signal.SIGTERM and len(trials) == 2, err
+    s = summary(d)
+    last = output.read_step(str(d), -1)
+    assert s["dofs"] == 6 * output.read_meta(str(d))["n_nodes"] == trials[1].dofs != trials[0].dofs
+    assert s["load_steps"] == last["step"] == 3 and s["load"] == last["attrs"]["load"]
+
+
 def test_the_solver_check_uses_the_jacobians_mat_type():
     """-mat_type aij makes the Jacobian AIJ (partition.Layout.create_matrix), which packages
     that cannot take BAIJ factor: the set-up check builds its matrix of that type, so

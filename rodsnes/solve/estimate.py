@@ -456,6 +456,7 @@ def to_tolerance(run):
         p, n = nxt
         cur = type(run)(replace(scene, rod=refine.enriched_rod(scene.rod, p, n)), run.comm)
         cur.record_scene()
+        run.live_trial = cur        # an interruption or an error now describes this trial
     met = reason is None
     last = trials[-1]
     block = {"tolerance": tol, "met": met, "order": last["order"], "nelem": last["nelem"],
