@@ -85,7 +85,7 @@ class Run:
         self.prev0 = None           # (snapshot, load) of the step before the restart state
         self.arc0 = None            # a restart inside a pseudo-arclength continuation: its fold
         self.history = []
-        self._summary_seconds = 0.0  # spent writing summary.json after steps (SUMMARY_SHARE)
+        self._summary_budget = output.RewriteBudget(self.t_start)  # summary.json after steps
         self._last_summary = None    # the summary made after the last step (written or not)
         self.live_trial = None       # -rod_tolerance: the trial running now (estimate.to_tolerance)
         self.estimator = estimate.ErrorEstimator.of(scene, comm, self.path == "minimize")
@@ -334,9 +334,8 @@ class Run:
             # writes the last one made (record_interruption cannot make one: not collective)
             self._last_summary = self.summary(converged=False)
             if self._summary_due():
-                t0 = time.perf_counter()
-                output.write_summary(self.outdir, self.mpi, self._last_summary)
-                self._summary_seconds += time.perf_counter() - t0
+                with self._summary_budget.spent():
+                    output.write_summary(self.outdir, self.mpi, self._last_summary)
 
         def on_fail(res, dlam):
             if not self.quiet and self.rank == 0:
@@ -437,12 +436,20 @@ class Run:
         """Whether summary.json is rewritten after this step: while the rewrites so far took at
         most SUMMARY_SHARE of the run's wall time (rank 0's clock decides for every rank: the
         write is collective).  Collective."""
-        elapsed = time.perf_counter() - self.t_start
-        return bool(self.mpi.bcast(self._summary_seconds <= SUMMARY_SHARE * elapsed, root=0))
+        return bool(self.mpi.bcast(self._summary_budget.due(SUMMARY_SHARE), root=0))
 
     def _live(self):
         """The Run whose steps are being written: a -rod_tolerance trial, or this one."""
         return self.live_trial if self.live_trial is not None else self
+
+    def _last_step_summary(self):
+        """The summary made after the last step (written or not), its step list cut to that
+        step (the list is the live history) and the wall time now; None before the first."""
+        last = self._last_summary
+        if last is None:
+            return None
+        return dict(last, steps=list(last["steps"][:last["load_steps"]]),
+                    wall_time_s=time.perf_counter() - self.t_start)
 
     def record_error(self, message):
         """summary.json after an error that ended the run (rank 0, not collective): the
@@ -451,14 +458,13 @@ class Run:
         live = self._live()
         if live is not self:
             return live.record_error(message)
-        last = self._last_summary
+        last = self._last_step_summary()
         if self.rank != 0 or last is None:
             return
         try:
             output.write_summary(self.outdir, None, dict(
-                last, steps=list(last["steps"][:last["load_steps"]]), converged=False,
-                failure=f"stopped by an error: {message}; the converged steps stay in result.h5",
-                wall_time_s=time.perf_counter() - self.t_start))
+                last, converged=False,
+                failure=f"stopped by an error: {message}; the converged steps stay in result.h5"))
         except Exception:  # noqa: BLE001 - the run's own error is reported by the caller
             pass
 
@@ -472,9 +478,5 @@ class Run:
         base = {"case": self.scene.output.case_name, "load": self.lam0,
                 "load_steps": len(self.history), "dofs": NDOF * self.mesh.n_nodes,
                 "ranks": self.comm.getSize(), "steps": self.history}
-        extra = {}
-        last = self._last_summary
-        if last is not None:        # the last step's summary, whether or not it was written
-            extra = dict(last, steps=list(last["steps"][:last["load_steps"]]))
-        extra["wall_time_s"] = time.perf_counter() - self.t_start
+        extra = self._last_step_summary() or {"wall_time_s": time.perf_counter() - self.t_start}
         return output.mark_interrupted(self.outdir, signal_name, base=base, extra=extra)

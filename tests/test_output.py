@@ -387,7 +387,7 @@ def test_xdmf_rewrite_reads_only_new_steps(tmp_path, monkeypatch):
     text2, data2 = _xdmf_content(tmp_path)
     assert text2 == text and data2.keys() == data.keys()
     assert all(np.array_equal(data2[k], data[k]) for k in data)
-    cache.get(0, np.zeros((N, 3)))               # another reference: nothing kept
+    cache.for_reference(np.zeros((N, 3)))        # another reference: nothing kept
     assert cache.data == {} and cache.nbytes == 0
     small = output.XdmfCache(limit=1)
     read.clear()

@@ -221,7 +221,7 @@ def child(argv, topology=True):
     petsc4py.init(argv)
     instrument()
     # the ParaView view (rod.xdmf) is written once, at the end: rank 0 rewrites it between load
-    # steps (up to 5 % of a run, results.XDMF_SHARE) while the other ranks wait in the next
+    # steps (up to 2 % of a run, results.XDMF_SHARE) while the other ranks wait in the next
     # step's first residual, which the per-iteration events would count (the cantilever at
     # 10^4 on 2 ranks: 67.6 ms per iteration with the rewrites, 42.5 ms without)
     from rodsnes.io import results

@@ -49,6 +49,7 @@ step ``<= last_step`` readable; ``ResultWriter(..., append=True)`` reopens it fo
 groups newer than ``last_step``. The XDMF pair is rewritten into a temporary directory and moved into
 place, so ``rod.xdmf`` never references data that is not in ``rod.h5``.
 """
+import contextlib
 import json
 import math
 import os
@@ -281,8 +282,7 @@ class ResultWriter:
         self.path = os.path.join(self.outdir, RESULT_FILE)
         self.n_nodes = int(n_nodes)
         self.xdmf = bool(xdmf)
-        self._t_open = time.perf_counter()
-        self._xdmf_seconds = 0.0        # spent rewriting rod.xdmf/rod.h5 (rank 0)
+        self._xdmf_budget = RewriteBudget()   # time spent rewriting rod.xdmf/rod.h5 (rank 0)
         self._xdmf_stale = False        # a step is in result.h5 but not in rod.xdmf yet
         self._xdmf_cache = XdmfCache()  # converted steps, so that a rewrite reads only new ones
         mpi_h5 = bool(_h5py().get_config().mpi)
@@ -459,19 +459,19 @@ class ResultWriter:
         self.last_step = step
         if self.xdmf and self.comm.rank == 0:
             self._xdmf_stale = True
-            if self._xdmf_seconds <= XDMF_SHARE * (time.perf_counter() - self._t_open):
+            if self._xdmf_budget.due(XDMF_SHARE):
                 self._update_xdmf()
 
     def _update_xdmf(self):
         """Rewrite rod.xdmf/rod.h5 from result.h5 (rank 0), timing it."""
-        t0 = time.perf_counter()
-        try:
-            write_xdmf(self.outdir, cache=self._xdmf_cache)
-            self._xdmf_stale = False
-        except Exception as exc:  # noqa: BLE001 - result.h5 is complete; the view is derived
-            warnings.warn(f"rod.xdmf not updated after step {self.last_step}: {type(exc).__name__}: "
-                          f"{exc} (regenerate with: python -m rodsnes.io.results {self.outdir})")
-        self._xdmf_seconds += time.perf_counter() - t0
+        with self._xdmf_budget.spent():
+            try:
+                write_xdmf(self.outdir, cache=self._xdmf_cache)
+                self._xdmf_stale = False
+            except Exception as exc:  # noqa: BLE001 - result.h5 is complete; the view is derived
+                warnings.warn(f"rod.xdmf not updated after step {self.last_step}: "
+                              f"{type(exc).__name__}: {exc} (regenerate with: "
+                              f"python -m rodsnes.io.results {self.outdir})")
 
     def _group_setup(self, f, step, attrs):
         steps = f.require_group("steps")
@@ -904,18 +904,42 @@ def xdmf_point_data(step, ref_positions, meta):
     return pd
 
 
+class RewriteBudget:
+    """The time spent on a file that is rewritten whole to stay current (rod.xdmf; the run's
+    summary.json), kept within a share of the wall time since ``start`` (default: now): a
+    rewrite is ``due(share)`` while the rewrites so far took at most that share; ``spent()``
+    times one."""
+
+    def __init__(self, start=None):
+        self.start = time.perf_counter() if start is None else float(start)
+        self.seconds = 0.0
+
+    def due(self, share):
+        return self.seconds <= share * (time.perf_counter() - self.start)
+
+    @contextlib.contextmanager
+    def spent(self):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+
 class XdmfCache:
     """Point data of steps already converted for rod.xdmf (xdmf_point_data), by step, up to
     ``limit`` bytes (steps beyond it are read from result.h5 at every rewrite).  Valid for one
-    reference (step 0's positions): another one empties it."""
+    reference (step 0's positions, ``for_reference`` at every rewrite): another one empties it."""
 
     def __init__(self, limit=None):
         self.limit = XDMF_CACHE_BYTES if limit is None else int(limit)
         self.data, self.nbytes, self.ref = {}, 0, None
 
-    def get(self, step, ref):
+    def for_reference(self, ref):
         if self.ref is None or self.ref.shape != ref.shape or not np.array_equal(self.ref, ref):
             self.data, self.nbytes, self.ref = {}, 0, np.array(ref, copy=True)
+
+    def get(self, step):
         return self.data.get(step)
 
     def put(self, step, point_data):
@@ -964,8 +988,10 @@ def write_xdmf(outdir, cache=None):
                                      Value="load factor" if use_load else "step index (loads not increasing)")
                 info.text = "rodsnes: geometry = step 0; apply Warp By Vector with 'displacement'"
                 w.write_points_cells(ref, [("line", seg.astype(np.int64))])
+                if cache is not None:
+                    cache.for_reference(ref)
                 for k, t in zip(steps, times):
-                    pd = cache.get(k, ref) if cache is not None else None
+                    pd = cache.get(k) if cache is not None else None
                     if pd is None:
                         h = first if k == steps[0] else _read_group(f, k)
                         pd = xdmf_point_data(h, ref, meta)
