@@ -50,7 +50,7 @@ def test_kkt_report_and_action_reaction():
     run.contact.add_residual(p.lam, r, q, Floc)
     c = run.contact.summary()
     assert c["active_points"] > 0 and c["total_force"] > 0
-    assert c["min_gap"] < 0 and c["max_penetration"] == pytest.approx(-c["min_gap"] / (2 * run.contact.eps))
+    assert c["min_gap"] < 0 and c["max_penetration"] == pytest.approx(-c["min_gap"] / (2 * run.contact.radius))
     assert c["complementarity"] > 0
     # contact forces are internal: they sum to zero force and zero moment
     assert np.abs(Floc[:, 0:3].sum(axis=0)).max() < 1e-9 * np.abs(Floc).max()
@@ -134,6 +134,39 @@ def _energy_at(p, X):
 
 
 @pytest.mark.mpi
+def test_the_standoff_law_reports_against_the_tube():
+    """-contact_standoff s: at the same positions the law is that of the tube of radius
+    eps_l = a (1 + s) (deeper by the offset 2 (eps_l - a) = 2 a s, so more energy), while what is
+    reported is against the tube of radius a: min_gap, max_penetration and the clamps' mounts
+    (none here) are those of the law without a standoff; the raise that keeps the promise
+    scales the law's depth to its own promise p_l 2 eps_l (docs/contact.md, The standoff)."""
+    from rodsnes.io.scene import law_tube
+    hard, soft = coiled(), coiled(contact_standoff=0.02)
+    a = hard.contact.radius
+    assert (soft.contact.radius, soft.contact.eps) == (a, pytest.approx(1.02 * a, rel=1e-15))
+    assert soft.contact.offset == pytest.approx(0.04 * a, rel=1e-12)
+    assert soft.contact.law_penetration == pytest.approx(0.03 / 1.02, rel=1e-15)
+    assert law_tube(a, 0.01, 0.0) == (a, 0.01)
+    reports = []
+    for run in (hard, soft):
+        r, q = run.problem.state.local_config()
+        assert np.allclose(r, hard.problem.state.local_config()[0])
+        pen, mu1 = run.contact.promised_penalty(r)
+        c = run.contact.summary()
+        reports.append((c, pen, mu1, run.contact.deepest(), run.contact.energy_local(0.0, r, q)))
+    (ch, penh, muh, dh, eh), (cs, pens, mus, ds, es) = reports
+    # the same to the closest-point law's zone points (their zones end where the law's gap
+    # vanishes, a standoff further out: 5e-7 apart here)
+    assert cs["min_gap"] == pytest.approx(ch["min_gap"], rel=1e-5)
+    assert cs["max_penetration"] == pytest.approx(ch["max_penetration"], rel=1e-5)
+    assert pens == pytest.approx(penh, rel=1e-5) and pens > 0.01
+    assert ds == pytest.approx(dh + soft.contact.offset, rel=1e-5)       # the law's depth
+    assert es > 0 and eh > 0
+    c = soft.contact
+    assert mus == pytest.approx(1.25 * c.mu * ds / (c.law_penetration * 2 * c.eps), rel=1e-12)
+    assert (cs["standoff"], cs["law_radius"], cs["radius"]) == (0.02, c.eps, a)
+
+
 def test_newton_step_may_not_raise_the_energy():
     """Line-search pre-check, limit 3: with conservative loads (here none: load 0) a step that
     raises the total energy is shortened until it does not: the Newton step from the coiled

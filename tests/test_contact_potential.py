@@ -335,6 +335,10 @@ def test_zones_with_the_potential_and_an_unresolved_mesh_are_refused():
     run = build_run("rollup_contact", contact_model="potential", contact_quadrature=20)
     assert run.contact.kernel.nqp == 20 and run.contact.nqc == 5
     assert build_run("rollup_contact", contact_model="potential", rod_nelem=45).contact.kernel.nqp == 48
+    # a 2 % standoff's softer law (its promise 2.94 % of a diameter 2 % larger) touches 0.097
+    # of the master, which 32 elements resolve with 39 points each
+    assert build_run("rollup_contact", contact_model="potential",
+                     contact_standoff=0.02).contact.kernel.nqp == 39
 
 
 POTENTIAL = dict(contact_model="potential", contact_quadrature=24)

@@ -214,3 +214,35 @@ def test_adapted_penalty_keeps_the_promised_penetration():
     assert s["penalty"] == mu[-1]
     d0 = ref.solve_end_contact_penalty(ROD, mu[-1]).d0
     assert pen[-1] * 2 * ROD.eps == pytest.approx(d0, rel=0.05)
+
+
+@pytest.mark.slow
+def test_the_standoff_keeps_the_promise_against_the_tube():
+    """-contact_standoff 0.02 from mu = 5e4 (the law at the tube would overlap the ends by 4 %
+    of the diameter): the law is the penalty of the tube of radius eps_l = 1.02 a (exclusion
+    pi eps_l), so the planar reference of that law, at the final mu, overlaps the ends by d0, and
+    the run's ends overlap the tube by d0 - 2 (eps_l - a), reported against the tube's diameter
+    2a; every step within 1 % of it, the penalty raised to keep it (docs/contact.md, The
+    standoff)."""
+    import dataclasses
+    mu0, s, target = 5e4, 0.02, 0.01
+    law = dataclasses.replace(ROD, eps=ROD.eps * (1 + s), exclusion=None)
+    assert ref.solve_end_contact_penalty(law, mu0).d0 - 2 * s * ROD.eps > 1.5 * target * 2 * ROD.eps
+    run = run_case("rollup_contact", contact_penalty=mu0, contact_penalty_adapt=1,
+                   contact_standoff=s, **CI)
+    assert run.ok
+    steps = [a for k, a in output.read_step_attrs(run.outdir) if k > 0]
+    pen = np.array([a["contact_max_penetration"] for a in steps])
+    mu = np.array([a["contact_penalty"] for a in steps])
+    assert pen.max() <= target * (1 + 1e-12)
+    assert np.all(np.diff(mu) >= 0) and mu[0] == mu0 and mu[-1] > 1.5 * mu0     # 1.95 x
+    c = output.read_summary(run.outdir)["contact"]
+    assert (c["radius"], c["standoff"]) == (ROD.eps, s)
+    assert c["law_radius"] == pytest.approx(law.eps, rel=1e-15)
+    assert c["exclusion"] == pytest.approx(law.exclusion, rel=1e-15)
+    assert c["penalty_raises"] >= 1 and c["penalty"] == mu[-1]
+    d0 = ref.solve_end_contact_penalty(law, mu[-1]).d0
+    # the law's overlap (the tube's plus the offset 2 s a) is the reference's to 2 % (5.61e-3
+    # against 5.73e-3: its O(d0^2 / eps) terms, d0 = 5.7 % of eps here)
+    assert -c["min_gap"] + 2 * s * ROD.eps == pytest.approx(d0, rel=0.03)
+    assert c["max_penetration"] == pytest.approx(-c["min_gap"] / (2 * ROD.eps), rel=1e-12)

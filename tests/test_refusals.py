@@ -68,6 +68,10 @@ REFUSALS = [
     ("contact_radius_open", MATT + ("-contact", "-contact_radius", "0.4"),
      ["-contact_radius = 0.4", "pi x radius = 1.257 is not shorter than the rod (1)",
       "no two points of the rod can ever touch", "below 0.3183"]),
+    ("contact_radius_standoff", MATT + ("-contact", "-contact_radius", "0.4",
+                                        "-contact_standoff", "0.02"),
+     ["-contact_radius = 0.4", "pi x radius x (1 + -contact_standoff 0.02) = 1.282 is not "
+      "shorter than the rod (1)", "below 0.3121 (L / (pi (1 + -contact_standoff 0.02)))"]),
     ("contact_radius_ring", MICHELL + ("-contact", "-contact_radius", "0.2",
                                        "-contact_curvature", "0"),
      ["-contact_radius = 0.2", "not shorter than half the ring (0.5)", "below 0.1592"]),

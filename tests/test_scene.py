@@ -388,7 +388,7 @@ def test_contact_options(read):
     assert (c.enabled, c.penalty, c.radius, c.exclusion, c.quadrature) == (True, 1e4, 0.02,
                                                                            0.0, 4)
     assert s.contact_radius == 0.02
-    assert read({"contact_quadrature": "7"}).contact.quadrature == 7
+    assert read({"contact_quadrature": "7", "contact_model": "projection"}).contact.quadrature == 7
     assert s.contact.curvature is True                # the thickness bound on bending, by default
     assert read({"contact": None, "contact_curvature": "false"}).contact.curvature is False
     # a reference arc tighter than the contact radius is fine once the bound is off
@@ -402,14 +402,39 @@ def test_contact_law_auto(read):
     projection on coarser meshes or with -contact_zones; an explicit law is kept."""
     from rodsnes.contact.potential import MAX_POINTS, points_per_element
     base = {"contact": None, "contact_radius": "0.025", "rod_length": "1"}
-    for n in (16, 60):
-        c = read(dict(base, rod_nelem=str(n))).contact
-        resolved = points_per_element(1.0 / n, 0.025, c.penetration) <= MAX_POINTS
+    for n in (8, 60):
+        s = read(dict(base, rod_nelem=str(n)))
+        c = s.contact
+        resolved = points_per_element(1.0 / n, *s.contact_law) <= MAX_POINTS
         assert resolved == (n == 60)
         assert (c.model, c.model_auto) == ("potential" if resolved else "projection", True)
     assert read(dict(base, rod_nelem="60", contact_zones="true")).contact.model == "projection"
     c = read(dict(base, rod_nelem="60", contact_model="projection")).contact
     assert (c.model, c.model_auto) == ("projection", False)
+
+
+def test_the_standoff_is_refused_where_a_helix_starts_in_contact(read):
+    """-contact_standoff s: the law acts from 2 a (1 + s); a reference helix whose neighbouring
+    turns are closer than that would be pushed apart unloaded, and is refused with the largest
+    standoff it allows (scene.helix_turn_distance: P cos(alpha) to first order)."""
+    from rodsnes.errors import SceneError
+    from rodsnes.io.scene import helix_turn_distance
+    R, P = 0.03, 0.025
+    t = np.linspace(-0.5, 0.5, 200001)              # x(0) to x(2 pi + t), sampled
+    brute = np.sqrt((2 * R * np.sin(t / 2)) ** 2 + (P * (1 + t / (2 * np.pi))) ** 2).min()
+    assert helix_turn_distance(R, P) == pytest.approx(brute, rel=1e-9)
+    assert helix_turn_distance(R, P) == pytest.approx(P * R / math.hypot(R, P / (2 * math.pi)),
+                                                      rel=1e-4)
+    base = {"contact": None, "rod_radius": "0.01", "rod_shape": "helix", "rod_length": "1",
+            "rod_helix_radius": str(R), "rod_helix_pitch": str(P), "rod_nelem": "100"}
+    allowed = helix_turn_distance(R, P) / 0.02 - 1                    # 0.2425
+    s = read(dict(base, contact_standoff="0.2"))
+    assert s.contact.standoff == 0.2 and s.contact_law[0] == pytest.approx(0.012, rel=1e-15)
+    with pytest.raises(SceneError, match=r"-contact_standoff = 0.25 .*use a standoff below %.3g"
+                       % allowed):
+        read(dict(base, contact_standoff="0.25"))
+    assert read(dict(base, contact_standoff="0")).contact.standoff == 0.0
+    assert read({"contact": None}).contact.standoff == 0.0               # the default
 
 
 def test_penalty_adaptation_defaults(read):
@@ -530,7 +555,7 @@ def test_help_text_lists_every_option_once():
     assert "  -contact <false>: " in text
     for title in scene.SECTIONS.values():
         assert title in text
-    assert len(scene.OPTIONS) == 64
+    assert len(scene.OPTIONS) == 65
     for name in scene.RETIRED:                # refused with what replaced them, never listed
         assert "-%s " % name not in text and "-%s <" % name not in text
 

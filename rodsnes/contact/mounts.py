@@ -14,9 +14,12 @@ twisted rod can fall by going round (the plectoneme at 9.415 turns: relaxation l
 behind the start clamp, E 320.7 -> 312.4, and every step beyond changed the link by 1 or 2).
 Each half-line is a rigid obstacle of zero thickness in contact with the rod's tube:
 
-    g_k(s) = eps - dist(r(s), H_k),      E_s = (mu/2) sum_k int <g_k(s)>^2 ds,
+    g_k(s) = R - dist(r(s), H_k),      E_s = (mu/2) sum_k int <g_k(s)>^2 ds,
 
-with the self-contact's radius eps and penalty mu, at the contact's Gauss points, leaving out
+with the self-contact's penalty mu and R = a + 2 (eps - a), a the tube's radius and eps the
+law's (-contact_standoff): the rod stands as far off a mount as off another strand, and
+g_k - 2 (eps - a) is the depth into the tube that the promise bounds (R = eps = a without a
+standoff), at the contact's Gauss points, leaving out
 the arclength delta (the contact exclusion) next to clamp k, which the rod leaves along the
 axis.  With c = p + max((r - p).e, 0) e the closest point of H = {p + t e} and n = (r - c) /
 dist:
@@ -80,8 +83,9 @@ class SupportTerm:
     """H_0 and H_1 (module docstring) on this rank's owned elements.  ``axis_end``: the sliding
     end's tangent (its slide direction), ``axis_start`` the start clamp's tangent."""
 
-    def __init__(self, mesh, layout, kernel, x_start, axis_start, axis_end):
+    def __init__(self, mesh, layout, kernel, x_start, axis_start, axis_end, reach=None):
         self.mesh, self.layout, self.kernel = mesh, layout, kernel
+        self.reach = float(kernel.eps if reach is None else reach)     # R (module docstring)
         self.comm = layout.comm.tompi4py()
         self.own_ids = layout.owned_elems
         self.lconn = layout.lconn
@@ -126,11 +130,11 @@ class SupportTerm:
                 continue
             gap = np.full((no, k.nqc), -np.inf)
             dist, n, _ = half_line_distance(xq[m], p, e, projector=False)
-            gap[m] = k.eps - dist
+            gap[m] = self.reach - dist
             out["gap"].append(gap)
             if not (gap > 0.0).any():            # no point presses into this mount: no force
                 continue
-            energy, g, grad, _ = penalty_at(dist, n, None, self.wds[m], k.eps, k.mu)
+            energy, g, grad, _ = penalty_at(dist, n, None, self.wds[m], self.reach, k.mu)
             out["energy"] += energy
             G = np.zeros((no, k.nqc, 3))
             G[m] = grad
@@ -158,7 +162,7 @@ class SupportTerm:
             if not len(act):
                 continue
             Hq = np.zeros((no, k.nqc, 3, 3))
-            Hq[m] = penalty(xq[m], self.wds[m], p, e, k.eps, k.mu)[3]
+            Hq[m] = penalty(xq[m], self.wds[m], p, e, self.reach, k.mu)[3]
             Hq = Hq[act]
             Nq = k.Nq
             B = np.zeros((len(act), n1 + 1, n1 + 1, 3, 3))
@@ -198,10 +202,12 @@ class SupportTerm:
         """max g over this rank's points (positive: the tube presses into a mount)."""
         return max([float(g.max()) if g.size else -np.inf for g in out["gap"]] + [-np.inf])
 
-    def summary(self, out):
-        """Total force on the mounts and points pressing on them, all ranks.  Collective."""
+    def summary(self, out, offset=0.0):
+        """Total force on the mounts, points pressing on them, and the gap to the tube's
+        surface (g - offset, offset = 2 (eps - a)), all ranks.  Collective."""
         loc = np.array([float(np.sum(out["force"] * self.wds)),
                         float(sum(int((g > 0).sum()) for g in out["gap"]))])
         tot = self.comm.allreduce(loc)
         return {"support_force": float(tot[0]), "support_points": int(tot[1]),
-                "support_min_gap": float(-self.comm.allreduce(self.deepest_local(out), op=MPI.MAX))}
+                "support_min_gap": float(offset - self.comm.allreduce(self.deepest_local(out),
+                                                                      op=MPI.MAX))}

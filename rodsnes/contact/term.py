@@ -61,12 +61,18 @@ class ContactTerm(Term):
         rod, c = scene.rod, scene.contact
         self.mesh, self.layout = mesh, layout
         self.comm = layout.comm.tompi4py()
-        self.eps = float(c.radius if c.radius is not None else rod.radius)
+        # the tube (radius a, the promise p* on its diameter) and the law that keeps it: the
+        # law acts from 2 eps = 2 a (1 + standoff) with its own promise p_l (scene.law_tube);
+        # depths are the law's (2 eps - distance) inside, the tube's (2 a - distance) in reports
+        self.radius = float(scene.contact_radius)
+        self.standoff = float(c.standoff)
+        self.eps, self.law_penetration = scene.contact_law
+        self.offset = 2.0 * (self.eps - self.radius)    # law depth - tube depth
         self.delta = float(c.exclusion if c.exclusion is not None else ck.default_exclusion(self.eps))
-        self.penetration = float(c.penetration)     # promised largest <d> / (2 eps)
+        self.penetration = float(c.penetration)     # promised largest <d> / (2 a)
         self.adapt = bool(c.adapt)
         self.mu = float(c.penalty if c.penalty is not None else
-                        ck.default_penalty(min(rod.EI1, rod.EI2), self.eps, self.penetration))
+                        ck.default_penalty(min(rod.EI1, rod.EI2), self.eps, self.law_penetration))
         self.penalty_raises = 0         # -contact_penalty_adapt: re-solves with a raised mu
         self.penalty_failures = 0       # ... that failed (state and mu put back)
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
@@ -76,7 +82,7 @@ class ContactTerm(Term):
         if self.model == "potential":
             self.kernel = PotentialKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                           mesh.length, mesh.nelem, mesh.closed,
-                                          penetration=self.penetration,
+                                          penetration=self.law_penetration,
                                           nqp=c.potential_points)
         else:
             self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
@@ -107,7 +113,8 @@ class ContactTerm(Term):
         if c.supports and not mesh.closed and bc.start == "clamped" and bc.end == "sliding":
             self.supports = SupportTerm(mesh, layout, self.kernel, mesh.x_init[0],
                                         so3.rot(mesh.q_init[0])[:, 2],
-                                        so3.rot(mesh.q_init[-1])[:, 2])
+                                        so3.rot(mesh.q_init[-1])[:, 2],
+                                        reach=self.radius + self.offset)
 
     def set_penalty(self, mu):
         """Change the penalty stiffness mu (E_c = (mu/2) int <d>^2 ds); drops the cached
@@ -481,24 +488,30 @@ class ContactTerm(Term):
         loc = np.array([out["total_force"], out["complementarity"], len(out["d_active"]),
                         out["zones"]], dtype=float)
         tot = self.comm.allreduce(loc)
-        dmax = self.deepest()
+        dmax = self.deepest() - self.offset
         self.last_min_gap = -dmax
-        return {"min_gap": float(-dmax), "max_penetration": float(max(dmax, 0.0) / (2 * self.eps)),
+        return {"min_gap": float(-dmax),
+                "max_penetration": float(max(dmax, 0.0) / (2 * self.radius)),
                 "total_force": float(tot[0]), "complementarity": float(tot[1]),
                 "active_points": int(tot[2]), "zones": int(tot[3]), "penalty": self.mu,
-                "radius": self.eps, "exclusion": self.delta,
-                **(self.supports.summary(out["support"]) if self.supports is not None else {})}
+                "radius": self.radius, "standoff": self.standoff, "law_radius": self.eps,
+                "exclusion": self.delta,
+                **(self.supports.summary(out["support"], self.offset)
+                   if self.supports is not None else {})}
 
     def promised_penalty(self, r_loc):
-        """(pen, mu1) at the positions r_loc (collective): pen = max <d> / (2 eps) over all
-        ranks, the deepest penetration as a fraction of the diameter, and the penalty that keeps
-        the promise p* (-contact_penetration): None while pen <= p*, else 1.25 mu pen / p* (a
-        line contact has d ~ 1/mu, so it lands near 0.8 p*; a crossing, d ~ mu^(-2/3), may need
-        a second raise).  The rule of both load paths (-contact_penalty_adapt)."""
-        pen = self.deepest(r_loc) / (2.0 * self.eps)
+        """(pen, mu1) at the positions r_loc (collective): pen = max <d> / (2 a) over all
+        ranks, the deepest penetration into the tube as a fraction of its diameter, and the
+        penalty that keeps the promise p* (-contact_penetration): None while pen <= p*, else
+        1.25 mu d_l / d_l*, d_l = d + offset the law's depth, d_l* = p_l 2 eps its promised
+        one (equivalently pen <= p*: the law's promise reaches p* into the tube; a line contact
+        has d_l ~ 1/mu, so it lands near 0.8 d_l*; a crossing, d_l ~ mu^(-2/3), may need a
+        second raise).  The rule of both load paths (-contact_penalty_adapt)."""
+        depth = self.deepest(r_loc)
+        pen = (depth - self.offset) / (2.0 * self.radius)
         if pen <= self.penetration:
             return pen, None
-        return pen, 1.25 * self.mu * pen / self.penetration
+        return pen, 1.25 * self.mu * depth / (self.law_penetration * 2.0 * self.eps)
 
     def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
@@ -571,7 +584,7 @@ class ContactTerm(Term):
         out = self.kernel.add_report(self.last)
         ids = (self.own_ids[:, None] * self.nqc + np.arange(self.nqc)[None, :]).ravel()
         s = self.kernel.slave_arclength(self.own_ids).ravel()
-        gap = out["gap"].ravel()
+        gap = out["gap"].ravel() - self.offset        # depth into the tube (report points)
         return {"ids": ids, "n": self.mesh.nelem * self.nqc,
                 "fields": {"qp_s": s, "gap": np.where(np.isfinite(gap), gap, -1e300),
                            "contact_force": out["force"].ravel()}}

@@ -283,6 +283,13 @@ class O:
                               "of the contact diameter 2 eps: sets the default penalty and the bound "
                               "-contact_penalty_adapt keeps", "contact", rng="(0,0.5]",
                               note="a fraction of the contact diameter, e.g. 0.01 for 1 %")
+    contact_standoff = Opt(REAL, 0.0, "how far apart strands that touch lightly may stand, as a "
+                           "fraction of the contact diameter: the contact law acts from "
+                           "2 radius (1 + standoff) and keeps every penetration of the tube of "
+                           "-contact_radius within -contact_penetration; a positive standoff "
+                           "makes the law softer (fewer Newton iterations), 0 is the penalty at "
+                           "the tube", "contact", rng="[0,0.5]",
+                           note="a fraction of the contact diameter, e.g. 0.02 for 2 %")
     contact_penalty_adapt = Opt(BOOL, True, "after a converged load step whose penetration exceeds "
                                 "-contact_penetration, raise the penalty and solve the step again",
                                 "contact", shown="true unless -contact_penalty is given")
@@ -485,6 +492,17 @@ class Loads:
     arclength_its: int = 8
 
 
+def law_tube(radius, penetration, standoff):
+    """(eps_l, p_l): the radius and the promised penetration of the contact law for a tube of
+    ``radius`` whose penetrations are promised within ``penetration`` of its diameter, and whose
+    strands may stand ``standoff`` of its diameter apart while they touch lightly.  The law acts
+    from 2 eps_l = 2 radius (1 + standoff); its promised depth p_l 2 eps_l reaches
+    penetration x 2 radius into the tube: p_l = (standoff + penetration) / (1 + standoff)
+    (docs/contact.md, The standoff)."""
+    s = float(standoff)
+    return float(radius) * (1.0 + s), (s + float(penetration)) / (1.0 + s)
+
+
 @dataclass
 class Contact:
     """Self-contact settings; None means automatic (radius None = the rod radius)."""
@@ -495,6 +513,7 @@ class Contact:
     quadrature: int
     zones: bool = True
     penetration: float = 0.01       # promised largest penetration, fraction of 2 eps
+    standoff: float = 0.0           # the law acts from 2 eps (1 + standoff) (law_tube)
     adapt: bool = True              # raise mu after a step that breaks the promise
     curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
     supports: bool = True           # the clamps' mounts as obstacles (support.py)
@@ -530,6 +549,13 @@ class Scene:
         """The effective contact radius: -contact_radius, else the rod radius."""
         return self.contact.radius if self.contact.radius is not None else self.rod.radius
 
+    @property
+    def contact_law(self):
+        """(law radius, law penetration) of the contact law: law_tube of the contact radius,
+        -contact_penetration and -contact_standoff."""
+        c = self.contact
+        return law_tube(self.contact_radius, c.penetration, c.standoff)
+
     def describe(self):
         """A short multi-line human-readable summary (for the log header)."""
         r = self.rod
@@ -549,8 +575,9 @@ class Scene:
                 _fmt_vec(self.loads.end_force), " (follower)" if self.loads.end_force_follower
                 else "", _fmt_vec(self.loads.end_moment), _fmt_vec(self.loads.gravity),
                 self.loads.steps),
-            "contact %s" % ("on, radius %g" % self.contact_radius if self.contact.enabled
-                            else "off"),
+            "contact %s" % ("on, radius %g, standoff %g" % (self.contact_radius,
+                                                            self.contact.standoff)
+                            if self.contact.enabled else "off"),
         ]
         return "\n".join(lines)
 
@@ -775,6 +802,20 @@ def helix_curvature(radius, pitch):
     """Curvature R / (R^2 + c^2) of a helix of radius R and rise per turn 2 pi c."""
     c = pitch / (2.0 * math.pi)
     return radius / (radius ** 2 + c ** 2)
+
+
+def helix_turn_distance(radius, pitch):
+    """The shortest distance between neighbouring turns of a helix of radius R and rise per
+    turn P: min over t of |x(0) - x(2 pi + t)|, x(phi) = (R cos phi, R sin phi, P phi / 2 pi)
+    (P cos alpha to first order, alpha the pitch angle)."""
+    from scipy.optimize import minimize_scalar
+    R, P = float(radius), abs(float(pitch))
+
+    def d2(t):
+        return (2.0 * R * math.sin(0.5 * t)) ** 2 + (P * (1.0 + t / (2.0 * math.pi))) ** 2
+    res = minimize_scalar(d2, bounds=(-math.pi, 0.0), method="bounded",
+                          options={"xatol": 1e-12})
+    return math.sqrt(min(res.fun, d2(0.0)))
 
 
 def _rod(c):
@@ -1081,15 +1122,26 @@ def _contact(c, rod, bc):
                "sliding at its end (-bc_start clamped -bc_end sliding, here %s, %s); drop the "
                "option or change the supports" % (c.show(O.contact_supports), bc.start, bc.end),
                O.contact_supports, O.bc_start, O.bc_end)
-    model = _contact_law(c, rod, rcontact)
+    standoff = float(c[O.contact_standoff]) if enabled else 0.0
+    if enabled and rod["helix_radius"] is not None and rod["helix_pitch"] and standoff > 0:
+        # the law's tube may not touch in the stress-free shape (an unloaded coil would move)
+        gap = helix_turn_distance(rod["helix_radius"], rod["helix_pitch"]) / (2 * rcontact) - 1
+        if standoff >= gap:
+            c.fail("%s with %s, %s: the contact law acts from %.6g x the contact diameter, "
+                   "which the reference helix's neighbouring turns are closer than (%.6g x), "
+                   "so the unloaded coil would be pushed apart; use a standoff below %.3g"
+                   % (c.show(O.contact_standoff), c.show(O.rod_helix_radius),
+                      c.show(O.rod_helix_pitch), 1 + standoff, 1 + gap, max(gap, 0.0)),
+                   O.contact_standoff, O.rod_helix_pitch)
+    rlaw, plaw = law_tube(rcontact, c[O.contact_penetration], standoff)
+    model = _contact_law(c, rod, rlaw, plaw)
     if enabled and model == "potential" and c.given(O.contact_zones):
         c.fail("%s: contact zones belong to the closest-point law; -contact_model potential "
                "integrates at fixed points (-contact_quadrature); drop the option"
                % c.show(O.contact_zones), O.contact_zones, O.contact_model)
     if enabled and model == "potential" and q is None:
         from rodsnes.contact.potential import DENSITY, MAX_POINTS, support_length
-        need = _potential_points(c, rod, rcontact)
-        pen = float(c[O.contact_penetration])
+        need = _potential_points(rod, rlaw, plaw)
         h = rod["length"] / rod["nelem"]
         if need > MAX_POINTS:
             c.fail("%s: the pair potential resolves a contact by %d quadrature points on the "
@@ -1097,7 +1149,7 @@ def _contact(c, rod, bc):
                    "takes %d points per element of length %.4g (more than %d); refine the mesh "
                    "(-rod_nelem %d or more), set the points per element with "
                    "-contact_quadrature, or use -contact_model projection"
-                   % (c.show(O.contact_model), DENSITY, support_length(rcontact, pen), need, h,
+                   % (c.show(O.contact_model), DENSITY, support_length(rlaw, plaw), need, h,
                       MAX_POINTS, int(np.ceil(rod["nelem"] * need / MAX_POINTS))),
                    O.contact_model, O.rod_nelem, O.contact_quadrature)
     penalty = _f(c[O.contact_penalty])
@@ -1111,20 +1163,20 @@ def _contact(c, rod, bc):
                    else None,
                    zones=bool(c[O.contact_zones]), model=model,
                    model_auto=c[O.contact_model] == "auto",
-                   penetration=float(c[O.contact_penetration]), adapt=adapt,
+                   penetration=float(c[O.contact_penetration]), standoff=standoff,
+                   adapt=adapt,
                    curvature=bool(c[O.contact_curvature]),
                    supports=bool(c[O.contact_supports]))
 
 
-def _potential_points(c, rod, rcontact):
+def _potential_points(rod, rlaw, plaw):
     """Quadrature points per element the pair potential needs on this mesh
-    (contact.potential.points_per_element at the promised penetration)."""
+    (contact.potential.points_per_element at the law's promised penetration, law_tube)."""
     from rodsnes.contact.potential import points_per_element
-    return points_per_element(rod["length"] / rod["nelem"], rcontact,
-                              float(c[O.contact_penetration]))
+    return points_per_element(rod["length"] / rod["nelem"], rlaw, plaw)
 
 
-def _contact_law(c, rod, rcontact):
+def _contact_law(c, rod, rlaw, plaw):
     """The contact law of -contact_model: as given, or for auto the pair potential where the
     mesh resolves it (its automatic points per element within MAX_POINTS) and contact zones
     were not asked for, else the closest-point projection; -contact_quadrature then applies to
@@ -1133,7 +1185,7 @@ def _contact_law(c, rod, rcontact):
     if model != "auto":
         return model
     from rodsnes.contact.potential import MAX_POINTS
-    if c.given(O.contact_zones) or _potential_points(c, rod, rcontact) > MAX_POINTS:
+    if c.given(O.contact_zones) or _potential_points(rod, rlaw, plaw) > MAX_POINTS:
         return "projection"
     return "potential"
 
@@ -1415,9 +1467,10 @@ def _check_imperfection(scene, fail):
 
 
 def contact_exclusion(scene):
-    """The exclusion arclength of the contact: -contact_exclusion, else pi x contact radius."""
+    """The exclusion arclength of the contact: -contact_exclusion, else pi x the law's radius
+    (law_tube: the contact radius with its standoff)."""
     c = scene.contact
-    return c.exclusion if c.exclusion is not None else math.pi * scene.contact_radius
+    return c.exclusion if c.exclusion is not None else math.pi * scene.contact_law[0]
 
 
 def _check_contact_reach(scene, fail):
@@ -1427,25 +1480,30 @@ def _check_contact_reach(scene, fail):
     if not c.enabled:
         return
     eps, delta = scene.contact_radius, contact_exclusion(scene)
+    grow = 1.0 + c.standoff                 # the law's radius over the tube's (law_tube)
     span = r.length / 2 if r.closed else r.length
     where = "half the ring" if r.closed else "the rod"
     if c.exclusion is None and delta >= span:
-        fail("%s: the exclusion arclength pi x radius = %.4g is not shorter than %s (%.4g), so "
-             "no two points of the rod can ever touch and contact would do nothing; a contact "
-             "radius below %.4g (%s / pi) allows contact, or drop -contact"
-             % (_show("-contact_radius", eps), delta, where, span, span / math.pi,
-                "L/2" if r.closed else "L"), O.contact_radius, O.contact)
+        law = " x (1 + -contact_standoff %g)" % c.standoff if c.standoff else ""
+        pi = "(pi (1 + -contact_standoff %g))" % c.standoff if c.standoff else "pi"
+        fail("%s: the exclusion arclength pi x radius%s = %.4g is not shorter than %s (%.4g), "
+             "so no two points of the rod can ever touch and contact would do nothing; a "
+             "contact radius below %.4g (%s / %s) allows contact, or drop -contact"
+             % (_show("-contact_radius", eps), law, delta, where, span, span / math.pi / grow,
+                "L/2" if r.closed else "L", pi), O.contact_radius, O.contact)
     elif c.exclusion is not None and delta >= span:
         fail("%s: not shorter than %s (%.4g), so no two points of the rod can ever touch and "
              "contact would do nothing; use a shorter exclusion (default pi x contact radius = "
              "%.4g) or drop -contact" % (_show("-contact_exclusion", delta), where, span,
-                                          math.pi * eps), O.contact_exclusion, O.contact)
-    elif c.exclusion is not None and delta < 2.0 * eps:
-        fail("%s with contact radius %g: points less than the contact diameter 2 x radius = %.4g "
-             "apart along the rod are always closer than that in space, so the rod would be in "
-             "contact with its own neighbourhood; use at least %.4g (default pi x radius = %.4g)"
-             % (_show("-contact_exclusion", delta), eps, 2 * eps, 2 * eps, math.pi * eps),
-             O.contact_exclusion, O.contact_radius)
+                                          math.pi * eps * grow), O.contact_exclusion, O.contact)
+    elif c.exclusion is not None and delta < 2.0 * eps * grow:
+        fail("%s with contact radius %g and standoff %g: points less than the law's diameter "
+             "2 x radius x (1 + standoff) = %.4g apart along the rod are always closer than that "
+             "in space, so the rod would be in contact with its own neighbourhood; use at least "
+             "%.4g (default pi x radius x (1 + standoff) = %.4g)"
+             % (_show("-contact_exclusion", delta), eps, c.standoff, 2 * eps * grow,
+                2 * eps * grow, math.pi * eps * grow),
+             O.contact_exclusion, O.contact_radius, O.contact_standoff)
 
 
 def _check_contact_mesh(scene, fail):
