@@ -140,8 +140,12 @@ def test_the_standoff_law_reports_against_the_tube():
     reported is against the tube of radius a: min_gap, max_penetration and the clamps' mounts
     (none here) are those of the law without a standoff; the raise that keeps the promise
     scales the law's depth to its own promise p_l 2 eps_l (docs/contact.md, The standoff)."""
+    from rodsnes.contact.projection import default_penalty
     from rodsnes.io.scene import law_tube
     hard, soft = coiled(), coiled(contact_standoff=0.02)
+    rod = soft.scene.rod
+    assert soft.contact.mu == default_penalty(min(rod.EI1, rod.EI2), *soft.scene.contact_law)
+    assert soft.contact.mu < hard.contact.mu / 3          # the law's promise p_l = 2.94 %
     a = hard.contact.radius
     assert (soft.contact.radius, soft.contact.eps) == (a, pytest.approx(1.02 * a, rel=1e-15))
     assert soft.contact.offset == pytest.approx(0.04 * a, rel=1e-12)
@@ -155,6 +159,13 @@ def test_the_standoff_law_reports_against_the_tube():
         c = run.contact.summary()
         reports.append((c, pen, mu1, run.contact.deepest(), run.contact.energy_local(0.0, r, q)))
     (ch, penh, muh, dh, eh), (cs, pens, mus, ds, es) = reports
+    # the per-point gap of result.h5 (qp_fields): against the tube too
+    # (at points near contact: further out each law's report takes the nearest of its own
+    # candidates, which differ with its reach)
+    gh, gs = (run.contact.qp_fields()["fields"]["gap"] for run in (hard, soft))
+    both = (gh > -0.5 * a) & (gs > -0.5 * a)
+    assert both.sum() >= 4 and (gh[both] > 0).any()
+    assert np.abs(gs[both] - gh[both]).max() < 1e-6 * a
     # the same to the closest-point law's zone points (their zones end where the law's gap
     # vanishes, a standoff further out: 5e-7 apart here)
     assert cs["min_gap"] == pytest.approx(ch["min_gap"], rel=1e-5)

@@ -43,6 +43,27 @@ def test_twisted_rod_snaps_into_a_loop_in_self_contact():
 TEN_TURNS = os.path.join(ROOT, "tests", "data", "plectoneme_10")
 
 
+def test_the_mounts_report_against_the_tube_with_a_standoff(tmp_path):
+    """The stored 10-turn state presses on the clamps' mounts; read back with the case's 2 %
+    standoff and without one, the mounts' reports are the tube's in both (support_min_gap =
+    distance - a, the same), while the law with the standoff presses harder (its mounts act
+    from a + 2 (eps_l - a): more force at the same positions)."""
+    soft = build_run("plectoneme", outdir=tmp_path / "s", restart=TEN_TURNS)
+    hard = build_run("plectoneme", outdir=tmp_path / "h", restart=TEN_TURNS, contact_standoff=0)
+    a = soft.contact.radius
+    assert soft.contact.supports.reach == pytest.approx(a + 2 * (soft.contact.eps - a), rel=1e-15)
+    assert hard.contact.supports.reach == a
+    got = []
+    for run in (soft, hard):
+        run.contact.set_penalty(soft.contact.mu)          # the same mu: only the law differs
+        run.contact.report(run.problem.state.local_config()[0])
+        got.append(run.contact.summary())
+    s, h = got
+    assert s["support_points"] > 0 and s["support_force"] > h["support_force"]
+    assert s["support_min_gap"] == pytest.approx(h["support_min_gap"], rel=1e-9)
+    assert s["support_min_gap"] > -0.01 * 2 * a
+
+
 @pytest.mark.slow
 @pytest.mark.mpi
 def test_the_ten_turn_plectoneme_is_an_equilibrium_of_the_current_code(tmp_path):

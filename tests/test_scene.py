@@ -415,24 +415,40 @@ def test_contact_law_auto(read):
 
 def test_the_standoff_is_refused_where_a_helix_starts_in_contact(read):
     """-contact_standoff s: the law acts from 2 a (1 + s); a reference helix whose neighbouring
-    turns are closer than that would be pushed apart unloaded, and is refused with the largest
-    standoff it allows (scene.helix_turn_distance: P cos(alpha) to first order)."""
+    turns are closer than that, or an arc bent tighter than 1/(a (1 + s)), would be pushed
+    apart unloaded, and is refused with the largest standoff it allows
+    (scene.helix_turn_distance: P cos(alpha) to first order)."""
     from rodsnes.errors import SceneError
     from rodsnes.io.scene import helix_turn_distance
-    R, P = 0.03, 0.025
+    R, P = 0.03, 0.0215
     t = np.linspace(-0.5, 0.5, 200001)              # x(0) to x(2 pi + t), sampled
     brute = np.sqrt((2 * R * np.sin(t / 2)) ** 2 + (P * (1 + t / (2 * np.pi))) ** 2).min()
     assert helix_turn_distance(R, P) == pytest.approx(brute, rel=1e-9)
     assert helix_turn_distance(R, P) == pytest.approx(P * R / math.hypot(R, P / (2 * math.pi)),
                                                       rel=1e-4)
+    # a steep helix: the nearest point beyond the exclusion lies within the first turn
+    Rs, Ps, excl = 0.005, 0.04, math.pi * 0.0112
+    phi = np.linspace(0, 6 * np.pi, 600001)
+    arc = phi * math.hypot(Rs, Ps / (2 * np.pi))
+    d = np.sqrt((2 * Rs * np.sin(phi / 2)) ** 2 + (Ps * phi / (2 * np.pi)) ** 2)
+    assert helix_turn_distance(Rs, Ps, excl) == pytest.approx(d[arc >= excl].min(), rel=1e-5)
     base = {"contact": None, "rod_radius": "0.01", "rod_shape": "helix", "rod_length": "1",
             "rod_helix_radius": str(R), "rod_helix_pitch": str(P), "rod_nelem": "100"}
-    allowed = helix_turn_distance(R, P) / 0.02 - 1                    # 0.2425
-    s = read(dict(base, contact_standoff="0.2"))
-    assert s.contact.standoff == 0.2 and s.contact_law[0] == pytest.approx(0.012, rel=1e-15)
-    with pytest.raises(SceneError, match=r"-contact_standoff = 0.25 .*use a standoff below %.3g"
+    allowed = helix_turn_distance(R, P) / 0.02 - 1                    # 0.0665
+    s = read(dict(base, contact_standoff="0.05"))
+    assert s.contact.standoff == 0.05 and s.contact_law[0] == pytest.approx(0.0105, rel=1e-15)
+    with pytest.raises(SceneError, match=r"-contact_standoff = 0.08 .*use a standoff below %.3g"
                        % allowed):
-        read(dict(base, contact_standoff="0.25"))
+        read(dict(base, contact_standoff="0.08"))
+    # a coil whose turns are no further apart than the diameter allows none
+    with pytest.raises(SceneError, match=r"allows none"):
+        read(dict(base, rod_helix_pitch="0.0201", contact_standoff="0.01"))
+    # a reference arc bent tighter than the law's tube
+    arc_opts = {"contact": None, "rod_radius": "0.01", "rod_shape": "arc",
+                "rod_arc_radius": "0.0105", "rod_length": "0.0366", "rod_nelem": "8"}
+    read(arc_opts)
+    with pytest.raises(SceneError, match=r"folds on itself.*use a standoff below 0.05 "):
+        read(dict(arc_opts, contact_standoff="0.1"))
     assert read(dict(base, contact_standoff="0")).contact.standoff == 0.0
     assert read({"contact": None}).contact.standoff == 0.0               # the default
 

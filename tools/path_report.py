@@ -13,7 +13,7 @@ appended to DIR) and prints a markdown report:
   it existed are filled from ``--summary`` files, matched by load, else unknown) and the branch
   switches / jumps in the range;
 * over the whole path: total steps, Newton iterations, wall seconds of the steps, the largest
-  residual norm of a converged step, the largest penetration (fraction of 2 eps);
+  residual norm of a converged step, the largest penetration (fraction of the tube's diameter);
 * the last step: load, energy, link / twist / writhe, negative eigenvalues, contact zones, total
   contact force int f_c ds, and the distribution of the contact force line density f_c = mu <d>
   over the contact quadrature points with f_c > 0 (median, 90th percentile, max) with the

@@ -6,7 +6,7 @@
 
 Runs ``rodsnes`` once per factor (``-contact_penalty`` = factor x the default 5 EI/eps^4 read
 from the first run's summary) and writes OUT.csv and OUT.md: factor, mu, max penetration (fraction
-of 2 eps), min gap, total contact force, complementarity, Newton iterations, load steps, wall
+of the tube's diameter), min gap, total contact force, complementarity, Newton iterations, load steps, wall
 time, converged.  The penalty method promises penetration ~ 1/mu at a fixed contact force.
 """
 import argparse

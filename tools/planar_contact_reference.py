@@ -115,6 +115,8 @@ class PlanarRod:
                 if tok:
                     vals[tok[0].lstrip("-")] = tok[1] if len(tok) > 1 else ""
         mz = float(vals["load_end_moment"].split(",")[2])
+        if float(vals.get("contact_standoff", 0.0)):
+            raise ValueError(f"{path}: -contact_standoff: the reference is of the law at the tube")
         eps = float(vals.get("contact_radius", vals["rod_radius"]))
         rod = cls(L=float(vals["rod_length"]), EI=float(vals["rod_EI"]), EA=float(vals["rod_EA"]),
                   GA=float(vals["rod_GA"]), M=mz, eps=eps,

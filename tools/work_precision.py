@@ -237,6 +237,9 @@ def planar_rod(scene):
         raise ValueError("planar contact reference: a straight open rod with an end moment along z only")
     if abs(rod.EI1 - rod.EI2) > 1e-12 * rod.EI1 or abs(rod.GA1 - rod.GA2) > 1e-12 * rod.GA1:
         raise ValueError("planar contact reference: EI1 = EI2 and GA1 = GA2 only")
+    if c.standoff:
+        # the study measures the law's error against hard contact at the tube
+        raise ValueError("planar contact reference: the law at the tube only (-contact_standoff 0)")
     eps = float(c.radius if c.radius is not None else rod.radius)
     return ref.PlanarRod(L=float(rod.length), EI=float(rod.EI1), EA=float(rod.EA), GA=float(rod.GA1),
                          M=float(M[2]), eps=eps, exclusion=None if c.exclusion is None else float(c.exclusion))
@@ -397,14 +400,14 @@ def read_case_scene(case_file, extra):
 
 def default_contact_penalty(case_file, extra):
     """The penalty mu0 the solver starts from: the case's -contact_penalty, else
-    rodsnes.contact.default_penalty(min(EI1, EI2), eps, -contact_penetration) (as ContactTerm)."""
+    rodsnes.contact.default_penalty(min(EI1, EI2), eps_l, p_l) of the law (Scene.contact_law, as
+    ContactTerm)."""
     from rodsnes.contact.projection import default_penalty
     sc = read_case_scene(case_file, extra)
     c = sc.contact
     if c.penalty is not None:
         return float(c.penalty)
-    eps = c.radius if c.radius is not None else sc.rod.radius
-    return float(default_penalty(min(sc.rod.EI1, sc.rod.EI2), eps, c.penetration))
+    return float(default_penalty(min(sc.rod.EI1, sc.rod.EI2), *sc.contact_law))
 
 
 # --------------------------------------------------------------------------- running the solver

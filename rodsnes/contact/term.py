@@ -479,11 +479,13 @@ class ContactTerm(Term):
     # -- the KKT picture ----------------------------------------------------------------
     def summary(self):
         """The KKT picture over all ranks, from the last evaluation (the converged state):
-        min_gap = min_s (|r(s) - r(sbar)| - 2 eps) over the Gauss points (negative:
-        penetration), max_penetration = max <d> / (2 eps), total_force = int f_c ds,
-        complementarity = int <d> f_c ds (zero for exact contact; the penalty makes it ~1/mu)
-        by the contact quadrature (the zones, by default), active_points = points of that
-        quadrature with d > 0 (they carry the contact force), zones = contact zones."""
+        min_gap = min_s (|r(s) - r(sbar)| - 2a) over the Gauss points (negative:
+        penetration of the tube of radius a), max_penetration = max <d> / (2a), total_force =
+        int f_c ds; the law's (depth d_l = 2 eps - distance, eps = a (1 + standoff)):
+        complementarity = int <d_l> f_c ds (zero for exact contact; the penalty makes it ~1/mu,
+        a standoff adds about 2 a standoff total_force) by the contact quadrature (the zones, by
+        default), active_points = points of that quadrature with d_l > 0 (they carry the
+        contact force), zones = contact zones."""
         out = self.kernel.add_report(self.last)
         loc = np.array([out["total_force"], out["complementarity"], len(out["d_active"]),
                         out["zones"]], dtype=float)

@@ -28,7 +28,7 @@ Everything a run leaves in its output directory ``DIR``:
             ``moment_m`` (n,3)  stress resultant moment m in the global frame [force*length]
         quadrature-point datasets (nq,), row q = global quadrature-point id:
             ``qp_s``          arclength of the quadrature point in the reference configuration [length]
-            ``gap``           gap function d = 2 eps - |r(s) - r(sbar)| of the slides (positive:
+            ``gap``           gap function d = 2a - |r(s) - r(sbar)| of the slides, a the tube's radius (positive:
                               penetration; -1e300 where no candidate is near) [length]
             ``contact_force`` contact line-force magnitude [force/length]
         every dataset carries an attribute ``centering`` = ``'node'`` or ``'qp'`` (and ``description``
@@ -83,7 +83,8 @@ FIELD_DOC = {
     "force_n": "stress resultant force n, global frame [force]",
     "moment_m": "stress resultant moment m, global frame [force*length]",
     "qp_s": "reference arclength of the quadrature point [length]",
-    "gap": "gap function d = 2 eps - distance to the closest point (positive: penetration; "
+    "gap": "gap function d = 2a - distance to the closest point, a the contact tube's radius "
+           "(positive: penetration; "
            "-1e300: no candidate near) [length]",
     "contact_force": "contact line-force magnitude at the quadrature point [force/length]",
 }

@@ -280,7 +280,7 @@ class O:
     contact_penalty = Opt(REAL, None, "penalty stiffness", "contact", rng="(0,inf)",
                           shown="automatic", note="contact penalty stiffness")
     contact_penetration = Opt(REAL, 0.01, "largest penetration the penalty promises, as a fraction "
-                              "of the contact diameter 2 eps: sets the default penalty and the bound "
+                              "of the contact diameter 2 radius: sets the default penalty and the bound "
                               "-contact_penalty_adapt keeps", "contact", rng="(0,0.5]",
                               note="a fraction of the contact diameter, e.g. 0.01 for 1 %")
     contact_standoff = Opt(REAL, 0.0, "how far apart strands that touch lightly may stand, as a "
@@ -288,7 +288,9 @@ class O:
                            "2 radius (1 + standoff) and keeps every penetration of the tube of "
                            "-contact_radius within -contact_penetration; a positive standoff "
                            "makes the law softer (fewer Newton iterations), 0 is the penalty at "
-                           "the tube", "contact", rng="[0,0.5]",
+                           "the tube (at most 0.1: the exclusion pi radius (1 + standoff) "
+                           "hides no more than (pi standoff / 4)^2 of the diameter in a "
+                           "tight bend)", "contact", rng="[0,0.1]",
                            note="a fraction of the contact diameter, e.g. 0.02 for 2 %")
     contact_penalty_adapt = Opt(BOOL, True, "after a converged load step whose penetration exceeds "
                                 "-contact_penetration, raise the penalty and solve the step again",
@@ -512,7 +514,7 @@ class Contact:
     exclusion: Optional[float]
     quadrature: int
     zones: bool = True
-    penetration: float = 0.01       # promised largest penetration, fraction of 2 eps
+    penetration: float = 0.01       # promised largest penetration, fraction of 2 radius
     standoff: float = 0.0           # the law acts from 2 eps (1 + standoff) (law_tube)
     adapt: bool = True              # raise mu after a step that breaks the promise
     curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
@@ -804,18 +806,24 @@ def helix_curvature(radius, pitch):
     return radius / (radius ** 2 + c ** 2)
 
 
-def helix_turn_distance(radius, pitch):
-    """The shortest distance between neighbouring turns of a helix of radius R and rise per
-    turn P: min over t of |x(0) - x(2 pi + t)|, x(phi) = (R cos phi, R sin phi, P phi / 2 pi)
-    (P cos alpha to first order, alpha the pitch angle)."""
+def helix_turn_distance(radius, pitch, exclusion=0.0):
+    """The shortest distance from a point of a helix of radius R and rise per turn P to the
+    points at least ``exclusion`` of arclength away: min over phi of |x(0) - x(phi)|,
+    x(phi) = (R cos phi, R sin phi, P phi / 2 pi), phi from max(pi, the exclusion's angle)
+    over two turns (about P cos alpha, alpha the pitch angle, where the neighbouring turn is
+    the nearest; a steep helix's nearest admissible point may lie within its first turn)."""
     from scipy.optimize import minimize_scalar
     R, P = float(radius), abs(float(pitch))
+    c = P / (2.0 * math.pi)
+    lo = max(math.pi, float(exclusion) / math.hypot(R, c))
 
-    def d2(t):
-        return (2.0 * R * math.sin(0.5 * t)) ** 2 + (P * (1.0 + t / (2.0 * math.pi))) ** 2
-    res = minimize_scalar(d2, bounds=(-math.pi, 0.0), method="bounded",
-                          options={"xatol": 1e-12})
-    return math.sqrt(min(res.fun, d2(0.0)))
+    def d2(phi):
+        return (2.0 * R * np.sin(0.5 * phi)) ** 2 + (c * phi) ** 2
+    phi = np.linspace(lo, lo + 4.0 * math.pi, 801)
+    k = int(np.argmin(d2(phi)))
+    a, b = phi[max(k - 1, 0)], phi[min(k + 1, len(phi) - 1)]
+    res = minimize_scalar(d2, bounds=(a, b), method="bounded", options={"xatol": 1e-13})
+    return math.sqrt(min(res.fun, d2(phi[k])))
 
 
 def _rod(c):
@@ -1096,7 +1104,9 @@ def _contact(c, rod, bc):
             c.fail("%s with contact radius %g: neighbouring turns interpenetrate in the reference "
                    "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
-    if enabled and c[O.contact_curvature]:
+    standoff = float(c[O.contact_standoff]) if enabled else 0.0
+    rlaw, plaw = law_tube(rcontact, c[O.contact_penetration], standoff)
+    if enabled:
         bends = []                  # (reference curvature, the options that set it, as shown)
         if rod["arc_radius"] is not None:
             shown = (c.show(O.rod_arc_radius) if c.given(O.rod_arc_radius) else
@@ -1110,30 +1120,42 @@ def _contact(c, rod, bc):
             bends.append((float(np.hypot(*rod["kappa0"][:2])), (O.rod_kappa0,),
                           c.show(O.rod_kappa0)))
         for kappa, opts, shown in bends:
-            if kappa * rcontact > 1.0:
+            if c[O.contact_curvature] and kappa * rcontact > 1.0:
                 c.fail("%s: the reference centreline bends to curvature %.6g, above 1/contact "
                        "radius = %.6g, which the contact tube's thickness bound forbids; use a "
                        "smaller -contact_radius, a gentler reference shape, or "
                        "-contact_curvature false" % (shown, kappa, 1.0 / rcontact),
                        *opts, O.contact_radius, O.contact_curvature)
+            elif standoff > 0 and kappa * rlaw > 1.0:
+                # the law's tube would fold on itself: the unloaded rod would be pushed apart
+                most = 1.0 / (kappa * rcontact) - 1.0
+                c.fail("%s with %s: the reference centreline bends to curvature %.6g, above "
+                       "1/(contact radius x (1 + standoff)) = %.6g, where the contact law's tube "
+                       "folds on itself and would bend the unloaded rod; %s or a gentler "
+                       "reference shape"
+                       % (shown, c.show(O.contact_standoff), kappa, 1.0 / rlaw,
+                          "use a standoff below %.3g" % most if most > 0 else "no standoff"),
+                       *opts, O.contact_standoff)
     if enabled and c.given(O.contact_supports) and c[O.contact_supports] and \
             (rod["closed"] or bc.start != "clamped" or bc.end != "sliding"):
         c.fail("%s: the clamps' mounts are modelled for an open rod clamped at its start and "
                "sliding at its end (-bc_start clamped -bc_end sliding, here %s, %s); drop the "
                "option or change the supports" % (c.show(O.contact_supports), bc.start, bc.end),
                O.contact_supports, O.bc_start, O.bc_end)
-    standoff = float(c[O.contact_standoff]) if enabled else 0.0
     if enabled and rod["helix_radius"] is not None and rod["helix_pitch"] and standoff > 0:
         # the law's tube may not touch in the stress-free shape (an unloaded coil would move)
-        gap = helix_turn_distance(rod["helix_radius"], rod["helix_pitch"]) / (2 * rcontact) - 1
+        excl = _f(c[O.contact_exclusion])
+        gap = helix_turn_distance(rod["helix_radius"], rod["helix_pitch"],
+                                  math.pi * rlaw if excl is None else excl) / (2 * rcontact) - 1
         if standoff >= gap:
+            allow = ("use a standoff below %.3g" % gap if gap > 0 else
+                     "this coil allows none (its turns are no further apart than the diameter)")
             c.fail("%s with %s, %s: the contact law acts from %.6g x the contact diameter, "
                    "which the reference helix's neighbouring turns are closer than (%.6g x), "
-                   "so the unloaded coil would be pushed apart; use a standoff below %.3g"
+                   "so the unloaded coil would be pushed apart; %s"
                    % (c.show(O.contact_standoff), c.show(O.rod_helix_radius),
-                      c.show(O.rod_helix_pitch), 1 + standoff, 1 + gap, max(gap, 0.0)),
+                      c.show(O.rod_helix_pitch), 1 + standoff, 1 + gap, allow),
                    O.contact_standoff, O.rod_helix_pitch)
-    rlaw, plaw = law_tube(rcontact, c[O.contact_penetration], standoff)
     model = _contact_law(c, rod, rlaw, plaw)
     if enabled and model == "potential" and c.given(O.contact_zones):
         c.fail("%s: contact zones belong to the closest-point law; -contact_model potential "
@@ -1488,14 +1510,17 @@ def _check_contact_reach(scene, fail):
         pi = "(pi (1 + -contact_standoff %g))" % c.standoff if c.standoff else "pi"
         fail("%s: the exclusion arclength pi x radius%s = %.4g is not shorter than %s (%.4g), "
              "so no two points of the rod can ever touch and contact would do nothing; a "
-             "contact radius below %.4g (%s / %s) allows contact, or drop -contact"
+             "contact radius below %.4g (%s / %s)%s allows contact, or drop -contact"
              % (_show("-contact_radius", eps), law, delta, where, span, span / math.pi / grow,
-                "L/2" if r.closed else "L", pi), O.contact_radius, O.contact)
+                "L/2" if r.closed else "L", pi,
+                " or a smaller -contact_standoff" if c.standoff else ""),
+             O.contact_radius, O.contact, *((O.contact_standoff,) if c.standoff else ()))
     elif c.exclusion is not None and delta >= span:
         fail("%s: not shorter than %s (%.4g), so no two points of the rod can ever touch and "
-             "contact would do nothing; use a shorter exclusion (default pi x contact radius = "
-             "%.4g) or drop -contact" % (_show("-contact_exclusion", delta), where, span,
-                                          math.pi * eps * grow), O.contact_exclusion, O.contact)
+             "contact would do nothing; use a shorter exclusion (default pi x contact radius%s "
+             "= %.4g) or drop -contact" % (_show("-contact_exclusion", delta), where, span,
+                                           " x (1 + standoff)" if c.standoff else "",
+                                           math.pi * eps * grow), O.contact_exclusion, O.contact)
     elif c.exclusion is not None and delta < 2.0 * eps * grow:
         fail("%s with contact radius %g and standoff %g: points less than the law's diameter "
              "2 x radius x (1 + standoff) = %.4g apart along the rod are always closer than that "
