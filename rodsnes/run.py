@@ -25,7 +25,7 @@ from rodsnes.model.problem import RodProblem
 from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.terms import scene_terms, contact_term
-from rodsnes.solve import estimate
+from rodsnes.solve import estimate, linear
 from rodsnes.solve import planar
 from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
@@ -44,6 +44,7 @@ class Run:
 
     def __init__(self, scene, comm):
         self.t_start = time.perf_counter()
+        linear.forget_defaults()
         self.scene, self.comm = scene, comm
         self.mpi = comm.tompi4py()
         self.rank = comm.getRank()

@@ -35,9 +35,11 @@ def test_counts_match_the_run(mattiasson_run):
     p = bs.iteration_parts(log)
     its = sum(step["newton_iterations"] for step in s["steps"])
     # every Newton iteration: one Jacobian, one numeric LU, one solve; no failed tries here;
-    # plus the factorisation of the linear solver's check before the run (cli.py)
+    # plus the factorisation of the linear solver's check before the run (cli.py) and the
+    # LU of the node graph that measures the pattern's fill (linear.pattern_fill, once: one
+    # pattern)
     assert p["iterations"] == ev["SNESJacobianEval"]["count"] == its == s["newton_iterations"]
-    assert p["factorisations"] == its + 1 and ev["MatSolve"]["count"] == its
+    assert p["factorisations"] == its + 2 and ev["MatSolve"]["count"] == its
     assert p["snes_solves"] == s["load_steps"] == ev["SNESSolve"]["count"]
     # basic line search: one residual per iteration, plus the first of each solve
     assert p["residual_evals"] == its + s["load_steps"]
@@ -137,10 +139,11 @@ def test_lu_with_much_fill_hands_over_to_mumps():
 
 @pytest.mark.mpi
 def test_several_ranks_hand_a_filled_pattern_to_mumps():
-    """On several ranks every rank factors the whole matrix by PETSc's LU (PCREDUNDANT), whose
-    factor petsc4py does not reach: the fill is that of the Jacobian's node graph
-    (linear.pattern_fill, equal to the serial LU's: 3.355 for the coil at 1000 elements), and
-    above FILL_MUMPS the Newton steps factor by MUMPS over the ranks."""
+    """On several ranks the Newton steps of a chain solve by static condensation (every rank
+    factors its own stretch by PETSc's LU: solve/schur.py, tests/test_schur.py), whose factors
+    petsc4py does not reach: the fill is that of the Jacobian's node graph (linear.pattern_fill,
+    equal to the serial LU's: 3.355 for the coil at 1000 elements), and above FILL_MUMPS the
+    Newton steps factor by MUMPS over the ranks."""
     from conftest import run_case
     from rodsnes.solve.linear import FILL_MUMPS, pattern_fill
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
@@ -153,4 +156,10 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()
     assert pattern_fill(chain.problem) < FILL_MUMPS
-    assert pc.getType() == ("redundant" if chain.comm.getSize() > 1 else "lu")
+    if chain.comm.getSize() > 1:
+        from rodsnes.solve.schur import RankSchur
+        ctx = pc.getPythonContext()
+        assert pc.getType() == "python" and isinstance(ctx, RankSchur)
+        assert ctx.setups["schur"] > 0 and ctx.setups["whole"] == 0
+    else:
+        assert pc.getType() == "lu"

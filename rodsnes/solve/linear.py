@@ -2,8 +2,11 @@
 user's -ksp_type, -pc_type, -pc_factor_mat_solver_type, -mat_mumps_icntl_* win).
 
 The Newton steps (the minimiser's and the Newton path's SNES) factor the Jacobian by PETSc's
-own sparse LU (6 x 6 blocks, approximate-minimum-degree ordering); on more than one rank every
-rank factors the whole matrix (PCREDUNDANT).  A rod's Jacobian is a chain of small blocks plus
+own sparse LU (6 x 6 blocks, approximate-minimum-degree ordering); on more than one rank each
+rank factors its own stretch of the rod and the ranks share the small Schur complement of the
+nodes where the stretches meet (schur.RankSchur, exact: one level of static condensation;
+use_rank_schur turns the PCREDUNDANT default, where every rank would factor the whole matrix,
+into it).  A rod's Jacobian is a chain of small blocks plus
 the contact couplings, and on it PETSc's LU was 3-5 x faster than MUMPS at every size measured
 (plectoneme, 60 elements: 1.8 ms against 4.2 ms per factorisation; cantilever, 1e4 elements:
 50-75 ms against 256 ms; 2 ranks, 1e4 elements: 0.16 s against 0.94 s; tools/bench_scaling.py,
@@ -33,8 +36,13 @@ rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose 
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.solve.schur import RankSchur
+
 FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
 ORDERING = "amd"        # PETSc's LU: approximate minimum degree (module docstring)
+
+
+DEFAULTED = {}          # name -> value of the options rodsnes set (option_default)
 
 
 def option_default(name, value):
@@ -44,7 +52,25 @@ def option_default(name, value):
     if opts.hasName(name):
         return False
     opts.setValue(name, value)
+    DEFAULTED[name] = str(value)
     return True
+
+
+def forget_defaults():
+    """A new run: the options database is the user's again (a test or an in-process caller
+    removes the last run's options), so no option counts as set by option_default."""
+    DEFAULTED.clear()
+
+
+def is_default(name):
+    """Whether -name holds the value option_default set (not one the user gave)."""
+    opts = PETSc.Options()
+    return opts.hasName(name) and DEFAULTED.get(name) == opts.getString(name)
+
+
+def user_chose(name):
+    """Whether the user gave -name (it is set, and not by option_default)."""
+    return PETSc.Options().hasName(name) and not is_default(name)
 
 
 def mumps_fill_room(problem, prefix=""):
@@ -62,8 +88,7 @@ def lu_defaults(comm, prefix="", added=None):
     wherever that makes PETSc's own LU, its ordering (ordering_default).
     Returns whether the package is rodsnes' choice (use_mumps_when_filled may change it).
     ``added``: a list that receives the names this call set (to take them back)."""
-    opts = PETSc.Options()
-    chosen = opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "pc_factor_mat_solver_type")
+    chosen = user_chose(prefix + "pc_type") or user_chose(prefix + "pc_factor_mat_solver_type")
     if comm.getSize() == 1:
         defaults = (("pc_type", "lu"), ("pc_factor_mat_solver_type", "petsc"))
     elif chosen:
@@ -164,7 +189,7 @@ def use_mumps_when_filled(ksp, problem):
     PC factors by MUMPS from now on (module docstring).  Returns True when it switched."""
     pc = ksp.getPC()
     kind = pc.getType()
-    native = kind == PETSc.PC.Type.REDUNDANT or (
+    native = kind == PETSc.PC.Type.REDUNDANT or _is_rank_schur(pc) or (
         kind == PETSc.PC.Type.LU and pc.getFactorSolverType() == "petsc")
     if not native or not pattern_fill(problem, lu_ordering(ksp.getOptionsPrefix() or "")
                                       or ORDERING) > FILL_MUMPS:
@@ -177,10 +202,36 @@ def use_mumps_when_filled(ksp, problem):
     return True
 
 
+def _is_rank_schur(pc):
+    return pc.getType() == PETSc.PC.Type.PYTHON and isinstance(pc.getPythonContext(), RankSchur)
+
+
+def use_rank_schur(ksp, problem):
+    """On several ranks, where the KSP factors the whole matrix by PETSc's LU on every rank
+    (PCREDUNDANT over PETSc's LU, rodsnes' default), its PC becomes schur.RankSchur: each rank
+    factors its own stretch of the rod and the ranks share the small interface.  Returns True
+    when it switched."""
+    pc = ksp.getPC()
+    if problem.layout.comm.getSize() == 1 or pc.getType() != PETSc.PC.Type.REDUNDANT:
+        return False
+    prefix = ksp.getOptionsPrefix() or ""
+    opts = PETSc.Options()
+    if (opts.getString(prefix + "redundant_pc_type", "lu") != "lu"
+            or opts.getString(prefix + "redundant_pc_factor_mat_solver_type", "petsc") != "petsc"):
+        return False
+    ops = pc.getOperators()
+    pc.reset()
+    pc.setType(PETSc.PC.Type.PYTHON)
+    pc.setPythonContext(RankSchur(problem, lu_ordering(prefix) or ORDERING))
+    pc.setOperators(*ops)
+    return True
+
+
 class LUChoice:
     """The LU package of one KSP while it is rodsnes' choice (``auto``, lu_defaults): every new
-    pattern's matrix is checked once (use_mumps_when_filled); after a hand-over to MUMPS, or
-    when the user chose, nothing more is checked."""
+    pattern's matrix is checked once (use_mumps_when_filled, else on several ranks
+    use_rank_schur); after a hand-over to MUMPS, or when the user chose, nothing more is
+    checked."""
 
     def __init__(self, auto):
         self.auto = bool(auto)
@@ -192,3 +243,5 @@ class LUChoice:
             self._checked = problem.J
             if use_mumps_when_filled(ksp, problem):
                 self.auto = False       # contact couples much of the rod: MUMPS from now
+            else:
+                use_rank_schur(ksp, problem)

@@ -36,7 +36,7 @@ from petsc4py import PETSc
 from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
-from rodsnes.solve.linear import direct_solver_defaults, option_default
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, is_default, option_default
 from rodsnes.solve.stability import Inertia
 
 # the out-of-plane share of a residual that is still round-off (relative to |g|)
@@ -273,8 +273,11 @@ class PlanarSystem:
                         "redundant_pc_factor_mat_solver_type",
                         "redundant_pc_factor_mat_ordering_type"):
                 if opts.hasName(key):            # the 3-D step's choice, the user's or its default
-                    option_default(PREFIX + key, opts.getString(key))
-            direct_solver_defaults(self.problem, PREFIX)
+                    if is_default(key):
+                        option_default(PREFIX + key, opts.getString(key))
+                    elif not opts.hasName(PREFIX + key):
+                        opts.setValue(PREFIX + key, opts.getString(key))
+            self.lu = LUChoice(direct_solver_defaults(self.problem, PREFIX))
             ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
             ksp.setOptionsPrefix(PREFIX)
             ksp.setFromOptions()
@@ -286,6 +289,7 @@ class PlanarSystem:
         when the factorisation failed.  Collective."""
         ksp = self._inner_ksp()
         ksp.setOperators(self.J)
+        self.lu.check(ksp, self.problem)
         bi = self.restrict(b)
         xi = bi.duplicate()
         self.stats["planar_solves"] += 1

@@ -1,0 +1,232 @@
+"""Exact linear solves over several ranks by one level of static condensation: RankSchur, the
+preconditioner (a python PC, applied once by KSP preonly) that rodsnes' LU becomes on more
+than one rank (linear.LUChoice).
+
+Every rank owns a contiguous stretch of the rod (model/partition.py).  The separator G is the
+set of nodes that, in an element or a term's node group spanning several ranks, are not owned
+by the lowest of them (``separator``): removing them leaves every rank's other rows, its
+interior I_r, coupled to no other rank's interior.  Then
+
+    A = [[A_II, A_IG], [A_GI, A_GG]],   A_II = diag(A_{I_r I_r}),
+
+and A x = b is solved exactly by
+
+    W_r = A_{I_r I_r}^-1 A_{I_r G},   S = A_GG - sum_r A_{G I_r} W_r      (the Schur complement)
+    y_r = A_{I_r I_r}^-1 b_{I_r},   S x_G = b_G - sum_r A_{G I_r} y_r,   x_{I_r} = y_r - W_r x_G.
+
+Each rank factors its own interior by PETSc's LU (AMD ordering, as the one-rank solve) and
+solves for the columns of W_r (as many as G has unknowns: one node's on a rod cut once); the
+ranks add their parts of S (dense, small) and every rank factors it.  Against PCREDUNDANT,
+where every rank gathers the whole matrix and factors all of it, each rank factors only its
+share (the planar cantilever at 10^4 elements on 2 ranks: docs/parallel.md).
+
+Where the separator is large (contact coupling much of the rod across ranks: more than
+SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole matrix on every rank
+instead (PCREDUNDANT with PETSc's LU, the previous default).  The sub-matrices, the interior's
+symbolic factorisation and the index sets are kept while the matrix and its separator stay
+(decided on all ranks together: every branch here is collective).  A failed factorisation on
+any rank makes the solution NaN on every rank, which fails the Newton step as a failed LU does.
+"""
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from mpi4py import MPI
+from petsc4py import PETSc
+
+SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
+WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
+
+
+def separator(problem, A):
+    """(sep, near): the separator's block rows of A (sorted global block indices: the
+    problem's nodes, block size 6 or 3) and the other block rows that share a group with one
+    of them (the only rows and columns of A_IG and A_GI that hold entries).  The separator: in
+    every element and term node group (problem.node_groups of its patterns) whose nodes belong
+    to several ranks, the nodes not owned by the lowest of them.  The same on every rank (the
+    groups are global)."""
+    lay, mesh = problem.layout, problem.mesh
+    groups = [mesh.conn]
+    extra = problem.node_groups(problem.patterns)
+    if extra is not None and len(extra):
+        groups.append(np.asarray(extra))
+    groups = [lay.nat2petsc[np.asarray(g)] for g in groups]
+    first = np.asarray(A.getOwnershipRanges()) // A.getBlockSize()
+    out = []
+    for rows in groups:
+        owner = np.searchsorted(first, rows, side="right") - 1
+        lowest = owner.min(axis=1, keepdims=True)
+        span = (owner != lowest).any(axis=1)
+        out.append(rows[span][owner[span] != lowest[span]])
+    sep = np.unique(np.concatenate(out)).astype(np.int64)
+    near = np.unique(np.concatenate([rows[np.isin(rows, sep).any(axis=1)].ravel()
+                                     for rows in groups]))
+    return sep, np.setdiff1d(near, sep).astype(np.int64)
+
+
+def _block_is(blocks, bs):
+    return PETSc.IS().createBlock(bs, np.asarray(blocks, dtype=PETSc.IntType), comm=PETSc.COMM_SELF)
+
+
+def _csr(M, shape):
+    """A sequential PETSc matrix as a scipy CSR matrix (its values copied)."""
+    ai, aj, av = M.getValuesCSR()
+    return sp.csr_matrix((av.copy(), aj.copy(), ai.copy()), shape=shape)
+
+
+class RankSchur:
+    """The python PC context of the module docstring for the matrices of ``problem``."""
+
+    def __init__(self, problem, ordering="amd"):
+        self.problem = problem
+        self.ordering = ordering
+        self.kept = None            # the condensation of the last matrix (index sets, blocks)
+        self.whole = None           # the whole-matrix LU (KSP) where condensation does not pay
+        self.mode = None            # "schur" or "whole" for the current matrix
+        self.failed = False
+        self.setups = {"schur": 0, "whole": 0}
+
+    # -- set-up -----------------------------------------------------------------------
+    def setUp(self, pc):
+        A = pc.getOperators()[0]
+        comm = A.getComm().tompi4py()
+        bs = A.getBlockSize()
+        rs, re = A.getOwnershipRange()
+        # the matrix: its handle and the problem's count of new patterns (the same on every
+        # rank; a handle alone may be a new matrix at a freed one's address)
+        key = (A.handle, A.getSize(), self.problem.stats.get("pattern_refreshes", 0))
+        k = self.kept
+        if k is not None and k["A"] == key:             # the same matrix: the same pattern
+            sep, near = k["sep"], k["near"]
+        else:
+            sep, near = separator(self.problem, A)
+        mine = sep[(sep >= rs // bs) & (sep < re // bs)]
+        interior = (re - rs) // bs - len(mine)
+        small = len(sep) * bs <= SCHUR_MAX and comm.allreduce(interior, op=MPI.MIN) > 0
+        self.mode = "schur" if small else "whole"
+        self.setups[self.mode] += 1
+        if not small:
+            self.kept = None
+            self._whole(A).setUp()
+            self.failed = False
+            return
+        same = k is not None and k["A"] == key and np.array_equal(k["sep"], sep)
+        if comm.allreduce(bool(same), op=MPI.LAND):
+            self._refresh(A)
+        else:
+            self._condense(A, key, sep, mine, near)
+        self._factor(comm)
+
+    def _whole(self, A):
+        """PETSc's LU of the whole matrix on every rank (PCREDUNDANT; its inner solver set
+        through the options of a prefix of its own: petsc4py 3.18 does not reach it)."""
+        if self.whole is None:
+            opts = PETSc.Options(WHOLE_PREFIX)
+            for name, value in (("ksp_type", "preonly"), ("pc_type", "redundant"),
+                                ("redundant_ksp_type", "preonly"), ("redundant_pc_type", "lu"),
+                                ("redundant_pc_factor_mat_solver_type", "petsc"),
+                                ("redundant_pc_factor_mat_ordering_type", self.ordering)):
+                opts[name] = value
+            ksp = self.whole = PETSc.KSP().create(comm=A.getComm())
+            ksp.setOptionsPrefix(WHOLE_PREFIX)
+            ksp.setFromOptions()
+        self.whole.setOperators(A)
+        return self.whole
+
+    def _condense(self, A, key, sep, mine, near):
+        """Index sets, blocks and the interior's KSP for a new matrix or separator.  ``near``:
+        this rank's interior block rows next to the separator (A_IG's and A_GI's entries)."""
+        bs = A.getBlockSize()
+        rs, re = A.getOwnershipRange()
+        own = np.arange(rs // bs, re // bs)
+        inner = np.setdiff1d(own, mine, assume_unique=True)
+        ni, ng = len(inner) * bs, len(sep) * bs
+        here = near[(near >= rs // bs) & (near < re // bs)]
+        unknowns = lambda blocks: (np.asarray(blocks)[:, None] * bs + np.arange(bs)).ravel()
+        k = self.kept = {"A": key, "sep": sep, "near": near, "ni": ni, "ng": ng,
+                         "I": unknowns(inner - rs // bs), "G": unknowns(mine - rs // bs),
+                         # the separator's unknowns this rank owns, in S's order
+                         "Gpos": unknowns(np.searchsorted(sep, mine)),
+                         # the interior unknowns next to the separator, in the interior's order
+                         "Npos": unknowns(np.searchsorted(inner, here)), "nn": len(here) * bs,
+                         "isIl": _block_is(inner - rs // bs, bs), "isN": _block_is(here, bs),
+                         "isS": _block_is(sep, bs)}
+        k["AII"] = A.getDiagonalBlock().createSubMatrix(k["isIl"], k["isIl"])
+        k["ANS"], k["ASN"], k["ASS"] = A.createSubMatrices(
+            [k["isN"], k["isS"], k["isS"]], [k["isS"], k["isN"], k["isS"]])
+        ksp = k["ksp"] = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+        ksp.setType(PETSc.KSP.Type.PREONLY)
+        pc = ksp.getPC()
+        pc.setType(PETSc.PC.Type.LU)
+        pc.setFactorSolverType("petsc")
+        pc.setFactorOrdering(self.ordering)
+        ksp.setOperators(k["AII"])
+        k["B"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
+        k["B"].setUp()
+        k["W"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
+        k["W"].setUp()
+        k["B"].getDenseArray()[:] = 0.0
+
+    def _refresh(self, A):
+        """The same matrix with new values: the kept blocks take them (same patterns)."""
+        k = self.kept
+        A.getDiagonalBlock().createSubMatrix(k["isIl"], k["isIl"], submat=k["AII"])
+        A.createSubMatrices([k["isN"], k["isS"], k["isS"]], [k["isS"], k["isN"], k["isS"]],
+                            submats=[k["ANS"], k["ASN"], k["ASS"]])
+        k["ksp"].setOperators(k["AII"])
+
+    def _factor(self, comm):
+        """The interior's LU, W_r, S = A_GG - sum_r A_{G I_r} W_r, and S's LU on every rank."""
+        k = self.kept
+        ni, ng = k["ni"], k["ng"]
+        ok = True
+        B = k["B"].getDenseArray()
+        B[k["Npos"]] = _csr(k["ANS"], (k["nn"], ng)).toarray()    # A_IG: rows next to G only
+        W = k["W"].getDenseArray()
+        try:
+            # column by column: PETSc 3.18's MatMatSolve on a BAIJ factor costs about twice;
+            # a zero pivot shows as the KSP's failed reason (PETSc defers factor errors)
+            ksp = k["ksp"]
+            b, w = (PETSc.Vec().createWithArray(np.empty(ni), comm=PETSc.COMM_SELF) for _ in "bw")
+            for j in range(ng):
+                b.placeArray(np.ascontiguousarray(B[:, j]))
+                ksp.solve(b, w)
+                ok = ok and ksp.getConvergedReason() >= 0
+                W[:, j] = w.getArray()
+                b.resetArray()
+            b.destroy()
+            w.destroy()
+        except PETSc.Error:
+            ok = False
+        ok = ok and bool(np.isfinite(W).all())
+        k["asn"] = _csr(k["ASN"], (ng, k["nn"])).toarray()        # A_GI: columns next to G
+        part = -(k["asn"] @ W[k["Npos"]]) if ok else np.zeros((ng, ng))
+        S = _csr(k["ASS"], (ng, ng)).toarray() + comm.allreduce(part)
+        self.failed = not comm.allreduce(ok, op=MPI.LAND)
+        if not self.failed:
+            lu, piv = sla.lu_factor(S, check_finite=False)
+            self.failed = not (np.isfinite(lu).all() and np.abs(np.diag(lu)).min() > 0.0)
+            k["S"] = (lu, piv)
+
+    # -- solve --------------------------------------------------------------------------
+    def apply(self, pc, x, y):
+        if self.mode == "whole":
+            self.whole.solve(x, y)
+            return
+        if self.failed:                 # the same on every rank (_factor)
+            y.set(np.nan)
+            return
+        k = self.kept
+        comm = pc.getOperators()[0].getComm().tompi4py()
+        b = x.getArray(readonly=True)
+        bI = PETSc.Vec().createWithArray(b[k["I"]].copy(), comm=PETSc.COMM_SELF)
+        yI = bI.duplicate()
+        k["ksp"].solve(bI, yI)
+        yv = yI.getArray()
+        g = -(k["asn"] @ yv[k["Npos"]])
+        g[k["Gpos"]] += b[k["G"]]
+        xg = sla.lu_solve(k["S"], comm.allreduce(g), check_finite=False)
+        out = y.getArray()
+        out[k["I"]] = yv - k["W"].getDenseArray() @ xg
+        out[k["G"]] = xg[k["Gpos"]]
+        bI.destroy()
+        yI.destroy()
