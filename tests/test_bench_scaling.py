@@ -160,6 +160,7 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
         from rodsnes.solve.schur import RankSchur
         ctx = pc.getPythonContext()
         assert pc.getType() == "python" and isinstance(ctx, RankSchur)
-        assert ctx.setups["schur"] > 0 and ctx.setups["whole"] == 0
+        # 601 nodes: too short for the condensation to pay, the whole matrix on every rank
+        assert ctx.setups["whole"] > 0 and ctx.setups["schur"] == 0
     else:
         assert pc.getType() == "lu"

@@ -96,6 +96,7 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     LU it falls back to; the second set-up of the same matrix reuses its blocks."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
+    monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)      # condensed however short
     run = build_run(case, **kw)
     A, b, x = _system(run)
     ref = PETSc.KSP().create(comm=A.getComm())
@@ -129,15 +130,23 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     yw = _solve(A, b, whole)
     assert whole.mode == "whole"
     assert error(yw) <= 3.0 * error(xr) + 1e-13
+    # a rod shorter than MIN_NODES_PER_RANK a rank: the whole matrix too
+    monkeypatch.setattr(schur, "SCHUR_MAX", 600)
+    monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 4000)
+    whole = schur.RankSchur(run.problem)
+    yw = _solve(A, b, whole)
+    assert whole.mode == "whole"
+    assert error(yw) <= 3.0 * error(xr) + 1e-13
 
 
 @pytest.mark.mpi
-def test_a_failed_interior_fails_on_every_rank():
+def test_a_failed_interior_fails_on_every_rank(monkeypatch):
     """An interior factorisation that fails on one rank (a NaN in its block): the solution is
     NaN on every rank (the Newton step fails as a failed LU does), and no rank waits for
     another."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
+    monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)
     run = build_run("mattiasson", rod_nelem=40, rod_planar="off")
     A, b, _ = _system(run)
     lo, hi = A.getOwnershipRange()

@@ -20,9 +20,10 @@ ranks add their parts of S (dense, small) and every rank factors it.  Against PC
 where every rank gathers the whole matrix and factors all of it, each rank factors only its
 share (the planar cantilever at 10^4 elements on 2 ranks: docs/parallel.md).
 
-Where the separator is large (contact coupling much of the rod across ranks: more than
-SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole matrix on every rank
-instead (PCREDUNDANT with PETSc's LU, the previous default).  The sub-matrices, the interior's
+Where the rod is short (fewer than MIN_NODES_PER_RANK nodes a rank: the condensation's fixed
+cost outweighs what it saves), the separator large (contact coupling much of the rod across
+ranks: more than SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole
+matrix on every rank instead (PCREDUNDANT with PETSc's LU, the previous default).  The sub-matrices, the interior's
 symbolic factorisation and the index sets are kept while the matrix and its separator stay
 (decided on all ranks together: every branch here is collective).  A failed factorisation on
 any rank makes the solution NaN on every rank, which fails the Newton step as a failed LU does.
@@ -34,6 +35,13 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
+# nodes per rank below which the whole matrix is factored instead: the condensation's fixed
+# cost per set-up (sub-matrices, the separator's columns, the gathers; ~3 ms) outweighs what
+# it saves on the factorisation.  Measured per Newton iteration on 2 ranks (cantilever,
+# condensed against whole): 3-D 1000 elements 21.3 / 14.5 ms, 3000 27.3 / 31.0 ms; planar
+# 1000 10.6 / 8.6 ms, 3000 15.7 / 16.1 ms, 10^4 36.7 / 41.5 ms; the plectoneme's 181 nodes
+# 27.8 / 11.7 ms (its pattern changes every few iterations)
+MIN_NODES_PER_RANK = 4000
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
 
 
@@ -101,7 +109,9 @@ class RankSchur:
             sep, near = separator(self.problem, A)
         mine = sep[(sep >= rs // bs) & (sep < re // bs)]
         interior = (re - rs) // bs - len(mine)
-        small = len(sep) * bs <= SCHUR_MAX and comm.allreduce(interior, op=MPI.MIN) > 0
+        big = A.getSize()[0] // bs >= MIN_NODES_PER_RANK * comm.Get_size()
+        small = (big and len(sep) * bs <= SCHUR_MAX
+                 and comm.allreduce(interior, op=MPI.MIN) > 0)
         self.mode = "schur" if small else "whole"
         self.setups[self.mode] += 1
         if not small:
