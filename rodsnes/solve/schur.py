@@ -175,6 +175,12 @@ class RankSchur:
         k["W"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
         k["W"].setUp()
         k["B"].getDenseArray()[:] = 0.0
+        # the interior as a slice where it is one stretch of rows (a chain: all of rank 0's, or
+        # all but the first node's): views instead of copies in every apply
+        I = k["I"]
+        k["Iview"] = slice(int(I[0]), int(I[-1]) + 1) if len(I) and I[-1] - I[0] + 1 == len(I) else I
+        k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
+        k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
 
     def _refresh(self, A):
         """The same matrix with new values: the kept blocks take them (same patterns)."""
@@ -228,15 +234,14 @@ class RankSchur:
         k = self.kept
         comm = pc.getOperators()[0].getComm().tompi4py()
         b = x.getArray(readonly=True)
-        bI = PETSc.Vec().createWithArray(b[k["I"]].copy(), comm=PETSc.COMM_SELF)
-        yI = bI.duplicate()
+        bI, yI = k["bI"], k["yI"]
+        bI.setArray(b[k["Iview"]])
         k["ksp"].solve(bI, yI)
-        yv = yI.getArray()
+        yv = yI.getArray(readonly=True)
         g = -(k["asn"] @ yv[k["Npos"]])
         g[k["Gpos"]] += b[k["G"]]
         xg = sla.lu_solve(k["S"], comm.allreduce(g), check_finite=False)
         out = y.getArray()
-        out[k["I"]] = yv - k["W"].getDenseArray() @ xg
+        out[k["Iview"]] = yv
+        out[k["Iview"]] -= k["W"].getDenseArray() @ xg
         out[k["G"]] = xg[k["Gpos"]]
-        bI.destroy()
-        yI.destroy()
