@@ -86,9 +86,15 @@ def _solve(A, b, ctx):
     return y
 
 
+TEN_TURNS = __import__("os").path.join(__import__("os").path.dirname(__file__), "data",
+                                       "plectoneme_10")
+
+
 @pytest.mark.mpi
 @pytest.mark.parametrize("case,kw", [("mattiasson", dict(rod_nelem=40, rod_planar="off")),
-                                     ("michell", dict(rod_nelem=24))])
+                                     ("michell", dict(rod_nelem=24)),
+                                     # contact pairs and the mounts' end couplings across ranks
+                                     ("plectoneme", dict(restart=TEN_TURNS))])
 def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     """On 2 ranks a chain (the cantilever) and a ring (michell: cut twice) solved by static
     condensation: the same solution as PETSc's LU of the whole matrix to round-off, by the
@@ -109,34 +115,65 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     y = _solve(A, b, ctx)
     assert ctx.mode == "schur" and ctx.setups == {"schur": 1, "whole": 0}
     cuts = 2 if run.mesh.closed else 1
-    assert ctx.kept["sep"].size == cuts * (PETSc.COMM_WORLD.getSize() - 1)
+    if case != "plectoneme":
+        assert ctx.kept["sep"].size == cuts * (PETSc.COMM_WORLD.getSize() - 1)
+    else:           # the contact pairs across the cut add their nodes
+        assert ctx.kept["sep"].size > 1
 
     def error(v):
         e = v.copy()
         e.axpy(-1.0, x)
         return e.norm() / x.norm()
     # as accurate as the LU (both backward stable; the Jacobian's condition number makes both
-    # errors ~1e-8 here)
-    assert error(y) <= 3.0 * error(xr) + 1e-13 and error(xr) < 1e-6
-    # a new set-up of the same matrix keeps the blocks (and gives the same solution)
+    # errors ~1e-9 here); the plectoneme's ply has a near-zero mode (an eigenvalue ~1e-9 of the
+    # diagonal), along which the two round-offs differ more: 4e-8 against 8e-10 (a missed
+    # coupling would be O(1))
+    slack = 1e-7 if case == "plectoneme" else 1e-13
+    assert error(y) <= 3.0 * error(xr) + slack and error(xr) < 1e-6
+    # a new set-up of the same matrix with new values keeps the blocks and takes the values
+    # (2 A: half the solution; stale blocks would give another)
     kept = ctx.kept["AII"]
+    A.scale(2.0)
     y2 = _solve(A, b, ctx)
-    assert ctx.kept["AII"] is kept
+    A.scale(0.5)
+    assert ctx.kept["AII"] is kept and ctx.setups["schur"] == 2
     d = y2.copy()
-    d.axpy(-1.0, y)
-    assert d.norm() <= 1e-13 * y.norm()
+    d.axpy(-0.5, y)
+    assert d.norm() <= 1e-12 * y.norm()
     monkeypatch.setattr(schur, "SCHUR_MAX", 0)
     whole = schur.RankSchur(run.problem)
     yw = _solve(A, b, whole)
     assert whole.mode == "whole"
-    assert error(yw) <= 3.0 * error(xr) + 1e-13
+    assert error(yw) <= 3.0 * error(xr) + slack
     # a rod shorter than MIN_NODES_PER_RANK a rank: the whole matrix too
     monkeypatch.setattr(schur, "SCHUR_MAX", 600)
     monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 4000)
     whole = schur.RankSchur(run.problem)
     yw = _solve(A, b, whole)
     assert whole.mode == "whole"
-    assert error(yw) <= 3.0 * error(xr) + 1e-13
+    assert error(yw) <= 3.0 * error(xr) + slack
+
+
+@pytest.mark.mpi
+def test_the_planar_cantilever_by_condensation_is_the_serial_run(monkeypatch):
+    """The planar cantilever (in-plane blocks of block size 3) on 2 ranks, condensed however
+    short: the same iterations, energy and tip as on one rank."""
+    if PETSc.COMM_WORLD.getSize() == 1:
+        pytest.skip("several ranks only (make test-mpi)")
+    from conftest import run_case
+    monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)
+    par = run_case("mattiasson", rod_nelem=40, load_path="newton", rod_error_estimate="off")
+    ser = run_case("mattiasson", comm=PETSc.COMM_SELF, rod_nelem=40, load_path="newton",
+                   rod_error_estimate="off",
+                   outdir=par.outdir + f"_s{PETSc.COMM_WORLD.getRank()}")
+    assert par.ok and ser.ok and par.problem.planar is not None
+    pc = par.problem.planar.ksp.getPC()
+    assert pc.getType() == "python" and pc.getPythonContext().setups["schur"] > 0
+    assert [h["newton_iterations"] for h in par.history] == \
+        [h["newton_iterations"] for h in ser.history]
+    sp, ss = par.summary(converged=True), ser.summary(converged=True)
+    assert sp["energy"] == pytest.approx(ss["energy"], rel=1e-11)
+    assert np.abs(np.subtract(sp["tip_position"], ss["tip_position"])).max() < 1e-10
 
 
 @pytest.mark.mpi

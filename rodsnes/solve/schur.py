@@ -26,7 +26,8 @@ ranks: more than SCHUR_MAX unknowns) or some rank has no interior, the PC factor
 matrix on every rank instead (PCREDUNDANT with PETSc's LU, the previous default).  The sub-matrices, the interior's
 symbolic factorisation and the index sets are kept while the matrix and its separator stay
 (decided on all ranks together: every branch here is collective).  A failed factorisation on
-any rank makes the solution NaN on every rank, which fails the Newton step as a failed LU does.
+any rank makes the solution NaN on every rank (a python PC cannot set a failed reason in
+petsc4py 3.18), which fails the Newton step as the planar solve's failure does (planar.py).
 """
 import numpy as np
 import scipy.linalg as sla
@@ -109,9 +110,11 @@ class RankSchur:
             sep, near = separator(self.problem, A)
         mine = sep[(sep >= rs // bs) & (sep < re // bs)]
         interior = (re - rs) // bs - len(mine)
+        # every rank decides alike: the size and the separator are global (the contact pairs
+        # are gathered to every rank), the interiors' least size is reduced
+        least = comm.allreduce(interior, op=MPI.MIN)
         big = A.getSize()[0] // bs >= MIN_NODES_PER_RANK * comm.Get_size()
-        small = (big and len(sep) * bs <= SCHUR_MAX
-                 and comm.allreduce(interior, op=MPI.MIN) > 0)
+        small = big and len(sep) * bs <= SCHUR_MAX and least > 0
         self.mode = "schur" if small else "whole"
         self.setups[self.mode] += 1
         if not small:
