@@ -56,6 +56,11 @@ def test_the_separator_cuts_every_coupling_between_ranks():
         else:
             assert len(sep) > 2
         assert not np.isin(near, sep).any()
+    # an element cut 1 + 3 (nodes 9 | 10 11 12): its one node is the separator, whoever owns it
+    p.patterns = [None] * len(p.terms)
+    p.node_groups = lambda pats: None
+    sep, _ = schur.separator(p, _Ranges(6, [0, 10, 24, n]))
+    assert list(sep) == [9, 24]
 
 
 def _system(run):

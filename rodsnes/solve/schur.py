@@ -4,8 +4,8 @@ than one rank (linear.LUChoice).
 
 Every rank owns a contiguous stretch of the rod (model/partition.py).  The separator G is the
 set of nodes that, in an element or a term's node group spanning several ranks, are not owned
-by the lowest of them (``separator``): removing them leaves every rank's other rows, its
-interior I_r, coupled to no other rank's interior.  Then
+by the rank that owns most of its nodes (``separator``): removing them leaves every rank's
+other rows, its interior I_r, coupled to no other rank's interior.  Then
 
     A = [[A_II, A_IG], [A_GI, A_GG]],   A_II = diag(A_{I_r I_r}),
 
@@ -51,7 +51,8 @@ def separator(problem, A):
     problem's nodes, block size 6 or 3) and the other block rows that share a group with one
     of them (the only rows and columns of A_IG and A_GI that hold entries).  The separator: in
     every element and term node group (problem.node_groups of its patterns) whose nodes belong
-    to several ranks, the nodes not owned by the lowest of them.  The same on every rank (the
+    to several ranks, the nodes not owned by the rank owning most of them (the lowest rank of
+    a tie): the group's other nodes are then one rank's.  The same on every rank (the
     groups are global)."""
     lay, mesh = problem.layout, problem.mesh
     groups = [mesh.conn]
@@ -61,11 +62,18 @@ def separator(problem, A):
     groups = [lay.nat2petsc[np.asarray(g)] for g in groups]
     first = np.asarray(A.getOwnershipRanges()) // A.getBlockSize()
     out = []
+    nranks = len(first) - 1
     for rows in groups:
         owner = np.searchsorted(first, rows, side="right") - 1
-        lowest = owner.min(axis=1, keepdims=True)
-        span = (owner != lowest).any(axis=1)
-        out.append(rows[span][owner[span] != lowest[span]])
+        span = (owner != owner[:, :1]).any(axis=1)
+        if not span.any():
+            continue
+        o = owner[span]
+        # the rank owning most of the group's nodes keeps them (the lowest of a tie): an
+        # element cut 1 + 3 costs one node, not three
+        counts = np.stack([(o == r).sum(axis=1) for r in range(nranks)], axis=1)
+        keep = counts.argmax(axis=1)[:, None]
+        out.append(rows[span][o != keep])
     sep = np.unique(np.concatenate(out)).astype(np.int64)
     near = np.unique(np.concatenate([rows[np.isin(rows, sep).any(axis=1)].ravel()
                                      for rows in groups]))
