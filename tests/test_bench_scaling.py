@@ -157,10 +157,8 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
     pc = chain.solver.snes.getKSP().getPC()
     assert pattern_fill(chain.problem) < FILL_MUMPS
     if chain.comm.getSize() > 1:
-        from rodsnes.solve.schur import RankSchur
-        ctx = pc.getPythonContext()
-        assert pc.getType() == "python" and isinstance(ctx, RankSchur)
-        # 601 nodes: too short for the condensation to pay, the whole matrix on every rank
-        assert ctx.setups["whole"] > 0 and ctx.setups["schur"] == 0
+        # 601 nodes: too short for the condensation to pay (schur.MIN_NODES_PER_RANK), the
+        # whole matrix on every rank
+        assert pc.getType() == "redundant"
     else:
         assert pc.getType() == "lu"

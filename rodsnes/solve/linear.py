@@ -36,6 +36,7 @@ rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose 
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.solve import schur
 from rodsnes.solve.schur import RankSchur
 
 FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
@@ -209,11 +210,16 @@ def _is_rank_schur(pc):
 def use_rank_schur(ksp, problem):
     """On several ranks, where the KSP factors the whole matrix by PETSc's LU on every rank
     (PCREDUNDANT over PETSc's LU, rodsnes' default), its PC becomes schur.RankSchur: each rank
-    factors its own stretch of the rod and the ranks share the small interface.  Returns True
-    when it switched."""
+    factors its own stretch of the rod and the ranks share the small interface; not for a rod
+    shorter than schur.MIN_NODES_PER_RANK nodes a rank, where it would not pay (the plectoneme
+    on 2 ranks: 12.8 ms an iteration by PCREDUNDANT, 13.6 ms through the python PC's whole-matrix
+    fallback).  Returns True when it switched."""
     pc = ksp.getPC()
-    if problem.layout.comm.getSize() == 1 or pc.getType() != PETSc.PC.Type.REDUNDANT:
+    size = problem.layout.comm.getSize()
+    if size == 1 or pc.getType() != PETSc.PC.Type.REDUNDANT:
         return False
+    if problem.mesh.n_nodes < schur.MIN_NODES_PER_RANK * size:
+        return False            # too short for the condensation to pay: PCREDUNDANT as it is
     prefix = ksp.getOptionsPrefix() or ""
     opts = PETSc.Options()
     if (opts.getString(prefix + "redundant_pc_type", "lu") != "lu"
