@@ -1502,7 +1502,7 @@ def _check_contact_reach(scene, fail):
     if not c.enabled:
         return
     eps, delta = scene.contact_radius, contact_exclusion(scene)
-    grow = 1.0 + c.standoff                 # the law's radius over the tube's (law_tube)
+    grow = scene.contact_law[0] / eps       # the law's radius over the tube's (law_tube)
     span = r.length / 2 if r.closed else r.length
     where = "half the ring" if r.closed else "the rod"
     if c.exclusion is None and delta >= span:

@@ -90,17 +90,21 @@ class Layout:
         self.xlocal.setArray(np.ascontiguousarray(local, dtype=float).ravel())
         self.scatter.scatter(self.xlocal, F, addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
 
-    def block_pattern(self, extra_pairs=None):
-        """The block nonzero structure of the owned block rows: element coupling + extra node
-        groups, as CSR (ai: offsets per owned block row, aj: global PETSc block columns, sorted).
-
-        extra_pairs: optional (m, k) arrays of natural node ids that are coupled all-to-all
-        (e.g. the nodes of a contact element pair)."""
+    def coupled_groups(self, extra_pairs=None):
+        """The natural node groups a matrix of this layout couples all-to-all: the elements'
+        nodes and ``extra_pairs`` ((m, k) natural node ids, e.g. the nodes of a contact element
+        pair; None or empty for none)."""
         groups = [self.mesh.conn]
         if extra_pairs is not None and len(extra_pairs):
             groups.append(np.asarray(extra_pairs))
+        return groups
+
+    def block_pattern(self, extra_pairs=None):
+        """The block nonzero structure of the owned block rows: element coupling + extra node
+        groups (coupled_groups), as CSR (ai: offsets per owned block row, aj: global PETSc
+        block columns, sorted)."""
         rows, cols = [], []
-        for g in groups:
+        for g in self.coupled_groups(extra_pairs):
             k = g.shape[1]
             rows.append(np.repeat(g, k, axis=1).ravel())
             cols.append(np.tile(g, (1, k)).ravel())

@@ -393,6 +393,11 @@ class RodProblem:
             return None
         return groups[0] if len(groups) == 1 else np.concatenate(groups)
 
+    def coupled_groups(self):
+        """The natural node groups the Jacobian couples all-to-all: the elements' and the
+        terms' of the current patterns (Layout.coupled_groups), the same on every rank."""
+        return self.layout.coupled_groups(self.node_groups(self.patterns))
+
     def refresh_pattern(self):
         """At the start of a load step: the Jacobian's pattern follows what the terms couple
         at the current state (Term.pattern: the contact pairs that can touch); a new matrix

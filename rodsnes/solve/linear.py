@@ -37,7 +37,6 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.solve import schur
-from rodsnes.solve.schur import RankSchur
 
 FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
 ORDERING = "amd"        # PETSc's LU: approximate minimum degree (module docstring)
@@ -155,11 +154,8 @@ def pattern_fill(problem, ordering=ORDERING):
     """The fill nz(L+U) / nz(A) of PETSc's LU (ordered by ``ordering``) of the Jacobian's node graph
     (the elements and the terms' node groups), the same on every rank (global data, no
     communication): for a matrix of dense 6 x 6 blocks the block fill is the scalar fill."""
-    mesh, n = problem.mesh, problem.mesh.n_nodes
-    groups = [mesh.conn]
-    extra = problem.node_groups(problem.patterns)
-    if extra is not None and len(extra):
-        groups.append(np.asarray(extra))
+    n = problem.mesh.n_nodes
+    groups = problem.coupled_groups()
     key = np.unique(np.concatenate([
         (np.repeat(g, g.shape[1], axis=1) * n + np.tile(g, (1, g.shape[1]))).ravel()
         for g in groups]))
@@ -204,7 +200,8 @@ def use_mumps_when_filled(ksp, problem):
 
 
 def _is_rank_schur(pc):
-    return pc.getType() == PETSc.PC.Type.PYTHON and isinstance(pc.getPythonContext(), RankSchur)
+    return (pc.getType() == PETSc.PC.Type.PYTHON
+            and isinstance(pc.getPythonContext(), schur.RankSchur))
 
 
 def use_rank_schur(ksp, problem):
@@ -218,7 +215,7 @@ def use_rank_schur(ksp, problem):
     size = problem.layout.comm.getSize()
     if size == 1 or pc.getType() != PETSc.PC.Type.REDUNDANT:
         return False
-    if problem.mesh.n_nodes < schur.MIN_NODES_PER_RANK * size:
+    if not schur.pays(problem.mesh.n_nodes, size):
         return False            # too short for the condensation to pay: PCREDUNDANT as it is
     prefix = ksp.getOptionsPrefix() or ""
     opts = PETSc.Options()
@@ -228,7 +225,7 @@ def use_rank_schur(ksp, problem):
     ops = pc.getOperators()
     pc.reset()
     pc.setType(PETSc.PC.Type.PYTHON)
-    pc.setPythonContext(RankSchur(problem, lu_ordering(prefix) or ORDERING))
+    pc.setPythonContext(schur.RankSchur(problem, lu_ordering(prefix) or ORDERING))
     pc.setOperators(*ops)
     return True
 

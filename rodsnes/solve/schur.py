@@ -43,6 +43,12 @@ SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is fa
 # 1000 10.6 / 8.6 ms, 3000 15.7 / 16.1 ms, 10^4 36.7 / 41.5 ms; the plectoneme's 181 nodes
 # 27.8 / 11.7 ms (its pattern changes every few iterations)
 MIN_NODES_PER_RANK = 4000
+
+
+def pays(n_nodes, ranks):
+    """Whether a rod of ``n_nodes`` nodes on ``ranks`` ranks is long enough for the
+    condensation to pay (MIN_NODES_PER_RANK nodes a rank)."""
+    return n_nodes >= MIN_NODES_PER_RANK * ranks
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
 
 
@@ -54,12 +60,7 @@ def separator(problem, A):
     to several ranks, the nodes not owned by the rank owning most of them (the lowest rank of
     a tie): the group's other nodes are then one rank's.  The same on every rank (the
     groups are global)."""
-    lay, mesh = problem.layout, problem.mesh
-    groups = [mesh.conn]
-    extra = problem.node_groups(problem.patterns)
-    if extra is not None and len(extra):
-        groups.append(np.asarray(extra))
-    groups = [lay.nat2petsc[np.asarray(g)] for g in groups]
+    groups = [problem.layout.nat2petsc[g] for g in problem.coupled_groups()]
     first = np.asarray(A.getOwnershipRanges()) // A.getBlockSize()
     out = []
     nranks = len(first) - 1
@@ -116,18 +117,18 @@ class RankSchur:
         # are gathered to every rank), the interiors' least size is reduced; a short rod goes
         # to the whole matrix before any of it (the separator of a contact-rich pattern costs
         # 0.7 ms a set-up on the plectoneme)
-        small = A.getSize()[0] // bs >= MIN_NODES_PER_RANK * comm.Get_size()
-        if small:
+        condense = pays(A.getSize()[0] // bs, comm.Get_size())
+        if condense:
             if k is not None and k["A"] == key:             # the same matrix: the same pattern
                 sep, near = k["sep"], k["near"]
             else:
                 sep, near = separator(self.problem, A)
             mine = sep[(sep >= rs // bs) & (sep < re // bs)]
             least = comm.allreduce((re - rs) // bs - len(mine), op=MPI.MIN)
-            small = len(sep) * bs <= SCHUR_MAX and least > 0
-        self.mode = "schur" if small else "whole"
+            condense = len(sep) * bs <= SCHUR_MAX and least > 0
+        self.mode = "schur" if condense else "whole"
         self.setups[self.mode] += 1
-        if not small:
+        if not condense:
             self.kept = None
             self._whole(A).setUp()
             self.failed = False
@@ -206,7 +207,7 @@ class RankSchur:
     def _factor(self, comm):
         """The interior's LU, W_r, S = A_GG - sum_r A_{G I_r} W_r, and S's LU on every rank."""
         k = self.kept
-        ni, ng = k["ni"], k["ng"]
+        ng = k["ng"]
         ok = True
         B = k["B"].getDenseArray()
         B[k["Npos"]] = _csr(k["ANS"], (k["nn"], ng)).toarray()    # A_IG: rows next to G only
@@ -214,16 +215,13 @@ class RankSchur:
         try:
             # column by column: PETSc 3.18's MatMatSolve on a BAIJ factor costs about twice;
             # a zero pivot shows as the KSP's failed reason (PETSc defers factor errors)
-            ksp = k["ksp"]
-            b, w = (PETSc.Vec().createWithArray(np.empty(ni), comm=PETSc.COMM_SELF) for _ in "bw")
+            ksp, b, w = k["ksp"], k["bI"], k["yI"]
             for j in range(ng):
                 b.placeArray(np.ascontiguousarray(B[:, j]))
                 ksp.solve(b, w)
                 ok = ok and ksp.getConvergedReason() >= 0
-                W[:, j] = w.getArray()
+                W[:, j] = w.getArray(readonly=True)
                 b.resetArray()
-            b.destroy()
-            w.destroy()
         except PETSc.Error:
             ok = False
         ok = ok and bool(np.isfinite(W).all())
