@@ -299,9 +299,9 @@ class ElasticRod:
     def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False, reuse=False):
         """Element residuals (ne, p+1, 6) and tangents (ne, 6(p+1), 6(p+1)) in the
         Newton unknowns (r, theta) per node, plus the energy of each element.
-        ``reuse``: the compiled kernel writes into arrays kept on the rod from its last call of
-        the same size (no fresh 46 MB for 10^4 cubic tangents each time; the caller consumes
-        them before the next call: RodProblem's residual and Jacobian).
+        ``reuse``: the compiled kernel writes into arrays kept on the rod (_workspace: no fresh
+        arrays each call; the caller consumes them before the next call: RodProblem's residual
+        and Jacobian).
 
         The residual seen by SNES at a trial increment theta is the spatial moment
         F(theta) = J_l(theta)^{-T} grad f(theta) (f = E o exp chart), so its exact derivative
@@ -317,14 +317,17 @@ class ElasticRod:
         return self.element_terms_numpy(qe, xe, e0, tangent, symmetric)
 
     def _workspace(self, ne, tangent):
-        """(energy, vec, H or None) arrays kept for ``reuse`` (made anew when ne changes)."""
+        """(energy, vec, H or None) arrays kept for ``reuse``: the leading ne elements of arrays
+        that only grow (the residual takes all the elements at once, the Jacobian a chunk at a
+        time: RodProblem.jacobian; a leading slice of a C-contiguous array is C-contiguous)."""
         nn = self.p + 1
         ws = self._ws
-        if ws is None or len(ws[0]) != ne:
+        if ws is None or len(ws[0]) < ne:
             ws = self._ws = [np.empty(ne), np.empty((ne, nn, 6)), None]
-        if tangent and ws[2] is None:
+        if tangent and (ws[2] is None or len(ws[2]) < ne):
             ws[2] = np.empty((ne, 6 * nn, 6 * nn))
-        return ws[0], ws[1], ws[2] if tangent else None
+        out = [a if len(a) == ne else a[:ne] for a in ws[:2 + bool(tangent)]]
+        return out[0], out[1], out[2] if tangent else None
 
     def element_terms_numpy(self, qe, xe, e0=None, tangent=True, symmetric=False):
         """element_terms as batched matrix products over (element x point): the first and

@@ -202,10 +202,11 @@ class DirichletRows:
         hit = self._touching(R2)
         if C is not R:
             hit |= self._touching(C2)
-        runs = _runs(hit)
-        if not len(runs):
+        if not hit.any():           # the common case (a chunk of elements away from the supports)
             self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
-        elif len(runs) > self.MAX_RUNS:
+            return
+        runs = _runs(hit)
+        if len(runs) > self.MAX_RUNS:
             self.mat.setValuesBlockedRCV(R, C, self._masked(R2, C2, V, hit), addv=addv)
         else:
             start = 0
@@ -220,9 +221,7 @@ class DirichletRows:
 
     def _touching(self, I2):
         """Which groups (rows of the block ids I2) hold a constrained node."""
-        hit = np.zeros(len(I2), dtype=bool)
-        hit[np.flatnonzero(np.take(self.touched, I2.ravel())) // max(I2.shape[1], 1)] = True
-        return hit
+        return np.take(self.touched, I2).any(axis=1)
 
     def _masked(self, R2, C2, V, hit):
         """A copy of the groups V with the constrained rows and columns zeroed (hit: the groups
