@@ -162,3 +162,23 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
         assert pc.getType() == "redundant"
     else:
         assert pc.getType() == "lu"
+
+
+def test_fastest_keeps_the_least_time_and_the_spread():
+    totals = iter([0.050, 0.031, 0.042])
+    calls = []
+
+    def run():
+        calls.append(1)
+        t = next(totals)
+        return {"status": "ok", "total": t, "factor": t / 10}
+
+    row = bs.fastest(run, 3)
+    assert len(calls) == 3
+    assert row["total"] == pytest.approx(0.031) and row["factor"] == pytest.approx(0.0031)
+    assert row["repeats"] == "50,31,42"
+    # a failed run ends the repeats and is what the case reports
+    seq = iter([{"status": "ok", "total": 0.02}, {"status": "failed (exit 1)"}])
+    assert bs.fastest(lambda: next(seq), 3)["status"] == "failed (exit 1)"
+    # one run: its own row
+    assert bs.fastest(lambda: {"status": "capped", "total": 0.5}, 1)["repeats"] == "500"
