@@ -14,7 +14,8 @@ and A x = b is solved exactly by
     W_r = A_{I_r I_r}^-1 A_{I_r G},   S = A_GG - sum_r A_{G I_r} W_r      (the Schur complement)
     y_r = A_{I_r I_r}^-1 b_{I_r},   S x_G = b_G - sum_r A_{G I_r} y_r,   x_{I_r} = y_r - W_r x_G.
 
-Each rank factors its own interior by PETSc's LU (AMD ordering, as the one-rank solve) and
+Each rank factors its own interior by PETSc's LU (AMD ordering, as the one-rank solve: its
+diagonal block, with the identity on the separator rows it owns, so nothing is extracted) and
 solves for the columns of W_r (as many as G has unknowns: one node's on a rod cut once); the
 ranks add their parts of S (dense, small) and every rank factors it.  Against PCREDUNDANT,
 where every rank gathers the whole matrix and factors all of it, each rank factors only its
@@ -158,23 +159,26 @@ class RankSchur:
 
     def _condense(self, A, key, sep, mine, near):
         """Index sets, blocks and the interior's KSP for a new matrix or separator.  ``near``:
-        this rank's interior block rows next to the separator (A_IG's and A_GI's entries)."""
+        this rank's interior block rows next to the separator (A_IG's and A_GI's entries).
+
+        The interior matrix is the rank's diagonal block itself where the rank owns no
+        separator node (rank 0 of a chain: no copy at all), else a copy of it whose separator
+        rows and columns are those of the identity (``_interior``): the same LU as A_II's
+        (the identity rows are uncoupled) in the rank's own row order, so the right-hand
+        sides and solutions are the rank's local arrays with the separator's entries zero."""
         bs = A.getBlockSize()
         rs, re = A.getOwnershipRange()
-        own = np.arange(rs // bs, re // bs)
-        inner = np.setdiff1d(own, mine, assume_unique=True)
-        ni, ng = len(inner) * bs, len(sep) * bs
+        ni, ng = re - rs, len(sep) * bs
         here = near[(near >= rs // bs) & (near < re // bs)]
         unknowns = lambda blocks: (np.asarray(blocks)[:, None] * bs + np.arange(bs)).ravel()
         k = self.kept = {"A": key, "sep": sep, "near": near, "ni": ni, "ng": ng,
-                         "I": unknowns(inner - rs // bs), "G": unknowns(mine - rs // bs),
+                         "G": unknowns(mine - rs // bs),
                          # the separator's unknowns this rank owns, in S's order
                          "Gpos": unknowns(np.searchsorted(sep, mine)),
-                         # the interior unknowns next to the separator, in the interior's order
-                         "Npos": unknowns(np.searchsorted(inner, here)), "nn": len(here) * bs,
-                         "isIl": _block_is(inner - rs // bs, bs), "isN": _block_is(here, bs),
-                         "isS": _block_is(sep, bs)}
-        k["AII"] = A.getDiagonalBlock().createSubMatrix(k["isIl"], k["isIl"])
+                         # the interior unknowns next to the separator, in the rank's order
+                         "Npos": unknowns(here - rs // bs), "nn": len(here) * bs,
+                         "isN": _block_is(here, bs), "isS": _block_is(sep, bs)}
+        k["AII"] = self._interior(A, None)
         k["ANS"], k["ASN"], k["ASS"] = A.createSubMatrices(
             [k["isN"], k["isS"], k["isS"]], [k["isS"], k["isN"], k["isS"]])
         ksp = k["ksp"] = PETSc.KSP().create(comm=PETSc.COMM_SELF)
@@ -189,17 +193,31 @@ class RankSchur:
         k["W"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
         k["W"].setUp()
         k["B"].getDenseArray()[:] = 0.0
-        # the interior as a slice where it is one stretch of rows (a chain: all of rank 0's, or
-        # all but the first node's): views instead of copies in every apply
-        I = k["I"]
-        k["Iview"] = slice(int(I[0]), int(I[-1]) + 1) if len(I) and I[-1] - I[0] + 1 == len(I) else I
         k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
         k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
+
+    def _interior(self, A, kept):
+        """The interior matrix of _condense with A's values: the diagonal block (a reference)
+        where the rank owns no separator node, else ``kept`` (or a new copy) given the block's
+        values and the identity on the separator's rows and columns (a memory copy and one
+        sweep instead of extracting the interior: 1.7 against ~0.4 ms at 10^4 elements)."""
+        D = A.getDiagonalBlock()
+        G = self.kept["G"]
+        if not len(G):
+            return D
+        if kept is None:
+            kept = D.duplicate(copy=True)
+            kept.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
+        else:
+            D.copy(kept, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
+        kept.zeroRowsColumns(G.astype(PETSc.IntType), diag=1.0)
+        return kept
 
     def _refresh(self, A):
         """The same matrix with new values: the kept blocks take them (same patterns)."""
         k = self.kept
-        A.getDiagonalBlock().createSubMatrix(k["isIl"], k["isIl"], submat=k["AII"])
+        if len(k["G"]):                 # else AII is A's diagonal block: it has the values
+            self._interior(A, k["AII"])
         A.createSubMatrices([k["isN"], k["isS"], k["isS"]], [k["isS"], k["isN"], k["isS"]],
                             submats=[k["ANS"], k["ASN"], k["ASS"]])
         k["ksp"].setOperators(k["AII"])
@@ -246,13 +264,15 @@ class RankSchur:
         comm = pc.getOperators()[0].getComm().tompi4py()
         b = x.getArray(readonly=True)
         bI, yI = k["bI"], k["yI"]
-        bI.setArray(b[k["Iview"]])
+        with bI as a:                   # b_I: the rank's entries, the separator's zero
+            a[:] = b
+            a[k["G"]] = 0.0
         k["ksp"].solve(bI, yI)
         yv = yI.getArray(readonly=True)
         g = -(k["asn"] @ yv[k["Npos"]])
         g[k["Gpos"]] += b[k["G"]]
         xg = sla.lu_solve(k["S"], comm.allreduce(g), check_finite=False)
         out = y.getArray()
-        out[k["Iview"]] = yv
-        out[k["Iview"]] -= k["W"].getDenseArray() @ xg
+        out[:] = yv
+        out -= k["W"].getDenseArray() @ xg
         out[k["G"]] = xg[k["Gpos"]]
