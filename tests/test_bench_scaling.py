@@ -182,3 +182,27 @@ def test_fastest_keeps_the_least_time_and_the_spread():
     assert bs.fastest(lambda: next(seq), 3)["status"] == "failed (exit 1)"
     # one run: its own row
     assert bs.fastest(lambda: {"status": "capped", "total": 0.5}, 1)["repeats"] == "500"
+
+
+def test_fastest_edge_cases():
+    """fastest: a run with no finite time (status ok) ends the repeats and is the case's row
+    (no repeats column); a repeat count below 1 runs once; ties keep the first run; the kept
+    row is a copy (the run's own dict is not given the repeats column)."""
+    import math
+    import os
+    import sys
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "tools"))
+    import bench_scaling as bs
+    seq = iter([{"status": "ok", "total": 0.02}, {"status": "ok", "total": math.nan}])
+    row = bs.fastest(lambda: next(seq), 3)
+    assert math.isnan(row["total"]) and "repeats" not in row
+    calls = []
+    bs.fastest(lambda: calls.append(1) or {"status": "ok", "total": 0.01}, 0)
+    assert len(calls) == 1
+    first, second = {"status": "ok", "total": 0.01, "k": 1}, {"status": "ok", "total": 0.01, "k": 2}
+    seq = iter([first, second])
+    row = bs.fastest(lambda: next(seq), 2)
+    assert row["k"] == 1 and row["repeats"] == "10,10" and "repeats" not in first
+    # not converged and capped runs are timed like ok ones
+    seq = iter([{"status": "not converged", "total": 0.03}, {"status": "capped", "total": 0.02}])
+    assert bs.fastest(lambda: next(seq), 2)["status"] == "capped"

@@ -107,6 +107,8 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     LU it falls back to; the second set-up of the same matrix reuses its blocks."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
+    if case == "plectoneme" and PETSc.COMM_WORLD.getSize() > 2:
+        pytest.skip("60 elements on more than 2 ranks: a separator above SCHUR_MAX")
     monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)      # condensed however short
     run = build_run(case, **kw)
     A, b, x = _system(run)
@@ -119,9 +121,10 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     ctx = schur.RankSchur(run.problem)
     y = _solve(A, b, ctx)
     assert ctx.mode == "schur" and ctx.setups == {"schur": 1, "whole": 0}
-    cuts = 2 if run.mesh.closed else 1
+    size = PETSc.COMM_WORLD.getSize()
+    cuts = size if run.mesh.closed else size - 1    # one node where consecutive stretches meet
     if case != "plectoneme":
-        assert ctx.kept["sep"].size == cuts * (PETSc.COMM_WORLD.getSize() - 1)
+        assert ctx.kept["sep"].size == cuts
     else:           # the contact pairs across the cut add their nodes
         assert ctx.kept["sep"].size > 1
 

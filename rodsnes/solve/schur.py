@@ -200,7 +200,7 @@ class RankSchur:
         """The interior matrix of _condense with A's values: the diagonal block (a reference)
         where the rank owns no separator node, else ``kept`` (or a new copy) given the block's
         values and the identity on the separator's rows and columns (a memory copy and one
-        sweep instead of extracting the interior: 1.7 against ~0.4 ms at 10^4 elements)."""
+        sweep instead of extracting the interior: 0.6 against 2.0 ms at 10^4 elements)."""
         D = A.getDiagonalBlock()
         G = self.kept["G"]
         if not len(G):
