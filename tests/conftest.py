@@ -150,6 +150,18 @@ def tangent_against_finite_differences(p, J, seed, h=1e-7):
     return fd, Jv, v
 
 
+def perturb_state(p, scale=1e-3, seed=3):
+    """Move every unconstrained dof of problem ``p`` by a deterministic small amount (the same
+    on any number of ranks: drawn for the global dofs, each rank takes its own)."""
+    X = p.state.X
+    lo, hi = X.getOwnershipRange()
+    d = np.random.default_rng(seed).normal(size=X.getSize()) * scale
+    with X as a:
+        free = np.ones(hi - lo, dtype=bool)
+        free[p.constraints.rows_local] = False
+        a[free] += d[lo:hi][free]
+
+
 def natural_residuals(*runs):
     """Each run's assembled residual at its state, natural-ordered (n, NDOF) on every rank."""
     from rodsnes.model.partition import NDOF

@@ -7,25 +7,11 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from conftest import build_run
+from conftest import build_run, perturb_state
 from rodsnes.model.problem import RodProblem
 
 
 # -- helpers ---------------------------------------------------------------------------------
-def _perturb(p, scale=1e-3, seed=3):
-    """A deterministic small motion of every unconstrained dof (same on any number of ranks:
-    drawn for the global dofs, each rank takes its own)."""
-    X = p.state.X
-    lo, hi = X.getOwnershipRange()
-    n = X.getSize()
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=n) * scale
-    with X as a:
-        free = np.ones(hi - lo, dtype=bool)
-        free[p.constraints.rows_local] = False
-        a[free] += d[lo:hi][free]
-
-
 def _csr(M):
     """The matrix's local rows as (ai, aj, av) copies (BAIJ, AIJ)."""
     ai, aj, av = M.getValuesCSR()
@@ -62,7 +48,7 @@ def test_the_chunked_jacobian_is_the_one_call_jacobian(case, kw, symmetric):
     p = run.problem
     assert p.elastic.kernel == "compiled"
     p.set_load(0.4)                      # michell: e0 twisted by the load
-    _perturb(p)
+    perturb_state(p)
     ne = len(p.layout.gconn)
     assert ne > RodProblem.TANGENT_CHUNK
     e0 = p.elastic.e0
@@ -92,7 +78,7 @@ def test_the_planar_view_of_the_chunked_jacobian_is_the_one_call_view():
     pl = p.planar
     assert pl is not None
     p.set_load(0.4)
-    _perturb(p)
+    perturb_state(p)
     out = []
     for chunk in (10 ** 9, RodProblem.TANGENT_CHUNK, 7):
         p.TANGENT_CHUNK = chunk
@@ -112,7 +98,7 @@ def test_the_symmetric_planar_block_of_the_chunked_hessian_is_the_one_call_block
     run = build_run("mattiasson", rod_nelem=600)
     p = run.problem
     p.set_load(0.4)
-    _perturb(p)
+    perturb_state(p)
     H = create_block_matrix(p, p.patterns, symmetric=True)
     out = []
     for chunk in (10 ** 9, RodProblem.TANGENT_CHUNK, 7):
@@ -145,16 +131,16 @@ def test_the_residual_and_the_jacobian_share_the_workspace_in_any_order(nelem):
         return _csr(p.J)
 
     # reference: a fresh problem, the Jacobian first (its workspace sized by a chunk)
-    _perturb(b, seed=5)
+    perturb_state(b, seed=5)
     J_ref, F_ref = J(b), F(b)
-    _perturb(b, seed=6)
+    perturb_state(b, seed=6)
     F_ref2, J_ref2 = F(b), J(b)
     # the other order on the other problem: residual first (workspace of all elements)
-    _perturb(a, seed=5)
+    perturb_state(a, seed=5)
     f1 = F(a)
     j1 = J(a)
     f1b = F(a)
-    _perturb(a, seed=6)
+    perturb_state(a, seed=6)
     j2 = J(a)
     f2 = F(a)
     j2b = J(a)
@@ -174,7 +160,7 @@ def test_the_chunked_jacobian_on_several_ranks():
                      ("mattiasson", dict(rod_nelem=900, rod_planar="off"))):
         p = build_run(case, **kw).problem
         p.set_load(0.4)
-        _perturb(p)
+        perturb_state(p)
         whole = _assemble(p, 10 ** 9)
         assert _same(_assemble(p, RodProblem.TANGENT_CHUNK), whole)
         assert _same(_assemble(p, 7), whole)
