@@ -37,6 +37,14 @@ def metis_parts(nelem, closed, nparts):
     return parts
 
 
+def group_pairs(groups):
+    """(rows, cols): every ordered pair of nodes within each group of ``groups`` (a list of
+    (m, k) node arrays coupled all-to-all), concatenated; duplicates kept."""
+    rows = [np.repeat(g, g.shape[1], axis=1).ravel() for g in groups]
+    cols = [np.tile(g, (1, g.shape[1])).ravel() for g in groups]
+    return np.concatenate(rows), np.concatenate(cols)
+
+
 class Layout:
     """Owned/ghost nodes of this rank, PETSc numbering and the communication objects."""
 
@@ -103,13 +111,8 @@ class Layout:
         """The block nonzero structure of the owned block rows: element coupling + extra node
         groups (coupled_groups), as CSR (ai: offsets per owned block row, aj: global PETSc
         block columns, sorted)."""
-        rows, cols = [], []
-        for g in self.coupled_groups(extra_pairs):
-            k = g.shape[1]
-            rows.append(np.repeat(g, k, axis=1).ravel())
-            cols.append(np.tile(g, (1, k)).ravel())
-        r = self.nat2petsc[np.concatenate(rows)]
-        c = self.nat2petsc[np.concatenate(cols)]
+        rows, cols = group_pairs(self.coupled_groups(extra_pairs))
+        r, c = self.nat2petsc[rows], self.nat2petsc[cols]
         rank = self.comm.getRank()
         lo, hi = self.starts[rank], self.starts[rank + 1]
         keep = (r >= lo) & (r < hi)

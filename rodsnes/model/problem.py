@@ -484,9 +484,8 @@ class RodProblem:
         r, q = self.state.local_config(X)
         P.zeroEntries()
         T = view if view is not None else DirichletRows(P, self.constraints.block_mask)
-        g, lconn, e0 = self._gconn, self.lconn, self.elastic.e0
+        g, lconn, e0 = self._gconn, self.lconn, self.elastic.e0     # e0: (elements, points, 6)
         rc, qc = np.ascontiguousarray(r), np.ascontiguousarray(q)   # np.take copies a strided one
-        per_element = e0 is not None and e0.ndim == 3 and len(e0) == len(g)
         step = self.TANGENT_CHUNK if self.elastic.kernel == "compiled" else max(len(g), 1)
         for a in range(0, len(g), step):
             # the tangents of a chunk of elements, inserted while they are in cache (ADD_VALUES
@@ -494,7 +493,7 @@ class RodProblem:
             b = min(a + step, len(g))
             la = lconn[a:b]
             _, _, H = self.elastic.element_terms(np.take(qc, la, axis=0), np.take(rc, la, axis=0),
-                                                 e0[a:b] if per_element else None, tangent=True,
+                                                 None if e0 is None else e0[a:b], tangent=True,
                                                  symmetric=symmetric, reuse=True)
             ga = g[a:b]
             T.setValuesBlockedRCV(ga, ga, H, addv=PETSc.InsertMode.ADD)

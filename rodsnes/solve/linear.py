@@ -36,6 +36,7 @@ rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose 
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.model.partition import group_pairs
 from rodsnes.solve import schur
 
 FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
@@ -155,10 +156,8 @@ def pattern_fill(problem, ordering=ORDERING):
     (the elements and the terms' node groups), the same on every rank (global data, no
     communication): for a matrix of dense 6 x 6 blocks the block fill is the scalar fill."""
     n = problem.mesh.n_nodes
-    groups = problem.coupled_groups()
-    key = np.unique(np.concatenate([
-        (np.repeat(g, g.shape[1], axis=1) * n + np.tile(g, (1, g.shape[1]))).ravel()
-        for g in groups]))
+    rows, cols = group_pairs(problem.coupled_groups())
+    key = np.unique(rows * n + cols)
     rows, cols = key // n, key % n
     ai = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))])
     degree = np.diff(ai).astype(float)
@@ -191,12 +190,18 @@ def use_mumps_when_filled(ksp, problem):
     if not native or not pattern_fill(problem, lu_ordering(ksp.getOptionsPrefix() or "")
                                       or ORDERING) > FILL_MUMPS:
         return False
+    _retype(pc, PETSc.PC.Type.LU, lambda pc: pc.setFactorSolverType("mumps"))
+    return True
+
+
+def _retype(pc, kind, configure):
+    """pc becomes a fresh PC of type ``kind`` (``configure(pc)`` sets it up) on the same
+    operators."""
     ops = pc.getOperators()
     pc.reset()
-    pc.setType(PETSc.PC.Type.LU)
-    pc.setFactorSolverType("mumps")
+    pc.setType(kind)
+    configure(pc)
     pc.setOperators(*ops)
-    return True
 
 
 def _is_rank_schur(pc):
@@ -222,11 +227,9 @@ def use_rank_schur(ksp, problem):
     if (opts.getString(prefix + "redundant_pc_type", "lu") != "lu"
             or opts.getString(prefix + "redundant_pc_factor_mat_solver_type", "petsc") != "petsc"):
         return False
-    ops = pc.getOperators()
-    pc.reset()
-    pc.setType(PETSc.PC.Type.PYTHON)
-    pc.setPythonContext(schur.RankSchur(problem, lu_ordering(prefix) or ORDERING))
-    pc.setOperators(*ops)
+    ordering = lu_ordering(prefix) or ORDERING
+    _retype(pc, PETSc.PC.Type.PYTHON,
+            lambda pc: pc.setPythonContext(schur.RankSchur(problem, ordering)))
     return True
 
 
