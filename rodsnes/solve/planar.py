@@ -37,6 +37,7 @@ from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, is_default, option_default
+from rodsnes.solve import petsc_exit
 from rodsnes.solve.stability import Inertia
 
 # the out-of-plane share of a residual that is still round-off (relative to |g|)
@@ -401,6 +402,12 @@ class _PlanarPC:
 
     def __init__(self, planar):
         self.planar = planar
+
+    def create(self, pc):
+        petsc_exit.live(pc)         # released before the interpreter exits (petsc_exit.py)
+
+    def destroy(self, pc):
+        petsc_exit.gone(pc)
 
     def setUp(self, pc):
         pass

@@ -36,6 +36,8 @@ import scipy.sparse as sp
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from rodsnes.solve import petsc_exit
+
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
 # nodes per rank below which the whole matrix is factored instead: the condensation's fixed
 # cost per set-up (sub-matrices, the separator's columns, the gathers; ~3 ms) outweighs what
@@ -76,6 +78,8 @@ def separator(problem, A):
         counts = np.stack([(o == r).sum(axis=1) for r in range(nranks)], axis=1)
         keep = counts.argmax(axis=1)[:, None]
         out.append(rows[span][o != keep])
+    if not out:                 # no group spans ranks (one rank): nothing to condense
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     sep = np.unique(np.concatenate(out)).astype(np.int64)
     near = np.unique(np.concatenate([rows[np.isin(rows, sep).any(axis=1)].ravel()
                                      for rows in groups]))
@@ -104,8 +108,26 @@ class RankSchur:
         self.failed = False
         self.setups = {"schur": 0, "whole": 0}
 
+    # -- life (petsc_exit: a python PC still alive at exit) ---------------------------
+    def create(self, pc):
+        """petsc4py calls it when the context is set."""
+        petsc_exit.live(pc)
+
+    def destroy(self, pc):
+        """petsc4py calls it when the PC is destroyed or changes type (collective, as
+        PCDestroy): the kept objects go now, not to PETSc's garbage."""
+        petsc_exit.gone(pc)
+        k, self.kept = self.kept, None
+        for name in ("ksp", "AII", "ANS", "ASN", "ASS", "B", "W", "yI", "bI", "isN", "isS"):
+            if k is not None and k.get(name) is not None:
+                k[name].destroy()       # AII may be A's diagonal block: only our reference
+        if self.whole is not None:
+            self.whole.destroy()
+            self.whole = None
+
     # -- set-up -----------------------------------------------------------------------
     def setUp(self, pc):
+        petsc_exit.live(pc)
         A = pc.getOperators()[0]
         comm = A.getComm().tompi4py()
         bs = A.getBlockSize()
@@ -126,7 +148,7 @@ class RankSchur:
                 sep, near = separator(self.problem, A)
             mine = sep[(sep >= rs // bs) & (sep < re // bs)]
             least = comm.allreduce((re - rs) // bs - len(mine), op=MPI.MIN)
-            condense = len(sep) * bs <= SCHUR_MAX and least > 0
+            condense = 0 < len(sep) * bs <= SCHUR_MAX and least > 0
         self.mode = "schur" if condense else "whole"
         self.setups[self.mode] += 1
         if not condense:
