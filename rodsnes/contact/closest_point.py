@@ -39,7 +39,7 @@ import numpy as np
 from rodsnes.contact.monomials import monomial_matrix, monomials, powers
 from rodsnes.contact.search import element_bounds, positions
 
-__all__ = ["ClosestPoint", "phi", "phi_derivatives", "master_pool"]
+__all__ = ["ClosestPoint", "phi", "phi_derivatives", "master_pool", "master_pool_rows"]
 
 
 def phi(x, A, P):
@@ -68,10 +68,14 @@ def phi_derivatives(x, A, P):
 def master_pool(own_ids, x_own, other_ids, x_other):
     """The elements that may hold a master point: other first, then own (first occurrence
     wins), sorted ids and their nodes."""
-    pool_ids = np.concatenate([other_ids, own_ids])
-    pool_x = np.concatenate([x_other, x_own], axis=0)
-    pool_ids, first = np.unique(pool_ids, return_index=True)
-    return pool_ids, pool_x[first]
+    pool_ids, first = master_pool_rows(own_ids, other_ids)
+    return pool_ids, np.concatenate([x_other, x_own], axis=0)[first]
+
+
+def master_pool_rows(own_ids, other_ids):
+    """``master_pool``'s sorted ids and, for each, its row in [other, own] (the ids alone:
+    a caller that keeps them while the ids stay gathers the nodes by these rows)."""
+    return np.unique(np.concatenate([other_ids, own_ids]), return_index=True)
 
 
 def _nearest_per_point(idx, f, pt):

@@ -35,6 +35,7 @@ import numpy as np
 from mpi4py import MPI
 
 from rodsnes.contact import search
+from rodsnes.contact.scatter import add_in_order, in_order_rows
 from rodsnes.model.partition import add_position_blocks
 
 
@@ -89,6 +90,7 @@ class SupportTerm:
         self.comm = layout.comm.tompi4py()
         self.own_ids = layout.owned_elems
         self.lconn = layout.lconn
+        self.rows = in_order_rows(self.lconn)          # the residual's additions (scatter.py)
         self.x_start = np.asarray(x_start, dtype=float)
         self.e = (-np.asarray(axis_start, dtype=float) / np.linalg.norm(axis_start),
                   np.asarray(axis_end, dtype=float) / np.linalg.norm(axis_end))
@@ -102,8 +104,11 @@ class SupportTerm:
         self.end_row = int(layout.nat2petsc[self.end])
 
     def end_position(self, r_loc):
-        """x_N on every rank (its owner's value).  Collective."""
+        """x_N on every rank (its owner's value).  Collective (on one rank the owner's value
+        itself, which is what the allreduce returns there)."""
         x = r_loc[self.end_local] if self.end_local >= 0 else np.zeros(3)
+        if self.comm.size == 1:
+            return np.array(x, dtype=float)
         return self.comm.allreduce(np.asarray(x, dtype=float))
 
     def obstacles(self, p_end):
@@ -179,8 +184,8 @@ class SupportTerm:
     def add_residual(self, out, Floc):
         """Element residual into the local rows; the end node's reaction, summed over the
         ranks, into its owner's row.  Collective."""
-        np.add.at(Floc[:, 0:3], self.lconn, out["vec"])
-        f_end = self.comm.allreduce(out["end_force"])
+        add_in_order(Floc[:, 0:3], self.rows, out["vec"])      # np.add.at (scatter.py)
+        f_end = out["end_force"] if self.comm.size == 1 else self.comm.allreduce(out["end_force"])
         if self.end_local >= 0:
             Floc[self.end_local, 0:3] += f_end
 

@@ -101,8 +101,10 @@ block each).
 Cost: each part is made only when asked for (``PotentialKernel.evaluate``): the energy and
 residual always, over the element pairs whose capsules come within 2 eps (the others hold no
 couple in contact: ``contact.capsules_within``); the tangent (``add_tangent``) and the report
-(``add_report``) from what the residual kept, at the same positions.  Of the near pairs'
-nqp (nqp + 2) couples only those in contact (|D| < 2 eps, admissible: a fifth to a third of
+(``add_report``) from what the residual kept, at the same positions.  The rows of the pairs'
+elements and of the master pool are functions of the ids alone, kept while they stay
+(``_pair_rows``: an evaluation's numpy glue costs about as much as the compiled kernel).  Of
+the near pairs' nqp (nqp + 2) couples only those in contact (|D| < 2 eps, admissible: a fifth to a third of
 them in the plectoneme's two-ply) are kept, as a flat list sorted by (pair, q, j); the energy,
 the residual and the tangent are sums over that list (per row and slave point, per row and
 master point), contracted with the shape functions.  The compiled kernel
@@ -131,7 +133,10 @@ from rodsnes.profiling import logged
 from rodsnes.model import fe
 from rodsnes.contact import potential_compiled
 from rodsnes.contact.projection import ContactKernel
-from rodsnes.contact.search import capsules_within, element_capsules, positions as _lookup
+from rodsnes.contact.scatter import add_in_order, in_order_rows
+from rodsnes.contact.closest_point import master_pool_rows
+from rodsnes.contact.search import capsules_within, element_capsules, same_bits
+from rodsnes.contact.search import positions as _lookup
 
 __all__ = ["ONSET", "DENSITY", "MAX_POINTS", "law_energy", "law_force", "law_stiffness",
            "onset_layer", "pair_stiffness", "support_length", "points_per_element",
@@ -258,6 +263,8 @@ class PotentialKernel:
         self._wmJ = np.concatenate([self._wpJ, [0.0, 0.0]])
         self._Npc, self._Nmc = np.ascontiguousarray(self.Np), np.ascontiguousarray(self.Nm)
         self._scratch = {}
+        self._rows = {}                 # _pair_rows: the ids they were made for, the rows
+        self._wm = (None, None)         # master_weights of every element: (cap, table)
         self.chunk_couples = self.CHUNK_COUPLES
 
     @property
@@ -280,14 +287,18 @@ class PotentialKernel:
     def master_weights(self, m):
         """(len(m), nqp + 2) arclength weights of the master points of elements m: w_j h/2 at
         the Gauss points; at an open rod's end the end point gets the cap length mu / (2 k)
-        (End caps), the other element ends 0."""
-        m = np.asarray(m, dtype=np.int64)
-        w = np.zeros((len(m), self.nqp + 2))
-        w[:, :self.nqp] = self.wp * (0.5 * self.h)
-        if not self.closed:
-            w[:, self.nqp] = np.where(m == 0, self.cap, 0.0)
-            w[:, self.nqp + 1] = np.where(m == self.nelem - 1, self.cap, 0.0)
-        return w
+        (End caps), the other element ends 0: rows of a table of every element, made once
+        (the evaluation asks for them at every call)."""
+        cap, table = self._wm
+        if table is None or cap != self.cap:      # once (tests switch the caps off: cap = 0)
+            every = np.arange(self.nelem)
+            table = np.zeros((self.nelem, self.nqp + 2))
+            table[:, :self.nqp] = self.wp * (0.5 * self.h)
+            if not self.closed:
+                table[:, self.nqp] = np.where(every == 0, self.cap, 0.0)
+                table[:, self.nqp + 1] = np.where(every == self.nelem - 1, self.cap, 0.0)
+            self._wm = (self.cap, table)
+        return table[np.asarray(m, dtype=np.int64)]
 
     def admissible(self, e, m, xa, xb):
         """(npair, na, nb) True where dist(s, sigma) >= delta, s in e at xa, sigma in m at xb
@@ -370,14 +381,33 @@ class PotentialKernel:
         no couple of another pair is closer): own index oi, pool index mi, elements e, m, in
         the order of the pairs; the slave points xs (own, nqp, 3) and master points xm (pool,
         nqp + 2, 3)."""
-        pool_ids, pool_x = self.gauge.master_pool(own_ids, x_own, other_ids, x_other)
-        oi = _lookup(own_ids, pairs[:, 0], "own")
-        mi = _lookup(pool_ids, pairs[:, 1], "other")
-        ko, kp = element_capsules(x_own), element_capsules(pool_x)
+        first, oi, mi, pool_own = self._pair_rows(own_ids, other_ids, pairs, reach is None)
+        pool_x = np.concatenate([x_other, x_own], axis=0)[first]       # gauge.master_pool's
+        ko = element_capsules(x_own)
+        # the pool's capsules are the own ones when it is the own elements at the same bits
+        kp = ko if pool_own and same_bits(pool_x, x_own) else element_capsules(pool_x)
         near = np.flatnonzero(capsules_within([v[oi] for v in ko], [v[mi] for v in kp],
                                               2.0 * self.eps if reach is None else reach))
         return {"oi": oi[near], "mi": mi[near], "e": pairs[near, 0], "m": pairs[near, 1],
                 "xs": self.Np @ x_own, "xm": self.Nm @ pool_x}
+
+    def _pair_rows(self, own_ids, other_ids, pairs, slot):
+        """(first, oi, mi, own) of ``_near_pairs``: the master pool's rows in [other, own]
+        (closest_point.master_pool_rows), the rows of the pairs' own and master elements, and
+        whether the pool is the own elements (one rank: every element a candidate).
+        Functions of the ids alone, which stay while the Verlet list and the pairs within its
+        reach do (most evaluations of a Newton iteration's line search), so they are kept and
+        made anew only when an id differs (a slot each for the evaluation and pairs_within);
+        the lookups and their KeyError are those of every call."""
+        kept = self._rows.get(slot)
+        ids = (own_ids, other_ids, pairs)
+        if kept is not None and all(np.array_equal(a, b) for a, b in zip(kept[0], ids)):
+            return kept[1]
+        pool_ids, first = master_pool_rows(own_ids, other_ids)
+        rows = (first, _lookup(own_ids, pairs[:, 0], "own"),
+                _lookup(pool_ids, pairs[:, 1], "other"), np.array_equal(pool_ids, own_ids))
+        self._rows[slot] = (tuple(np.array(a, copy=True) for a in ids), rows)
+        return rows
 
     def _couples_numpy(self, c, reach=None):
         """``couples`` and ``depth`` of the near pairs ``c`` in numpy, chunk by chunk of pairs
@@ -651,7 +681,9 @@ class PotentialKernel:
             a, r, nu = self.couples(xq_own[oi], c["xm"][c["mi"][lo:hi]],
                                      self.admissible(e, m, self.xq, self.xm))
             fa = self.master_weights(m)[:, None, :] * law_force(a, self.a_s)
-            np.add.at(f, oi, k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
+            # np.add.at(f, oi, ...) (scatter.py: the same sums)
+            add_in_order(f.reshape(no, -1), in_order_rows(oi),
+                         k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
         out["force"] = np.linalg.norm(f, axis=2)
         out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
         # total force by the nqp rule over the couples in contact
@@ -659,7 +691,10 @@ class PotentialKernel:
         ac = self._active_couples(c)
         if len(ac["act"]):
             coef = ac["wm"] * law_force(ac["a"], self.a_s) / np.where(ac["r"] > 0.0, ac["r"], 1.0)
-            np.add.at(fp, (c["oi"][ac["act"][ac["row"]]], ac["q"]), k * coef[:, None] * ac["D"])
+            # np.add.at(fp, (slave element, q), ...) (scatter.py: the same sums)
+            add_in_order(fp.reshape(-1, 3),
+                         in_order_rows(c["oi"][ac["act"][ac["row"]]] * self.nqp + ac["q"]),
+                         k * coef[:, None] * ac["D"])
         out["total_force"] = float(np.sum(self.wp * J * np.linalg.norm(fp, axis=2)))
         # the depth at the nqp points: the deepest couple of each (pair, q) in contact
         p, q, _, r = c["couples"]

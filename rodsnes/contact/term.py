@@ -12,14 +12,17 @@ Per evaluation (residual, line-search trial or Jacobian), on every rank:
      reach + skin then;
   3. the nodes of the candidate master elements are fetched from their owners through a PetscSF
      (leaves = needed nodes, roots = owned nodes); the SF is rebuilt only when that node set
-     changes (with a new search);
+     changes (with a new search).  What the list fixes (the masters, their nodes, the rows
+     of every candidate) is made once per list (_verlet_plan), and the SF's check is skipped
+     while the list stays;
   4. the candidates within reach at these positions: the sphere test of candidate_pairs on the
      current spheres (the same pairs as a fresh search within reach);
   5. the kernel evaluates energy and residual on owned slave points; the tangent and the report
      (gap, penetration, KKT picture) only when a caller asks for them (``evaluate``), made later
      from what the residual kept at the same positions;
   6. slave-side residual goes into the owned/ghost rows; master-side residual is sent back to
-     the owners through the same SF (reduce with MPI.SUM); tangent blocks go straight into the
+     the owners through the same SF (reduce with MPI.SUM), both by scatter.add_in_order (the
+     sums of np.add.at, bit for bit, a fraction of its time); tangent blocks go straight into the
      global matrix (MatSetValuesBlocked with off-process rows, communicated at assembly).
 The Jacobian's block pattern holds the element pairs that can touch (capsules within
 2 eps + PATTERN_MARGIN eps) at the start of every load step, and before every Jacobian the
@@ -41,6 +44,7 @@ from petsc4py import PETSc
 from rodsnes.profiling import logged
 from rodsnes.contact import projection as ck
 from rodsnes.contact import search
+from rodsnes.contact.scatter import add_in_order, in_order_rows
 from rodsnes.model import so3
 from rodsnes.model.partition import add_position_blocks
 from rodsnes.model.term import Term
@@ -103,6 +107,8 @@ class ContactTerm(Term):
         self.sf_builds = 0
         self._all_ids = None            # every rank's owned elements, in allgather order
         self.verlet_list = None             # (own centres, own radii, pairs within reach + skin)
+        self._plan = None               # what the Verlet list fixes (_verlet_plan)
+        self._rows_kept = None          # _residual_rows: the pairs and nodes they are for, rows
         self.searches = 0               # candidate searches made ...
         self.search_reuses = 0          # ... and evaluations that reused one
         self.kept_evaluation = None              # the last evaluation (positions, mu, output, pairs)
@@ -149,13 +155,26 @@ class ContactTerm(Term):
         self.sf_builds += 1
 
     @logged("ContactHalo")
-    def _fetch(self, r_loc, nodes):
-        self._ensure_sf(nodes)
+    def _fetch(self, r_loc, nodes, current=False):
+        """The positions of ``nodes`` from their owners (collective).  ``current``: the SF is
+        known to be that of ``nodes`` on every rank (_evaluate: no search since it was
+        checked), so the check and its allreduce are skipped."""
+        if not current:
+            self._ensure_sf(nodes)
         root = np.ascontiguousarray(r_loc[:self.layout.n_owned], dtype=float)
         leaf = np.zeros((len(nodes), 3))
         self.sf.bcastBegin(self.unit, root, leaf, MPI.REPLACE)
         self.sf.bcastEnd(self.unit, root, leaf, MPI.REPLACE)
         return leaf
+
+    def _any(self, flag):
+        """flag on any rank: an allreduce on several ranks (every rank calls it at the same
+        point); on one rank the flag itself, which is what the allreduce returns there."""
+        return bool(flag) if self.comm.size == 1 else self.comm.allreduce(flag, op=MPI.LOR)
+
+    def _all(self, flag):
+        """flag on every rank (``_any``'s counterpart, MPI.LAND)."""
+        return bool(flag) if self.comm.size == 1 else self.comm.allreduce(flag, op=MPI.LAND)
 
     @logged("ContactHalo")
     def _send_back(self, leaf_force):
@@ -177,7 +196,7 @@ class ContactTerm(Term):
         st = self.kept_evaluation
         hit = st is not None and st["mu"] == self.kernel.mu and st["r"].shape == r_loc.shape \
             and np.array_equal(st["r"], r_loc)
-        if self.comm.allreduce(hit, op=MPI.LAND):
+        if self._all(hit):
             self.cache_hits += 1
         else:
             st = self._evaluate(r_loc)
@@ -203,7 +222,7 @@ class ContactTerm(Term):
         if not stale and len(cen):
             move = np.linalg.norm(cen - s[0], axis=1) + np.maximum(rad - s[1], 0.0)
             stale = not float(move.max()) < 0.5 * self.skin * (1.0 - 1e-6)
-        if self.comm.allreduce(stale, op=MPI.LOR):
+        if self._any(stale):
             self.verlet_list = (cen, rad, self.search_pairs(cen, rad, self.reach + self.skin))
             self.searches += 1
         else:
@@ -226,26 +245,53 @@ class ContactTerm(Term):
             return pairs, cens[order], rads[order]
         return pairs
 
-    def _evaluate(self, r_loc):
+    def _verlet_plan(self):
+        """What the Verlet list fixes until the next search, made once per list instead of at
+        every evaluation: the candidate masters ``other`` (sorted unique), the sorted unique
+        nodes the halo fetches and the rows of every master's nodes among them, the rows of
+        the candidates' own elements (own_ids) and masters (other); ``own``: the masters are
+        the own elements (one rank: every element a candidate); ``halo``: the SF has been
+        checked against these nodes.  Kept with the list it belongs to (a search replaces the
+        list on every rank at once, _candidates), so it is made anew exactly when the list
+        changes."""
+        plan = self._plan
+        if plan is not None and plan["list"] is self.verlet_list:
+            return plan
         m = self.mesh
-        n1 = m.order + 1
-        x_own, cen, rad, cand = self._candidates(r_loc)
+        cand = self.verlet_list[2]
         other = np.unique(cand[:, 1]) if len(cand) else np.zeros(0, dtype=np.int64)
         other_nodes = search.element_node_ids(other, m.order, m.nelem, m.closed)
         nodes = np.unique(other_nodes)
+        plan = {"list": self.verlet_list, "other": other, "nodes": nodes, "halo": False,
+                "own": np.array_equal(other, self.own_ids),
+                "node_rows": np.searchsorted(nodes, other_nodes) if len(other) else None,
+                "io": search.positions(self.own_ids, cand[:, 0], "own") if len(cand) else None,
+                "ia": np.searchsorted(other, cand[:, 1])}
+        self._plan = plan
+        return plan
+
+    def _evaluate(self, r_loc):
+        n1 = self.mesh.order + 1
+        x_own, cen, rad, cand = self._candidates(r_loc)
+        plan = self._verlet_plan()
+        other, nodes, io, ia = plan["other"], plan["nodes"], plan["io"], plan["ia"]
         # every rank takes part in the SF collectives, even with nothing to fetch
-        leaf = self._fetch(r_loc, nodes)
-        x_other = leaf[np.searchsorted(nodes, other_nodes)] if len(other) else np.zeros((0, n1, 3))
-        # the candidates within reach at these positions: the test of a fresh search
-        c_other, r_other = search.element_bounds(x_other)
+        leaf = self._fetch(r_loc, nodes, current=plan["halo"])
+        plan["halo"] = True
+        x_other = leaf[plan["node_rows"]] if len(other) else np.zeros((0, n1, 3))
+        # the candidates within reach at these positions: the test of a fresh search (the
+        # masters' spheres are the own ones when they are the own elements at the same bits)
+        if plan["own"] and search.same_bits(x_other, x_own):
+            c_other, r_other = cen, rad
+        else:
+            c_other, r_other = search.element_bounds(x_other)
+        used = np.zeros(len(other), dtype=bool)        # other: sorted unique
         if len(cand):
-            io = search.positions(self.own_ids, cand[:, 0], "own")
-            ia = np.searchsorted(other, cand[:, 1])
-            pairs = cand[search.spheres_within(cen[io], rad[io], c_other[ia], r_other[ia], self.reach)]
+            within = search.spheres_within(cen[io], rad[io], c_other[ia], r_other[ia], self.reach)
+            pairs = cand[within]
+            used[ia[within]] = True
         else:
             pairs = cand
-        used = np.zeros(len(other), dtype=bool)        # other: sorted unique
-        used[np.searchsorted(other, pairs[:, 1])] = True
         out = self.kernel.evaluate(self.own_ids, x_own, other[used], x_other[used], pairs,
                                    tangent=False, report=False)
         out["nodes"] = nodes
@@ -253,9 +299,7 @@ class ContactTerm(Term):
             out["support"] = self.supports.evaluate(r_loc, tangent=False)
             out["energy"] += out["support"]["energy"]
         self.kept_evaluation = {"r": np.array(r_loc, copy=True), "mu": self.kernel.mu, "out": out,
-                       "pairs": pairs, "near": None,
-                       "bounds": (np.concatenate([self.own_ids, other]),
-                                  np.concatenate([cen, c_other]), np.concatenate([rad, r_other]))}
+                                "pairs": pairs, "near": None}
         return self.kept_evaluation
 
     @property
@@ -287,14 +331,28 @@ class ContactTerm(Term):
         act = out["active"]
         leaf_force = np.zeros((len(out["nodes"]), 3))
         if len(act):
-            own_index = np.searchsorted(self.own_ids, act[:, 0])
-            np.add.at(Floc[:, 0:3], self.lconn[own_index], out["vec"][:, :n1])
-            m = self.mesh
-            master_nodes = search.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
-            np.add.at(leaf_force, np.searchsorted(out["nodes"], master_nodes), out["vec"][:, n1:])
+            slave, master = self._residual_rows(act, out["nodes"])
+            add_in_order(Floc[:, 0:3], slave, out["vec"][:, :n1])
+            add_in_order(leaf_force, master, out["vec"][:, n1:])
         Floc[:self.layout.n_owned, 0:3] += self._send_back(leaf_force)
         if self.supports is not None:
             self.supports.add_residual(out["support"], Floc)
+
+    def _residual_rows(self, act, nodes):
+        """(slave, master): the additions of the residual rows of the active pairs ``act``
+        (in_order_rows) into the local rows of their own elements' nodes and into the fetched
+        ``nodes`` of their masters.  Functions of the pairs alone, kept while they stay (the
+        pairs in contact change far less often than the positions)."""
+        kept = self._rows_kept
+        if kept is not None and np.array_equal(kept[0], act) and np.array_equal(kept[1], nodes):
+            return kept[2]
+        m = self.mesh
+        own_index = np.searchsorted(self.own_ids, act[:, 0])
+        master_nodes = search.element_node_ids(act[:, 1], m.order, m.nelem, m.closed)
+        rows = (in_order_rows(self.lconn[own_index]),
+                in_order_rows(np.searchsorted(nodes, master_nodes)))
+        self._rows_kept = (act.copy(), nodes.copy(), rows)
+        return rows
 
     def add_jacobian(self, lam, r_loc, q_loc, P, symmetric=False):
         """The kernel's tangent blocks: [slave, master] per active point, [slave, A, B] per
