@@ -37,13 +37,23 @@ class Inertia:
     positive.  Newton itself factors the consistent tangent by LU: on the symmetric Hessian
     (equal at equilibrium, O(|F|) apart elsewhere) Newton stagnated on the Michell ring's
     unstable branch near its bifurcation (test_restart), where the consistent tangent
-    converges."""
+    converges.
+
+    On several ranks a Hessian of at most REDUNDANT_MAX unknowns is factored whole on every
+    rank (a sequential MUMPS LDL^T of the gathered matrix, MatCreateSubMatrices), not by MUMPS
+    over the ranks: MUMPS's parallel factorisation is not reproducible bit for bit (its dynamic
+    scheduling changes the order of the sums from run to run), and the minimiser's steps along
+    H's shifted factor then made two identical 2-rank runs of the plectoneme part at 7.2 turns
+    (different iterations and final states, each a stable equilibrium)."""
+
+    REDUNDANT_MAX = 30000       # unknowns up to which several ranks each factor H whole
 
     def __init__(self, problem, prefix="stability_"):
         self.problem, self.prefix = problem, prefix
         self.patterns = None
         self.H = None
         self.pc = None
+        self.whole = None               # the redundant factorisation's gathered H, IS, scatter
         self.diagonal = None
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
@@ -61,7 +71,12 @@ class Inertia:
         p = self.problem
         self.destroy()
         self.H = self._matrix(patterns)
-        pc = PETSc.PC().create(comm=p.layout.comm)
+        n = self.H.getSize()[0]
+        whole = p.layout.comm.getSize() > 1 and n <= self.REDUNDANT_MAX
+        if whole:
+            self.whole = {"is": PETSc.IS().createStride(n, 0, 1, comm=PETSc.COMM_SELF),
+                          "H": None, "scatter": None}
+        pc = PETSc.PC().create(comm=PETSc.COMM_SELF if whole else p.layout.comm)
         pc.setOptionsPrefix(self.prefix)
         pc.setType(PETSc.PC.Type.CHOLESKY)
         pc.setFactorSolverType("mumps")
@@ -99,22 +114,43 @@ class Inertia:
             d.axpy(1.0, shift)
         H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
         d.destroy()
-        self.pc.setOperators(H)
+        A = self._gathered(H) if self.whole is not None else H
+        self.pc.setOperators(A)
         self.counts += 1
         try:
             self.pc.setUp()
         except PETSc.Error:
             self.pc.reset()
-            self.pc.setOperators(H)
+            self.pc.setOperators(A)
             return -1
         F = self.pc.getFactorMatrix()
         if F.getMumpsInfog(1) < 0:
             return -1
         return int(F.getMumpsInfog(12))
 
+    def _gathered(self, H):
+        """The whole of H on every rank (a sequential SBAIJ, refilled in place).  Collective."""
+        w = self.whole
+        if w["H"] is None:
+            w["H"] = H.createSubMatrices(w["is"], w["is"])[0]
+        else:
+            H.createSubMatrices(w["is"], w["is"], submats=[w["H"]])
+        return w["H"]
+
     def solve(self, b, x):
         """x = (H + shift)^-1 b with the last factor.  Collective."""
-        self.pc.apply(b, x)
+        w = self.whole
+        if w is None:
+            self.pc.apply(b, x)
+            return
+        if w["scatter"] is None:
+            w["scatter"], w["b"] = PETSc.Scatter.toAll(b)
+            w["x"] = w["b"].duplicate()
+        w["scatter"].scatter(b, w["b"], addv=PETSc.InsertMode.INSERT_VALUES,
+                             mode=PETSc.ScatterMode.FORWARD)
+        self.pc.apply(w["b"], w["x"])
+        lo, hi = x.getOwnershipRange()
+        x.setArray(w["x"].getArray(readonly=True)[lo:hi])
 
     def count(self):
         """Negative eigenvalues of the symmetric Hessian at the problem's current state.
@@ -123,10 +159,12 @@ class Inertia:
         return self.factor()
 
     def destroy(self):
-        for obj in (self.pc, self.H):
+        w = self.whole or {}
+        for obj in (self.pc, self.H, w.get("H"), w.get("is"), w.get("scatter"), w.get("b"),
+                    w.get("x")):
             if obj is not None:
                 obj.destroy()
-        self.pc = self.H = None
+        self.pc = self.H = self.whole = None
 
 
 def negative_eigenvalues(problem):
