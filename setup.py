@@ -18,6 +18,15 @@ potential_kernel = Extension(
     libraries=["m"],
 )
 
+# The Gauss double integral of writhe and link (rodsnes/model/topology.py), the same way: O(N^2)
+# segment pairs, the link check of every load step and the writhe of every summary.
+topology_kernel = Extension(
+    "rodsnes.model._topology_kernel",
+    sources=["rodsnes/model/_topology_kernel.c"],
+    extra_compile_args=["-O3", "-std=c99"],
+    libraries=["m"],
+)
+
 setup(
     name="rodsnes",
     version="0.1.0",
@@ -28,5 +37,5 @@ setup(
     # (see tools/install_system.sh); only what Debian lacks is pulled from PyPI.
     install_requires=["numpy", "pymetis", "typing_extensions"],
     entry_points={"console_scripts": ["rodsnes = rodsnes.cli:main"]},
-    ext_modules=[elastic_kernel, potential_kernel],
+    ext_modules=[elastic_kernel, potential_kernel, topology_kernel],
 )
