@@ -143,32 +143,15 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
     factors its own stretch by PETSc's LU: solve/schur.py, tests/test_schur.py), whose factors
     petsc4py does not reach: the fill is that of the Jacobian's node graph (linear.pattern_fill,
     equal to the serial LU's: 3.355 for the coil at 1000 elements), and above FILL_MUMPS the
-    Newton steps factor by MUMPS: the whole matrix on every rank up to linear.WHOLE_MAX
-    unknowns (sequential MUMPS under PCREDUNDANT: runs repeat bit for bit), over the ranks
-    beyond it."""
-    import numpy as np
-    from petsc4py import PETSc
-    from conftest import gathered_positions, run_case
-    from rodsnes.solve import linear
+    Newton steps factor by MUMPS over the ranks."""
+    from conftest import run_case
     from rodsnes.solve.linear import FILL_MUMPS, pattern_fill
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                     rod_error_estimate="off")
     pc = coil.solver.snes.getKSP().getPC()
-    assert coil.ok and pattern_fill(coil.problem) > FILL_MUMPS and not coil.solver.lu.auto
+    assert coil.ok and pattern_fill(coil.problem) > FILL_MUMPS
     if coil.comm.getSize() > 1:
-        assert pc.getType() == "redundant"
-        assert PETSc.Options().getString("redundant_pc_factor_mat_solver_type") == "mumps"
-        assert linear.is_default("redundant_pc_factor_mat_solver_type")
-        small, linear.WHOLE_MAX = linear.WHOLE_MAX, 0
-        try:
-            spread = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
-                              rod_error_estimate="off")
-        finally:
-            linear.WHOLE_MAX = small
-        pc = spread.solver.snes.getKSP().getPC()
-        assert spread.ok and pc.getType() == "lu" and pc.getFactorSolverType() == "mumps"
-        d = np.abs(gathered_positions(spread) - gathered_positions(coil)).max()
-        assert d < 1e-9, d
+        assert pc.getType() == "lu" and pc.getFactorSolverType() == "mumps"
     chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()

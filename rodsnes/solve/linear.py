@@ -32,21 +32,14 @@ or factorisation, serial, this 2-core machine, AMD ordering):
 
 so where the fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed) of the Jacobian's
 pattern exceeds FILL_MUMPS, checked for every new pattern before its first factorisation, the
-rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose the package.
-On several ranks a Jacobian of up to WHOLE_MAX unknowns then stays whole on every rank
-(PCREDUNDANT, its factorisation sequential MUMPS), beyond it MUMPS factors over the ranks:
-MUMPS over several ranks does not sum in the same order from run to run (its dynamic
-scheduling), so runs would not repeat bit for bit (stability.Inertia, docs/parallel.md)."""
+rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose the package."""
 import numpy as np
 from petsc4py import PETSc
 
-from rodsnes.model.partition import NDOF, group_pairs
+from rodsnes.model.partition import group_pairs
 from rodsnes.solve import schur
 
 FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
-# unknowns up to which several ranks each factor the whole matrix (reproducible bit for bit):
-# the Newton steps' MUMPS (use_mumps_when_filled) and the Hessian's LDL^T (stability.Inertia)
-WHOLE_MAX = 30000
 ORDERING = "amd"        # PETSc's LU: approximate minimum degree (module docstring)
 
 
@@ -189,24 +182,14 @@ def use_mumps_when_filled(ksp, problem):
     """Before the first factorisation of a new pattern's matrix: where the KSP factors by
     PETSc's LU (PCLU with the petsc package, or PCREDUNDANT, PETSc's LU of the whole matrix on
     every rank) and the fill of the problem's Jacobian exceeds FILL_MUMPS (pattern_fill), its
-    PC factors by MUMPS from now on (module docstring): on several ranks up to WHOLE_MAX
-    unknowns the whole matrix on every rank (PCREDUNDANT over sequential MUMPS), beyond it
-    MUMPS over the ranks.  Returns True when it switched."""
+    PC factors by MUMPS from now on (module docstring).  Returns True when it switched."""
     pc = ksp.getPC()
     kind = pc.getType()
     native = kind == PETSc.PC.Type.REDUNDANT or _is_rank_schur(pc) or (
         kind == PETSc.PC.Type.LU and pc.getFactorSolverType() == "petsc")
-    prefix = ksp.getOptionsPrefix() or ""
-    if not native or not pattern_fill(problem, lu_ordering(prefix) or ORDERING) > FILL_MUMPS:
+    if not native or not pattern_fill(problem, lu_ordering(ksp.getOptionsPrefix() or "")
+                                      or ORDERING) > FILL_MUMPS:
         return False
-    lay = problem.layout
-    if lay.comm.getSize() > 1 and NDOF * lay.n_global <= WHOLE_MAX:
-        inner = prefix + "redundant_"
-        PETSc.Options().setValue(inner + "pc_factor_mat_solver_type", "mumps")
-        DEFAULTED[inner + "pc_factor_mat_solver_type"] = "mumps"      # rodsnes' choice still
-        mumps_fill_room(problem, inner)
-        _retype(pc, PETSc.PC.Type.REDUNDANT, lambda pc: pc.setFromOptions())
-        return True
     _retype(pc, PETSc.PC.Type.LU, lambda pc: pc.setFactorSolverType("mumps"))
     return True
 

@@ -15,7 +15,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.model.term import same_patterns
-from rodsnes.solve.linear import WHOLE_MAX, mumps_fill_room, option_default
+from rodsnes.solve.linear import mumps_fill_room, option_default
 
 
 def zero_shift(A):
@@ -46,7 +46,7 @@ class Inertia:
     H's shifted factor then made two identical 2-rank runs of the plectoneme part at 7.2 turns
     (different iterations and final states, each a stable equilibrium)."""
 
-    REDUNDANT_MAX = WHOLE_MAX   # unknowns up to which several ranks each factor H whole
+    REDUNDANT_MAX = 30000       # unknowns up to which several ranks each factor H whole
 
     def __init__(self, problem, prefix="stability_"):
         self.problem, self.prefix = problem, prefix
