@@ -125,6 +125,11 @@ class Inertia:
             return -1
         F = self.pc.getFactorMatrix()
         if F.getMumpsInfog(1) < 0:
+            # a failure MUMPS reports in INFOG(1), not as an error: PETSc 3.18 then skips every
+            # later numeric factorisation of this PC (each shift would fail again); reset, as
+            # the error branch does
+            self.pc.reset()
+            self.pc.setOperators(A)
             return -1
         return int(F.getMumpsInfog(12))
 
