@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rodsnes.model import elastic, so3
-from conftest import gathered_positions, place, run_case
+from conftest import gathered_positions, inertia_solve, place, run_case
 
 STIFF = [3.0, 4.0, 50.0, 1.0, 2.0, 1.5]
 
@@ -121,9 +121,8 @@ def test_a_small_hessian_is_factored_whole_on_every_rank():
     on every rank (sequential MUMPS LDL^T of the gathered matrix: reproducible bit for bit,
     where MUMPS over the ranks is not); its count and solve equal those of MUMPS over the ranks
     (REDUNDANT_MAX 0) on the Euler column at 1.2 P_cr held straight (two negative modes): both
-    solve (H + tau) x = b with a backward error at round-off, and agree as far as H's conditioning allows (1e-8
-    relative measured on 2 ranks)."""
-    from petsc4py import PETSc
+    solve (H + tau) x = b with a backward error at round-off (conftest.inertia_solve), and
+    agree as far as H's conditioning allows (1e-8 relative measured on 2 ranks)."""
     from rodsnes.solve.stability import Inertia
     run = run_case("euler", stability=True, rod_imperfection=0.0, load_path="newton",
                    rod_planar="off", load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4),
@@ -136,17 +135,7 @@ def test_a_small_hessian_is_factored_whole_on_every_rank():
     for inertia in (whole, spread):
         inertia.assemble()
         assert inertia.factor() == 2
-        b = p.F.duplicate()
-        lo, hi = b.getOwnershipRange()
-        b.setArray(np.sin(0.37 * np.arange(lo, hi)))
-        x = b.duplicate()
-        inertia.solve(b, x)
-        r = b.duplicate()
-        inertia.H.mult(x, r)              # H holds the factored diagonal (H + tau)
-        r.axpy(-1.0, b)
-        # backward error at round-off: |r| <= 1e-12 |H| |x|
-        assert r.norm() <= 1e-12 * inertia.H.norm(PETSc.NormType.INFINITY) * x.norm()
-        r.destroy()
+        b, x = inertia_solve(inertia, 1e-12)     # backward error at round-off
         xs.append(x)
     assert (whole.pc.getComm().getSize(), whole.whole is not None) == (1, size > 1)
     assert spread.pc.getComm().getSize() == size and spread.whole is None
