@@ -36,7 +36,7 @@ from mpi4py import MPI
 
 from rodsnes.contact import search
 from rodsnes.contact.scatter import add_in_order, in_order_rows
-from rodsnes.model.partition import add_position_blocks
+from rodsnes.model.partition import add_position_blocks, allreduce
 
 
 def half_line_distance(x, p, e, projector=True):
@@ -107,9 +107,7 @@ class SupportTerm:
         """x_N on every rank (its owner's value).  Collective (on one rank the owner's value
         itself, which is what the allreduce returns there)."""
         x = r_loc[self.end_local] if self.end_local >= 0 else np.zeros(3)
-        if self.comm.size == 1:
-            return np.array(x, dtype=float)
-        return self.comm.allreduce(np.asarray(x, dtype=float))
+        return allreduce(self.comm, np.array(x, dtype=float))
 
     def obstacles(self, p_end):
         """(point, direction) of H_0 and H_1, with the sliding end at p_end."""
@@ -185,7 +183,7 @@ class SupportTerm:
         """Element residual into the local rows; the end node's reaction, summed over the
         ranks, into its owner's row.  Collective."""
         add_in_order(Floc[:, 0:3], self.rows, out["vec"])      # np.add.at (scatter.py)
-        f_end = out["end_force"] if self.comm.size == 1 else self.comm.allreduce(out["end_force"])
+        f_end = allreduce(self.comm, out["end_force"])
         if self.end_local >= 0:
             Floc[self.end_local, 0:3] += f_end
 

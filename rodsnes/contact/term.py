@@ -46,7 +46,7 @@ from rodsnes.contact import projection as ck
 from rodsnes.contact import search
 from rodsnes.contact.scatter import add_in_order, in_order_rows
 from rodsnes.model import so3
-from rodsnes.model.partition import add_position_blocks
+from rodsnes.model.partition import add_position_blocks, allreduce
 from rodsnes.model.term import Term
 from rodsnes.contact.potential import PotentialKernel
 from rodsnes.contact.mounts import SupportTerm
@@ -167,15 +167,6 @@ class ContactTerm(Term):
         self.sf.bcastEnd(self.unit, root, leaf, MPI.REPLACE)
         return leaf
 
-    def _any(self, flag):
-        """flag on any rank: an allreduce on several ranks (every rank calls it at the same
-        point); on one rank the flag itself, which is what the allreduce returns there."""
-        return bool(flag) if self.comm.size == 1 else self.comm.allreduce(flag, op=MPI.LOR)
-
-    def _all(self, flag):
-        """flag on every rank (``_any``'s counterpart, MPI.LAND)."""
-        return bool(flag) if self.comm.size == 1 else self.comm.allreduce(flag, op=MPI.LAND)
-
     @logged("ContactHalo")
     def _send_back(self, leaf_force):
         root = np.zeros((self.layout.n_owned, 3))
@@ -196,7 +187,7 @@ class ContactTerm(Term):
         st = self.kept_evaluation
         hit = st is not None and st["mu"] == self.kernel.mu and st["r"].shape == r_loc.shape \
             and np.array_equal(st["r"], r_loc)
-        if self._all(hit):
+        if allreduce(self.comm, bool(hit), MPI.LAND):
             self.cache_hits += 1
         else:
             st = self._evaluate(r_loc)
@@ -222,7 +213,7 @@ class ContactTerm(Term):
         if not stale and len(cen):
             move = np.linalg.norm(cen - s[0], axis=1) + np.maximum(rad - s[1], 0.0)
             stale = not float(move.max()) < 0.5 * self.skin * (1.0 - 1e-6)
-        if self._any(stale):
+        if allreduce(self.comm, bool(stale), MPI.LOR):
             self.verlet_list = (cen, rad, self.search_pairs(cen, rad, self.reach + self.skin))
             self.searches += 1
         else:

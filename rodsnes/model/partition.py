@@ -9,9 +9,18 @@ owned elements owned elsewhere).  Every rank keeps the O(n) maps natural <-> PET
 most millions of nodes: cheap, and it keeps contact-pair bookkeeping simple).
 """
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 NDOF = 6  # per node: position r (3), rotation increment theta (3)
+
+
+def allreduce(comm, value, op=MPI.SUM):
+    """comm.allreduce(value, op=op) on an mpi4py communicator of several ranks; on one rank
+    ``value`` itself, which is what the allreduce gives there (a collective skipped where
+    nobody is to meet: the contact term's flags and the mounts' end values are asked for at
+    every evaluation)."""
+    return value if comm.size == 1 else comm.allreduce(value, op=op)
 
 
 def metis_parts(nelem, closed, nparts):
