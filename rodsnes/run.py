@@ -157,7 +157,7 @@ class Run:
         if pos.shape[0] != self.mesh.n_nodes:
             raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
                              f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
-        st.restore(st.snapshot_of(pos, dirs))
+        st.restore(st.snapshot_of(pos, dirs, last.get("rotation")))
         for term in self.problem.terms:
             term.restart(last["attrs"])            # e.g. the adapted penalty
         self.lam0 = float(last["attrs"]["load"])
@@ -176,7 +176,8 @@ class Run:
         if (self.step >= 1 and not last["attrs"].get("branch_switch", 0)
                 and self.step - 1 in output.read_steps(rdir)):
             before = output.read_step(rdir, self.step - 1)
-            self.prev0 = (st.snapshot_of(before["positions"], before["directors"]),
+            self.prev0 = (st.snapshot_of(before["positions"], before["directors"],
+                                         before.get("rotation")),
                           float(before["attrs"]["load"]))
 
     def _tip(self, fields):

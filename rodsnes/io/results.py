@@ -22,6 +22,8 @@ Everything a run leaves in its output directory ``DIR``:
             ``directors`` (n,3,3) float64 R_i, rotation from the material to the global frame;
                                           column j of R_i is the director d_(j+1) (d3 ~ tangent)
             optional, as delivered by the solver, e.g.
+            ``rotation`` (n,4)  the unit quaternion (w, x, y, z) of R_i as the solver holds it: a restart
+                                resumes from it bit for bit (from ``directors`` where it is absent)
             ``strain_v`` (n,3)  material translational strain v = R^T r' (1 - v3 = axial strain) [-]
             ``strain_u`` (n,3)  material curvature u = vee(R^T R'): u1, u2 bending, u3 twist [1/length]
             ``force_n``  (n,3)  stress resultant force n in the global frame [force]
@@ -78,6 +80,8 @@ RESERVED_NAMES = ("step", "attrs", "meta", "node_fields", "qp_fields")
 FIELD_DOC = {
     "positions": "centreline position r, global frame [length]",
     "directors": "rotation R material->global; column j = director d_(j+1), d3 ~ tangent [-]",
+    "rotation": "unit quaternion (w, x, y, z) of R as the solver holds it (a restart resumes "
+                "from it bit for bit) [-]",
     "strain_v": "material translational strain v = R^T r' (shear v1, v2; stretch v3) [-]",
     "strain_u": "material curvature u = vee(R^T R') (bending u1, u2; twist u3) [1/length]",
     "force_n": "stress resultant force n, global frame [force]",
@@ -887,7 +891,7 @@ def xdmf_point_data(step, ref_positions, meta):
     for j in range(3):
         pd[f"d{j + 1}"] = np.ascontiguousarray(R[:, :, j])
     for name in step["node_fields"]:
-        if name in ("positions", "directors"):
+        if name in ("positions", "directors", "rotation"):     # rotation: d1, d2, d3 again
             continue
         a = np.asarray(step[name], dtype=np.float64)
         if a.ndim == 3:

@@ -53,11 +53,17 @@ class RodState:
         self.q_ref[:] = snap[0]
         snap[1].copy(self.X)
 
-    def snapshot_of(self, positions, directors):
+    def snapshot_of(self, positions, directors, rotation=None):
         """A snapshot (restore() takes it) of the configuration given by the gathered nodal
         positions (n,3) and directors (n,3,3) of a step in result.h5: q_ref on the local
-        nodes, X = (r, theta = 0) on the owned ones."""
-        q = so3.quat_from_rot(np.asarray(directors)[self.layout.local_nodes])
+        nodes, X = (r, theta = 0) on the owned ones.  With ``rotation`` (n,4), the quaternions
+        the run held (result.h5 ``rotation``), q_ref is those, bit for bit: the directors'
+        quaternion differs from them by round-off, and a restart would not take the
+        iterations of the run it resumes."""
+        if rotation is not None:
+            q = np.array(np.asarray(rotation)[self.layout.local_nodes], dtype=float)
+        else:
+            q = so3.quat_from_rot(np.asarray(directors)[self.layout.local_nodes])
         X = self.X.duplicate()
         with X as a:
             a = a.reshape(-1, NDOF)
@@ -680,7 +686,9 @@ class RodProblem:
         return dict(out)
 
     def owned_fields(self):
-        """Per owned node: positions (n,3), directors (n,3,3), material strains strain_v,
+        """Per owned node: positions (n,3), directors (n,3,3), the unit quaternions (w, x, y, z)
+        of the rotations as the state holds them (n,4; a restart resumes from these), material
+        strains strain_v,
         strain_u, and spatial stress resultants force_n = R C_v (v - v0), moment_m = R C_u (u - u0)
         (+ the thickness bound's moment where the flexure exceeds it, elastic.ElasticRod.law)
         (strains evaluated at the element nodes and averaged over the elements sharing a node)."""
@@ -694,7 +702,7 @@ class RodProblem:
             e0 = reference_strains(self.scene.rod, self.mesh, self.mesh.conn[self.layout.owned_elems], at_nodes)
             self._e0_nodes = nodal_average(self.layout, self.lconn, e0)
         S = self.elastic.law(e, self.twisted_reference(self._e0_nodes))[1]
-        return {"positions": r[:no].copy(), "directors": R,
+        return {"positions": r[:no].copy(), "directors": R, "rotation": q[:no].copy(),
                 "strain_v": e[:, 0:3], "strain_u": e[:, 3:6],
                 "force_n": np.einsum("nij,nj->ni", R, S[:, 0:3]),
                 "moment_m": np.einsum("nij,nj->ni", R, S[:, 3:6])}
