@@ -165,11 +165,11 @@ class Inertia:
 
     def destroy(self):
         w = self.whole or {}
-        for obj in (self.pc, self.H, w.get("H"), w.get("is"), w.get("scatter"), w.get("b"),
-                    w.get("x")):
+        for obj in (self.pc, self.H, self.diagonal, w.get("H"), w.get("is"), w.get("scatter"),
+                    w.get("b"), w.get("x")):
             if obj is not None:
                 obj.destroy()
-        self.pc = self.H = self.whole = None
+        self.pc = self.H = self.whole = self.diagonal = None
 
 
 def negative_eigenvalues(problem):
