@@ -316,8 +316,17 @@ class Run:
         return "; ".join(parts)
 
     def execute(self):
-        if self.scene.rod.tolerance is not None and not self.tolerance_trial:
-            return estimate.to_tolerance(self)      # the mesh chosen from the estimate
+        """Solve the scene's load path (or, with -rod_tolerance, its meshes); returns whether
+        it converged.  The solver defaults it put into the options database leave it at the
+        end (linear.take_back_defaults)."""
+        try:
+            if self.scene.rod.tolerance is not None and not self.tolerance_trial:
+                return estimate.to_tolerance(self)      # the mesh chosen from the estimate
+            return self._execute()
+        finally:
+            linear.take_back_defaults()
+
+    def _execute(self):
         if not self.quiet and self.rank == 0:
             print(self.header(), flush=True)
         if not self.scene.output.restart:

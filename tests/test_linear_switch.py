@@ -41,3 +41,29 @@ def test_a_users_redundant_package_is_kept():
     assert run.ok
     assert PETSc.Options().getString("redundant_pc_factor_mat_solver_type") == "petsc"
     assert not linear.is_default("redundant_pc_factor_mat_solver_type")
+
+
+@pytest.mark.mpi
+def test_a_second_run_in_the_process_chooses_its_solvers_as_the_first():
+    """The solver defaults a run puts into the options database (preonly, PETSc's LU, its
+    ordering, MUMPS's ICNTL(14) ...) leave it when the run ends, so a second run in the same
+    process (the meshes of -rod_tolerance, a script's next scene) does not take them for the
+    user's: its Newton KSP is again rodsnes' choice (the filled pattern goes to MUMPS, as in
+    the first run), and the user's own option stays."""
+    from rodsnes.io.scene import read_scene
+    from rodsnes.run import Run
+    from rodsnes.solve import linear
+    from conftest import set_options
+    opts = set_options("bench_coil", load_steps=1, quiet=True, snes_max_it=50)
+    given = set(opts.getAll())
+    runs = []
+    for _ in range(2):
+        run = Run(read_scene(["rodsnes"], opts), PETSc.COMM_WORLD)
+        assert run.execute()
+        runs.append(run)
+        assert set(opts.getAll()) == given          # the defaults left; the user's stayed
+        assert not linear.DEFAULTED
+    lu = [r.solver.minimizer.lu for r in runs]
+    types = [r.solver.minimizer.ksp.getPC().getFactorSolverType() for r in runs]
+    assert lu[0].auto == lu[1].auto and types[0] == types[1] == "mumps"
+    assert runs[0].solver.total_its == runs[1].solver.total_its

@@ -63,6 +63,19 @@ def forget_defaults():
     DEFAULTED.clear()
 
 
+def take_back_defaults():
+    """The end of a run: the options option_default set and that still hold its value leave
+    the database, which is the user's again.  Without it a second run in the same process
+    (the meshes of -rod_tolerance, a script's next scene) took them for the user's: no
+    hand-over of a filled pattern to MUMPS, no rank Schur complement, no default it would
+    set otherwise."""
+    opts = PETSc.Options()
+    for name, value in DEFAULTED.items():
+        if opts.hasName(name) and opts.getString(name) == value:
+            opts.delValue(name)
+    DEFAULTED.clear()
+
+
 def is_default(name):
     """Whether -name holds the value option_default set (not one the user gave)."""
     opts = PETSc.Options()
