@@ -11,14 +11,6 @@ from rodsnes.solve import kept_factor
 from rodsnes.solve.kept_factor import KeptFactor
 
 
-def _direct(A):
-    ksp = PETSc.KSP().create(comm=A.getComm())
-    ksp.setType(PETSc.KSP.Type.PREONLY)
-    ksp.getPC().setType(PETSc.PC.Type.LU)
-    ksp.setOperators(A)
-    return ksp
-
-
 def _matrix(n, rng, scale=0.0, base=None):
     """A dense-ish nonsymmetric well-conditioned AIJ matrix; with base, base + scale * noise."""
     if base is None:
@@ -30,81 +22,81 @@ def _matrix(n, rng, scale=0.0, base=None):
     return A, M
 
 
+class System:
+    """A random system A x = b of n unknowns, the preonly + LU KSP on A and its KeptFactor;
+    ``refill(M)`` puts the entries M into the same Mat object (a Jacobian reassembled in
+    place)."""
+
+    def __init__(self, n, seed):
+        self.rng = np.random.default_rng(seed)
+        self.n = n
+        self.A, self.M = _matrix(n, self.rng)
+        self.ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+        self.ksp.setType(PETSc.KSP.Type.PREONLY)
+        self.ksp.getPC().setType(PETSc.PC.Type.LU)
+        self.ksp.setOperators(self.A)
+        self.kf = KeptFactor(self.ksp)
+        self.b = self.A.createVecLeft()
+        self.b.setArray(self.rng.standard_normal(n))
+        self.x = self.b.duplicate()
+
+    def refill(self, M):
+        self.A.setValues(range(self.n), range(self.n), M.ravel())
+        self.A.assemble()
+
+    def exact(self, M):
+        return np.linalg.solve(M, self.b.getArray())
+
+    def destroy(self):
+        self.kf.destroy()
+        for obj in (self.ksp, self.A, self.b, self.x):
+            obj.destroy()
+
+
 def test_krylov_direction_equals_the_fresh_factor_to_rtol():
     """The second solve on a slightly changed matrix (the same Mat object, as a Jacobian
     reassembled in place) goes through GMRES on the old factor, no new factorisation, and its
     solution satisfies the new system to RTOL relative; a fresh LU's differs from it by
     less than RTOL times the condition number."""
-    rng = np.random.default_rng(3)
-    n = 60
-    A, M = _matrix(n, rng)
-    ksp = _direct(A)
-    kf = KeptFactor(ksp)
-    b = A.createVecLeft()
-    b.setArray(rng.standard_normal(n))
-    x = b.duplicate()
-    ok, fresh = kf.solve(A, b, x)
-    assert ok and fresh
-    M2 = M + 1e-3 * rng.standard_normal((n, n)) / np.sqrt(n)
-    A.setValues(range(n), range(n), M2.ravel())
-    A.assemble()
-    ok, fresh = kf.solve(A, b, x)
-    assert ok and not fresh and kf.krylov_solves == 1 and 0 < kf.krylov_its <= kept_factor.MAX_ITS
-    xa = x.getArray()
-    assert np.linalg.norm(M2 @ xa - b.getArray()) <= 1.01 * kept_factor.RTOL * b.norm()
-    exact = np.linalg.solve(M2, b.getArray())
+    S = System(60, 3)
+    assert S.kf.solve(S.A, S.b, S.x) == (True, True)
+    M2 = S.M + 1e-3 * S.rng.standard_normal((S.n, S.n)) / np.sqrt(S.n)
+    S.refill(M2)
+    assert S.kf.solve(S.A, S.b, S.x) == (True, False)
+    assert S.kf.krylov_solves == 1 and 0 < S.kf.krylov_its <= kept_factor.MAX_ITS
+    xa = S.x.getArray()
+    assert np.linalg.norm(M2 @ xa - S.b.getArray()) <= 1.01 * kept_factor.RTOL * S.b.norm()
+    exact = S.exact(M2)
     assert np.linalg.norm(xa - exact) <= 1e-4 * np.linalg.norm(exact)
-    kf.destroy()
-    ksp.destroy()
-    A.destroy()
+    S.destroy()
 
 
 def test_a_tangent_too_far_gets_a_fresh_factorisation():
     """A matrix changed beyond what MAX_ITS Krylov iterations of the old factor resolve: the
     solve falls back to a fresh LU (counted), and its solution is the exact one."""
-    rng = np.random.default_rng(4)
-    n = 80
-    A, M = _matrix(n, rng)
-    ksp = _direct(A)
-    kf = KeptFactor(ksp)
-    b = A.createVecLeft()
-    b.setArray(rng.standard_normal(n))
-    x = b.duplicate()
-    kf.solve(A, b, x)
-    M2 = np.eye(n) * 4.0 + 3.0 * rng.standard_normal((n, n)) / np.sqrt(n)
-    A.setValues(range(n), range(n), M2.ravel())
-    A.assemble()
-    ok, fresh = kf.solve(A, b, x)
-    assert ok and fresh and kf.fallbacks == 1
-    exact = np.linalg.solve(M2, b.getArray())
-    assert np.linalg.norm(x.getArray() - exact) <= 1e-10 * np.linalg.norm(exact)
-    kf.destroy()
-    ksp.destroy()
-    A.destroy()
+    S = System(80, 4)
+    S.kf.solve(S.A, S.b, S.x)
+    M2 = np.eye(S.n) * 4.0 + 3.0 * S.rng.standard_normal((S.n, S.n)) / np.sqrt(S.n)
+    S.refill(M2)
+    assert S.kf.solve(S.A, S.b, S.x) == (True, True) and S.kf.fallbacks == 1
+    exact = S.exact(M2)
+    assert np.linalg.norm(S.x.getArray() - exact) <= 1e-10 * np.linalg.norm(exact)
+    S.destroy()
 
 
 def test_a_new_matrix_or_a_users_krylov_method_factors_afresh():
     """A different Mat object (a new contact pattern) is factored afresh; with a KSP that is
     not preonly (the user's -ksp_type) no solve is replaced by the kept factor's GMRES."""
-    rng = np.random.default_rng(5)
-    n = 40
-    A, M = _matrix(n, rng)
-    B, _ = _matrix(n, rng, 1e-3, M)
-    ksp = _direct(A)
-    kf = KeptFactor(ksp)
-    b = A.createVecLeft()
-    b.setArray(rng.standard_normal(n))
-    x = b.duplicate()
-    assert kf.solve(A, b, x) == (True, True)
-    assert kf.solve(B, b, x) == (True, True)
-    ksp.setType(PETSc.KSP.Type.GMRES)
-    assert not kf.eligible()
-    assert kf.solve(B, b, x)[1]
-    assert kf.krylov_solves == 0
-    kf.destroy()
-    ksp.destroy()
-    A.destroy()
+    S = System(40, 5)
+    B, _ = _matrix(S.n, S.rng, 1e-3, S.M)
+    assert S.kf.solve(S.A, S.b, S.x) == (True, True)
+    assert S.kf.solve(B, S.b, S.x) == (True, True)
+    S.ksp.setType(PETSc.KSP.Type.GMRES)
+    assert not S.kf.eligible()
+    assert S.kf.solve(B, S.b, S.x)[1]
+    assert S.kf.krylov_solves == 0
     B.destroy()
+    S.destroy()
 
 
 @pytest.mark.mpi
