@@ -10,8 +10,7 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
    load is set), and H = d2E/dx2, the symmetric chart Hessian (RodProblem.jacobian with
    symmetric=True), assembled into an SBAIJ matrix kept with its MUMPS analysis
    (stability.Inertia).
-2. The direction: Newton's d = -K^-1 g with the consistent tangent K (LU, kept over the
-   load step's iterations as GMRES's preconditioner: kept_factor.py), kept when it
+2. The direction: Newton's d = -K^-1 g with the consistent tangent K (LU), kept when it
    descends (g . d < 0); away from equilibrium K and H differ by O(|g|) and Newton with K
    converges far better (Mattiasson's whole load: 9 iterations against 112).  Otherwise
    LDL^T of H + sigma M, M the lumped metric (nodal length m_i for positions, m_i l^2 for
@@ -48,7 +47,6 @@ from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults
 from rodsnes.solve.stability import Inertia
-from rodsnes.solve.kept_factor import KeptFactor
 from rodsnes.model.mesh import lumped_weights
 
 # the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
@@ -127,12 +125,9 @@ class EnergyMinimizer:
         self.last = None
         self.ksp = None
         self.lu = None              # linear.LUChoice of the Newton step's KSP
-        self.kept = None            # kept_factor.KeptFactor: its solves, the LU kept
 
     def destroy(self):
         """Free the PETSc objects this minimiser made (its KSP, metric, kept mode)."""
-        if self.kept is not None:
-            self.kept.destroy()
         for obj in (self.ksp, self.metric, self._mode):
             if obj is not None:
                 obj.destroy()
@@ -276,10 +271,6 @@ class EnergyMinimizer:
         # held the translations back step after step (the plectoneme crawled at 7.23 turns;
         # reset, it went on to 8 turns)
         self.sigma_last = 0.0
-        # every load step factors afresh at its first Newton step: what a step computes does
-        # not depend on the steps before it (a restart takes the same iterations)
-        if self.kept is not None:
-            self.kept.forget()
         free_ok = FREE_STEPS           # free steps, until the watchdog has once gone back
         d = X.duplicate()
         Xt = X.duplicate()
@@ -388,15 +379,14 @@ class EnergyMinimizer:
             ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
             ksp.setOptionsPrefix(self.prefix)
             ksp.setFromOptions()
-            self.kept = KeptFactor(ksp)
         ksp.setOperators(p.J)
         self.lu.check(ksp, p)
+        self.factorizations += 1
         try:
-            ok, fresh = self.kept.solve(p.J, g, d)
+            ksp.solve(g, d)
         except PETSc.Error:
             return False
-        self.factorizations += fresh
-        if not ok:
+        if ksp.getConvergedReason() < 0:
             return False
         d.scale(-1.0)
         slope = self._same(g.dot(d))
