@@ -63,9 +63,6 @@ PROGRESS = 1e-9
 MAX_IT_FACTOR = 10
 
 
-DEPTH_CUT = True
-
-
 def _depth_cut(depth0, depth, allow):
     """The factor on alpha after a trial that went deeper than ``allow``: where the deepest
     penetration, taken as linear in alpha from ``depth0`` (the iterate's; 0 where nothing
@@ -431,8 +428,8 @@ class EnergyMinimizer:
                 continue
             if allow is not None and depth > allow:
                 # the step at which the depth, linear in alpha from depth0, has gone 0.9 of
-                # the way to the allowance: one trial where halving took up to six (DEPTH_CUT)
-                alpha *= _depth_cut(depth0, depth, allow) if DEPTH_CUT else 0.5
+                # the way to the allowance: one trial where halving took up to six
+                alpha *= _depth_cut(depth0, depth, allow)
                 free = False
                 continue
             self._trial = (E, depth)
