@@ -153,11 +153,11 @@ class Run:
         last = self._restart_step(rdir)
         self._check_restart_scene(rdir, last["meta"])
         st = self.problem.state
-        pos, dirs = np.asarray(last["positions"]), np.asarray(last["directors"])
+        pos = np.asarray(last["positions"])
         if pos.shape[0] != self.mesh.n_nodes:
             raise SceneError(f"-restart {rdir}: it holds {pos.shape[0]} nodes, this scene has "
                              f"{self.mesh.n_nodes}: use the same -rod_nelem and -rod_order")
-        st.restore(st.snapshot_of(pos, dirs, last.get("rotation")))
+        st.restore(st.snapshot_of_step(last))
         for term in self.problem.terms:
             term.restart(last["attrs"])            # e.g. the adapted penalty
         self.lam0 = float(last["attrs"]["load"])
@@ -176,9 +176,7 @@ class Run:
         if (self.step >= 1 and not last["attrs"].get("branch_switch", 0)
                 and self.step - 1 in output.read_steps(rdir)):
             before = output.read_step(rdir, self.step - 1)
-            self.prev0 = (st.snapshot_of(before["positions"], before["directors"],
-                                         before.get("rotation")),
-                          float(before["attrs"]["load"]))
+            self.prev0 = (st.snapshot_of_step(before), float(before["attrs"]["load"]))
 
     def _tip(self, fields):
         if self.mesh.closed:

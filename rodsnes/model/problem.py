@@ -71,6 +71,11 @@ class RodState:
             a[:, 3:6] = 0.0
         return q, X
 
+    def snapshot_of_step(self, step):
+        """snapshot_of a step as io.results.read_step returns it: its positions, directors and,
+        where the file has them, the rotation quaternions (a restart resumes bit for bit)."""
+        return self.snapshot_of(step["positions"], step["directors"], step.get("rotation"))
+
     def predict(self, prev, ratio):
         """Secant predictor along the load path: from the converged state n (current, theta = 0)
         and the previous converged state ``prev`` (a snapshot), move to
