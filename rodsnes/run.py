@@ -195,7 +195,7 @@ class Run:
             rec["negative_eigenvalues"] = res.negative_eigenvalues
         if getattr(res, "arclength", False):
             rec["arclength_from"] = res.arclength_from
-        for key in ("link_error", "shifts", "line_search_cuts", "escapes",
+        for key in ("link_error", "shifts", "line_search_cuts", "escapes", "valley_points",
                     "out_of_plane_negative_eigenvalues"):
             if getattr(res, key, None) is not None:
                 rec[key] = res.__dict__[key]

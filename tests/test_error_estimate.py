@@ -172,13 +172,14 @@ def test_estimate_is_reported_per_step_in_the_files():
     from rodsnes.io import results as output
     run = run_case("mattiasson", rod_nelem=6, load_steps=3, rod_error_estimate="every")
     steps = [a for k, a in output.read_step_attrs(run.outdir) if k > 0]
-    assert len(steps) == 3 and all("error_estimate_centreline" in a and "error_estimate_tip" in a
+    assert len(steps) == len(run.history) >= 2 and all("error_estimate_centreline" in a and "error_estimate_tip" in a
                                    for a in steps)
     s = output.read_summary(run.outdir)["error_estimate"]
-    assert s["centreline"] == steps[-1]["error_estimate_centreline"] and s["steps_estimated"] == 3
+    assert s["centreline"] == steps[-1]["error_estimate_centreline"] and s["steps_estimated"] == len(steps)
     last = run_case("mattiasson", rod_nelem=6, load_steps=3)       # default: the last step only
     steps = [a for k, a in output.read_step_attrs(last.outdir) if k > 0]
-    assert ["error_estimate_tip" in a for a in steps] == [False, False, True]
+    assert ["error_estimate_tip" in a for a in steps] == [False] * (len(steps) - 1) + [True]
+    assert len(steps) >= 2
     off = run_case("mattiasson", rod_nelem=6, load_steps=3, rod_error_estimate="off")
     assert "error_estimate" not in output.read_summary(off.outdir)
 

@@ -17,8 +17,11 @@ from rodsnes.solve.minimize import EnergyMinimizer
 # the largest prescribed end turn per load step once the twist predictor spreads it
 MAX_TURN_STEP = 1.0
 # Newton iterations a load step is aimed at: longer steps cost more iterations each but fewer
-# per unit of load (the plectoneme: 8 its for 0.01 turn, 33 for 0.1, 75 for 0.5)
-TARGET_ITS = 20
+# per unit of load (the plectoneme: 8 its for 0.01 turn, 33 for 0.1, 75 for 0.5).  Measured
+# with the soft-valley walk (Intel Xeon VM; the plectoneme, PyElastica's scene as posed and
+# two other plectonemes, in all): 20 -> 11441 iterations, 131 s; 80 -> 7116, 93 s; 160 ->
+# 6351, 93 s with 4 cut-backs on the plectoneme
+TARGET_ITS = 80
 PREDICTOR = True
 
 
@@ -128,6 +131,7 @@ class LoadPath:
         res.history = np.concatenate([res.history, again.history])
         res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
         res.escapes += again.escapes
+        res.valley_points += again.valley_points
         res.shifts += again.shifts
         res.line_search_cuts += again.line_search_cuts
         if not again.converged:

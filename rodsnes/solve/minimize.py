@@ -27,10 +27,14 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
    grows at most to twice itself or 2 % of the diameter.  A watchdog lets the energy rise
    over WATCHDOG_STEPS full Newton steps (a linearised step that turns a stiff rod stretches
    it); if they have not paid off, the search goes back and backtracks, and the load step
-   takes no more free steps.  So no strand passes through
+   takes no more free steps (every step since the reference point counts).  A first trial
+   that falls by less than INTERPOLATE of the linear prediction is interpolated too, a full
+   step that falls as if linear is extrapolated (EXTRAPOLATE).  So no strand passes through
    another and no rotation wraps: the link is kept.  A step whose energy change is below the
    energy's round-off is accepted when it lowers |g|.
-5. Converged when |g| <= tolerance (relative to the force scale, or the round-off floor of
+5. Where Newton's steps crawl along one soft mode (a ply sliding), the minimiser walks the
+   valley floor by predictor-corrector (valley.py) and goes on from the walk's last point.
+6. Converged when |g| <= tolerance (relative to the force scale, or the round-off floor of
    the residual) AND H itself (sigma = 0, the zero_shift of exact zero modes aside) factors
    with no negative pivot: every converged step is a stable equilibrium, its inertia known
    from the factorisation the iteration makes anyway.  A near-zero positive eigenvalue (a ply
@@ -47,6 +51,7 @@ from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults
 from rodsnes.solve.stability import Inertia
+from rodsnes.solve.valley import ValleyFollower
 from rodsnes.model.mesh import lumped_weights
 
 # the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
@@ -61,6 +66,12 @@ LINE_SEARCH_TRIES = 30
 # of its scale per max_it / 4 iterations, up to MAX_IT_FACTOR x max_it (_descending)
 PROGRESS = 1e-9
 MAX_IT_FACTOR = 10
+VALLEY = True
+# the longest extrapolated step, in multiples of Newton's (1: none)
+EXTRAPOLATE = 8.0
+# a first trial that falls by less than this share of the linear prediction is interpolated too
+INTERPOLATE = 0.25
+WATCH_ALL = True
 
 
 def _depth_cut(depth0, depth, allow):
@@ -81,10 +92,10 @@ def _depth_cut(depth0, depth, allow):
 class MinimizeResult:
     """One load step's minimisation: load, converged, iterations, reason, |g| history, seconds,
     negative eigenvalues (of H at the last iterate), shifts (factorisations with sigma > 0),
-    line-search cuts, saddle escapes."""
+    line-search cuts, saddle escapes, soft-valley points and walks."""
 
     def __init__(self, lam, converged, its, reason, history, seconds, nneg, shifts, cuts,
-                 escapes, factorizations):
+                 escapes, factorizations, valley_points=0, walks=()):
         self.lam, self.converged, self.its, self.reason = lam, converged, its, reason
         self.history = np.asarray(history)
         self.fnorm = float(history[-1]) if len(history) else float("nan")
@@ -92,6 +103,8 @@ class MinimizeResult:
         self.negative_eigenvalues = nneg
         self.shifts, self.line_search_cuts, self.escapes = shifts, cuts, escapes
         self.factorizations = factorizations
+        self.valley_points = valley_points      # points of the soft-valley walks (valley.py)
+        self.walks = list(walks)                # their ValleyResults
 
 
 class EnergyMinimizer:
@@ -122,10 +135,12 @@ class EnergyMinimizer:
         self.last = None
         self.ksp = None
         self.lu = None              # linear.LUChoice of the Newton step's KSP
+        self.by_ksp = False         # the last Newton direction came from self.ksp's factor
+        self.valley = ValleyFollower(self) if VALLEY else None
 
     def destroy(self):
         """Free the PETSc objects this minimiser made (its KSP, metric, kept mode)."""
-        for obj in (self.ksp, self.metric, self._mode):
+        for obj in (self.ksp, self.metric, self._mode, self.valley):
             if obj is not None:
                 obj.destroy()
         self.ksp = self._mode = None
@@ -236,14 +251,15 @@ class EnergyMinimizer:
         drop = energies[-window - 1] - energies[-1]
         return bool(drop > PROGRESS * (abs(energies[-1]) + self.energy_scale))
 
-    def _longest_step(self, d):
-        """The largest multiple (<= 1) of d within the move limits (module docstring, 4.)."""
+    def _longest_step(self, d, most=1.0, reach=1.0):
+        """The largest multiple (<= most) of d within the move limits (module docstring, 4.),
+        the contact's (half its radius) taken ``reach`` times."""
         p = self.problem
         t, rot = self._move(d)
-        alpha = 1.0
+        alpha = most
         if rot > MAX_ROTATION:
             alpha = MAX_ROTATION / rot
-        limit = p.step_limit                  # the terms' (contact: half its radius; 0: none)
+        limit = reach * p.step_limit          # the terms' (contact: half its radius; 0: none)
         if limit and t * alpha > limit:       # a shorter step is within every move limit
             r, _ = p.state.local_config()
             t_near, _ = self._move(d, p.watched_nodes(r))
@@ -273,7 +289,10 @@ class EnergyMinimizer:
         Xt = X.duplicate()
         hist = []
         energies = []               # E at every iterate: is the minimisation still descending?
-        its = shifts = cuts = escapes = free_steps = 0
+        its = shifts = cuts = escapes = free_steps = valley_points = 0
+        walks = []
+        if self.valley is not None:
+            self.valley.start()
         nneg, reason, prev = -1, "iteration limit", np.inf
         watch = None                # the watchdog's reference point (module docstring, 4.)
         accepted = None             # (E, depth) of the step just taken, at the new iterate
@@ -287,6 +306,16 @@ class EnergyMinimizer:
                 break
             small = gnorm <= self.tol or (gnorm <= self.floor and gnorm > 0.1 * prev)
             newton = not small and self._newton_step(g, d)
+            if newton and self.by_ksp and watch is None and self.valley is not None \
+                    and self.valley.wants(its, d):
+                walk = self.valley.follow(d)
+                its += walk.its
+                self.valley.walked(its, walk)
+                cuts += walk.cuts
+                valley_points += walk.points
+                walks.append(walk)
+                accepted = None
+                continue        # from the walk's last point, or the state it went back to
             if not newton:
                 with timed("MinHessian"):
                     self.factor.assemble(p.patterns)
@@ -335,11 +364,14 @@ class EnergyMinimizer:
                 if watch is None:
                     watch = {"snap": p.state.snapshot(), "d": d.copy(), "slope": slope,
                              "alpha": alpha, "E": E0, "depth": depth0, "steps": 0}
-                watch["steps"] += 1
                 free_steps += 1
             elif not ok:
                 reason = "line search"
                 break
+            if watch is not None and (WATCH_ALL or ok == "free"):
+                # every step since the reference point counts, not only the free ones: a step
+                # that lowers E from a risen E0 has not paid the rise off
+                watch["steps"] += 1
             X.axpy(alpha, d)               # Xt, bit for bit: the trial's energy is the new E0
             accepted = self._trial
             its += 1
@@ -350,7 +382,7 @@ class EnergyMinimizer:
         self.total_its += its
         res = MinimizeResult(lam, reason == "converged", its, reason, hist,
                              time.perf_counter() - t0, nneg, shifts, cuts, escapes,
-                             self.factorizations)
+                             self.factorizations, valley_points, walks)
         self.last = res
         return res
 
@@ -359,6 +391,7 @@ class EnergyMinimizer:
         """d = -K^-1 g with the consistent tangent K (LU); True when d is a descent direction
         of the energy (g . d < 0), else the step comes from the symmetric Hessian."""
         p = self.problem
+        self.by_ksp = False
         if p.planar is not None and p.planar.holds(g):
             # the in-plane block of K (planar.py: the 3-D step, whose out-of-plane part is 0)
             self.factorizations += 1
@@ -367,6 +400,22 @@ class EnergyMinimizer:
             d.scale(-1.0)
             slope = self._same(g.dot(d))
             return bool(np.isfinite(slope) and slope < 0.0)
+        ksp = self.tangent()
+        try:
+            ksp.solve(g, d)
+        except PETSc.Error:
+            return False
+        if ksp.getConvergedReason() < 0:
+            return False
+        self.by_ksp = True
+        d.scale(-1.0)
+        slope = self._same(g.dot(d))
+        return bool(np.isfinite(slope) and slope < 0.0)
+
+    def tangent(self):
+        """The consistent tangent K at the state, set on the Newton step's KSP (the solver
+        choice checked for its pattern): its next solve factors it.  Returns the KSP."""
+        p = self.problem
         p.jacobian(None, p.state.X, p.J, p.J)
         ksp = self.ksp
         if ksp is None:
@@ -379,15 +428,7 @@ class EnergyMinimizer:
         ksp.setOperators(p.J)
         self.lu.check(ksp, p)
         self.factorizations += 1
-        try:
-            ksp.solve(g, d)
-        except PETSc.Error:
-            return False
-        if ksp.getConvergedReason() < 0:
-            return False
-        d.scale(-1.0)
-        slope = self._same(g.dot(d))
-        return bool(np.isfinite(slope) and slope < 0.0)
+        return ksp
 
     def _escape(self, d, g):
         """At a saddle: add the lowest mode, signed downhill and scaled to move a node by
@@ -407,6 +448,49 @@ class EnergyMinimizer:
         sign = -1.0 if self._same(g.dot(v)) > 0 else 1.0
         d.axpy(sign * reach / tv, v)
         return d, 1
+
+    def _extrapolate(self, X, Xt, d, slope, E1, E0, allow):
+        """After a full step whose energy fell as if linear (by 0.9 of the slope or more: the
+        quadratic model's curvature along d is too high, the step too short), the multiples
+        2, 4, ... of d within the move limits, while the energy still falls.  Returns the
+        accepted alpha (Xt and self._trial at it)."""
+        best, E_best, trial = 1.0, E1, self._trial
+        alpha = 2.0
+        most = self._longest_step(d, most=EXTRAPOLATE)
+        while alpha <= most:
+            X.copy(Xt)
+            Xt.axpy(alpha, d)
+            E, depth = self.energy_at(Xt)
+            if not (np.isfinite(E) and E < E_best and (allow is None or depth <= allow)):
+                break
+            best, E_best, trial = alpha, E, (E, depth)
+            if E - E0 > 0.9 * alpha * slope:       # no longer linear: stop here
+                break
+            alpha *= 2.0
+        if best != alpha:
+            X.copy(Xt)
+            Xt.axpy(best, d)
+        self._trial = trial
+        return best
+
+    def _interpolate(self, X, Xt, d, slope, alpha, E1, E0, allow):
+        """After a first trial that met Armijo's condition but fell by less than INTERPOLATE of
+        the linear prediction (the step went past the minimum along d, and the next iterate's
+        gradient bounces back), the minimiser of the quadratic through E0, the slope and E1
+        too; the lower of the two is taken.  Returns alpha (Xt and self._trial at it)."""
+        trial = self._trial
+        aq = -slope * alpha ** 2 / (2.0 * (E1 - E0 - slope * alpha))
+        aq = min(max(aq, 0.1 * alpha), 0.9 * alpha)
+        X.copy(Xt)
+        Xt.axpy(aq, d)
+        E, depth = self.energy_at(Xt)
+        if np.isfinite(E) and E < E1 and (allow is None or depth <= allow):
+            self._trial = (E, depth)
+            return aq
+        X.copy(Xt)
+        Xt.axpy(alpha, d)
+        self._trial = trial
+        return alpha
 
     @logged("MinLineSearch")
     def _line_search(self, X, Xt, d, slope, alpha, gnorm, E0, depth0, free=False):
@@ -434,6 +518,13 @@ class EnergyMinimizer:
                 continue
             self._trial = (E, depth)
             if E <= E0 + ARMIJO * alpha * min(slope, 0.0):
+                # (only where the predicted change is far above the energy's round-off: the
+                # decision must not depend on it, nor differ between ranks)
+                if k == 0 and -slope * alpha > 1e3 * slack:
+                    if EXTRAPOLATE and alpha == 1.0 and E - E0 <= 0.9 * slope:
+                        alpha = self._extrapolate(X, Xt, d, slope, E, E0, allow)
+                    elif INTERPOLATE and E - E0 > INTERPOLATE * alpha * slope:
+                        alpha = self._interpolate(X, Xt, d, slope, alpha, E, E0, allow)
                 return True, alpha, k
             if free:
                 return "free", alpha, k
