@@ -85,3 +85,38 @@ def test_no_walk_where_newton_converges(monkeypatch):
     assert run.execute()
     assert all(r.valley_points == 0 for r in run.solver.results)
     assert max(r.its for r in run.solver.results) < valley.VALLEY_AFTER
+
+
+def test_a_step_the_move_limits_cut_short_is_shifted_to_fit_them(monkeypatch):
+    """Where the move limits cut Newton's step below minimize.LIMITED (a long load step from
+    the 7.2-turn checkpoint: its secant start is far from the minimum), the step of
+    K + sigma M replaces it: it descends, the limits cut it less, and K is the Jacobian
+    again afterwards (its diagonal as before)."""
+    seen = []
+
+    def spy(m):
+        limited = m._limited_step
+
+        def checked(g, d, slope, alpha):
+            diag = m.problem.J.getDiagonal()
+            out = limited(g, d, slope, alpha)
+            after = m.problem.J.getDiagonal()
+            after.axpy(-1.0, diag)
+            seen.append((alpha, out, after.norm() / diag.norm(), m._longest_step(d)))
+            return out
+
+        m._limited_step = checked
+
+    monkeypatch.setattr(minimize, "VALLEY", True)
+    run = build_run("plectoneme", restart=SEVEN_TURNS)
+    lp = run.solver
+    spy(lp.minimizer)
+    lam = run.lam0 + 0.03
+    lp.predict(run.prev0, run.lam0, lam - run.lam0)
+    res = lp.minimizer.solve_at(lam)
+    assert res.converged and res.negative_eigenvalues == 0
+    assert res.limited_steps == len(seen) >= 3
+    for alpha, (slope, alpha2), restored, longest in seen:
+        assert slope < 0.0 and alpha2 >= alpha and restored <= 1e-14   # (+ sigma M - sigma M)
+        assert alpha2 == longest                 # d holds the step taken
+    assert any(a2 > 5 * a for a, (_, a2), _, _ in seen)

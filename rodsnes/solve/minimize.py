@@ -29,7 +29,9 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
    it); if they have not paid off, the search goes back and backtracks, and the load step
    takes no more free steps (every step since the reference point counts).  A first trial
    that falls by less than INTERPOLATE of the linear prediction is interpolated too, a full
-   step that falls as if linear is extrapolated (EXTRAPOLATE).  So no strand passes through
+   step that falls as if linear is extrapolated (EXTRAPOLATE); a Newton step the move
+   limits cut below LIMITED is replaced by the step of K + sigma M that fits them
+   (_limited_step).  So no strand passes through
    another and no rotation wraps: the link is kept.  A step whose energy change is below the
    energy's round-off is accepted when it lowers |g|.
 5. Where Newton's steps crawl along one soft mode (a ply sliding), the minimiser walks the
@@ -67,6 +69,10 @@ LINE_SEARCH_TRIES = 30
 PROGRESS = 1e-9
 MAX_IT_FACTOR = 10
 VALLEY = True
+# a Newton step the move limits cut below LIMITED is replaced by the shifted step that fits them
+# (_limited_step), found in at most LIMITED_TRIES factorisations
+LIMITED = 0.1
+LIMITED_TRIES = 3
 # the longest extrapolated step, in multiples of Newton's (1: none)
 EXTRAPOLATE = 8.0
 # a first trial that falls by less than this share of the linear prediction is interpolated too
@@ -289,7 +295,7 @@ class EnergyMinimizer:
         Xt = X.duplicate()
         hist = []
         energies = []               # E at every iterate: is the minimisation still descending?
-        its = shifts = cuts = escapes = free_steps = valley_points = 0
+        its = shifts = cuts = escapes = free_steps = valley_points = trusted = 0
         walks = []
         if self.valley is not None:
             self.valley.start()
@@ -340,6 +346,9 @@ class EnergyMinimizer:
                     escapes += escaped
             slope = self._same(g.dot(d))
             alpha = self._longest_step(d)
+            if newton and self.by_ksp and alpha < LIMITED:
+                slope, alpha = self._limited_step(g, d, slope, alpha)
+                trusted += 1
             # the energy here was the accepted trial's of the last iteration (the same chart
             # point; recentre moves it by round-off only): one evaluation fewer per iteration
             E0, depth0 = accepted if accepted is not None else self.energy_at(X)
@@ -383,6 +392,7 @@ class EnergyMinimizer:
         res = MinimizeResult(lam, reason == "converged", its, reason, hist,
                              time.perf_counter() - t0, nneg, shifts, cuts, escapes,
                              self.factorizations, valley_points, walks)
+        res.limited_steps = trusted
         self.last = res
         return res
 
@@ -411,6 +421,62 @@ class EnergyMinimizer:
         d.scale(-1.0)
         slope = self._same(g.dot(d))
         return bool(np.isfinite(slope) and slope < 0.0)
+
+    def _limited_step(self, g, d, slope, alpha):
+        """Newton's step d that the move limits cut to alpha < LIMITED replaced by the step
+        of K + sigma M, d = -(K + sigma M)^-1 g, with sigma such that it fits them, as a trust
+        region's step does: the cut Newton step corrects the stiff modes (stretching, contact)
+        by the same fraction alpha as the soft ones whose length the limits cut, the shifted
+        step corrects them whole and shortens only the modes softer than sigma.  sigma starts
+        from d's Rayleigh quotient -g.d / d.M d times (1/alpha - 1) (Newton's length shrunk
+        to the limit along one soft mode) and grows while the step is still cut below 1/2,
+        at most LIMITED_TRIES factorisations.  Kept only when it descends and is cut less;
+        returns (slope, alpha) of the step taken (in d).  Collective."""
+        p = self.problem
+        Md = d.duplicate()
+        Md.pointwiseMult(self.metric, d)
+        dMd = self._same(Md.dot(d))
+        Md.destroy()
+        if not dMd > 0.0:
+            return slope, alpha
+        sigma = -slope / dMd * (1.0 / alpha - 1.0)
+        shift = self.metric.duplicate()
+        trial = d.duplicate()
+        try:
+            for _ in range(LIMITED_TRIES):
+                if not (np.isfinite(sigma) and sigma > 0.0):
+                    break
+                self.metric.copy(shift)
+                shift.scale(sigma)
+                with shift as a:
+                    a[p.constraints.rows_local] = 0.0
+                p.J.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
+                self.ksp.setOperators(p.J)
+                self.factorizations += 1
+                try:
+                    self.ksp.solve(g, trial)
+                    failed = self.ksp.getConvergedReason() < 0
+                except PETSc.Error:
+                    failed = True
+                shift.scale(-1.0)
+                p.J.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)   # K again
+                if failed:
+                    break
+                trial.scale(-1.0)
+                s2 = self._same(g.dot(trial))
+                a2 = self._longest_step(trial)
+                if not (np.isfinite(s2) and s2 < 0.0) or a2 <= alpha:
+                    break
+                trial.copy(d)
+                slope, alpha = s2, a2
+                if a2 >= 0.5:
+                    break
+                sigma *= 1.0 / a2
+        finally:
+            shift.destroy()
+            trial.destroy()
+            self.by_ksp = False         # the KSP's factor is no longer K's
+        return slope, alpha
 
     def tangent(self):
         """The consistent tangent K at the state, set on the Newton step's KSP (the solver

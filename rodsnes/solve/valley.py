@@ -25,8 +25,9 @@ The follower walks the floor instead, as a continuation method traces a path:
    point quarters s, and MISSES in a row end the walk;
 5. where the slope along the floor, g . v, turns uphill, one last point where the slope,
    linear between the last two points, is zero.
-It also ends where |g| is at tolerance or the valley is lost (a corrector that does not
-descend or converge, a mode that turns by more than 60 degrees between points); the
+It also ends where |g| is at tolerance, at a corrector that lowered the energy without
+reaching the floor in CORRECTOR_ITS (its point is kept), or where the valley is lost (a
+corrector that does not descend, a mode that turns by more than 60 degrees); the
 minimiser then goes on from the last valley point with its own iterations, and only its own
 test (|g| at tolerance and no negative pivot of H) ends the load step.
 """
@@ -51,6 +52,7 @@ INVERSE_ITS = 2
 MAX_POINTS = 200
 # predictors rejected in a row before the follower gives up
 MISSES = 2
+KEEP_SHORT = True
 
 
 class ValleyResult:
@@ -203,6 +205,11 @@ class ValleyFollower:
                 if bend is not None:
                     X.axpy(0.5 * s * s, bend)
                 ok, its, E1, depth1, gn = self._correct(v, Mv, a, b, dc, Xt, out)
+                if KEEP_SHORT and not ok and E1 < E0 and its > 0:
+                    # short of the floor, but lower: the minimiser goes on from here
+                    out.points += 1
+                    out.reason = "the corrector stopped short of the floor"
+                    break
                 if not ok or not E1 < E0:
                     p.state.restore(snap)
                     out.rejected += 1
