@@ -89,9 +89,10 @@ def test_no_walk_where_newton_converges(monkeypatch):
 
 def test_a_step_the_move_limits_cut_short_is_shifted_to_fit_them(monkeypatch):
     """Where the move limits cut Newton's step below minimize.LIMITED (a long load step from
-    the 7.2-turn checkpoint: its secant start is far from the minimum), the step of
-    K + sigma M replaces it: it descends, the limits cut it less, and K is the Jacobian
-    again afterwards (its diagonal as before)."""
+    the 7.2-turn checkpoint, started from the whole secant, which the load path's predictor
+    would have cut to the move limits: far from the minimum), the step of K + sigma M
+    replaces it: it descends, the limits cut it less, and K is the Jacobian again afterwards
+    (its diagonal as before)."""
     seen = []
 
     def spy(m):
@@ -112,7 +113,10 @@ def test_a_step_the_move_limits_cut_short_is_shifted_to_fit_them(monkeypatch):
     lp = run.solver
     spy(lp.minimizer)
     lam = run.lam0 + 0.03
-    lp.predict(run.prev0, run.lam0, lam - run.lam0)
+    prev, lam_prev = run.prev0
+    run.problem.state.predict(prev, (lam - run.lam0) / (run.lam0 - lam_prev),
+                              lp.twist_angles(run.lam0 - lam_prev))
+    run.problem.state.recentre()
     res = lp.minimizer.solve_at(lam)
     assert res.converged and res.negative_eigenvalues == 0
     assert res.limited_steps == len(seen) >= 3

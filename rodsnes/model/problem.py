@@ -76,13 +76,25 @@ class RodState:
         where the file has them, the rotation quaternions (a restart resumes bit for bit)."""
         return self.snapshot_of(step["positions"], step["directors"], step.get("rotation"))
 
-    def predict(self, prev, ratio):
+    def predict(self, prev, ratio, twist=None):
         """Secant predictor along the load path: from the converged state n (current, theta = 0)
         and the previous converged state ``prev`` (a snapshot), move to
-        r + ratio (r_n - r_{n-1}),  theta = ratio log(R_n R_{n-1}^T)."""
+        r + ratio (r_n - r_{n-1}),  theta = ratio log(R_n R_{n-1}^T).
+        With ``twist`` (an angle per local node: the material twist about d3 that the last
+        step's end turn spread along the rod) that twist is factored out of the relative
+        rotation first, R_n = exp(psi^x) R_{n-1} exp(twist e3^x), and extrapolated as twist:
+        R = exp(ratio psi^x) R_n exp(ratio twist e3^x).  A node near an end turned by more
+        than half a turn in one step then extrapolates its turn, not the short way round."""
         q_prev, X_prev = prev
         no = self.layout.n_owned
-        psi = so3.log_relative(self.q_ref[:no], q_prev[:no])
+        if twist is None:
+            psi = so3.log_relative(self.q_ref[:no], q_prev[:no])
+        else:
+            e3 = np.zeros((len(twist), 3))
+            e3[:, 2] = twist
+            psi = so3.log_relative(self.q_ref[:no], so3.qmul(q_prev, so3.qexp(e3))[:no])
+            e3 *= ratio
+            self.q_ref[:] = so3.qmul(self.q_ref, so3.qexp(e3))
         xp = X_prev.getArray(readonly=True).reshape(-1, NDOF)
         with self.X as a:
             a = a.reshape(-1, NDOF)

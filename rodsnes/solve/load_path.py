@@ -60,18 +60,25 @@ class LoadPath:
         if not self.quiet and self.problem.layout.comm.getRank() == 0:
             print(text, flush=True)
 
-    def twist_predictor(self, dlam):
-        """Spread the end rotation's increment 2 pi T dlam (-bc_end_turns T) along the rod as
-        material twist: R_i <- R_i exp(phi_i e3^x), phi_i = 2 pi T dlam s_i / L."""
+    def twist_angles(self, dlam):
+        """The end rotation's increment 2 pi T dlam (-bc_end_turns T) spread along the rod as
+        material twist: phi_i = 2 pi T dlam s_i / L on the local nodes (None without end
+        turns or on a ring)."""
         p = self.problem
         T = p.constraints.end_turns
         if not T or p.mesh.closed:
+            return None
+        return 2.0 * np.pi * T * dlam * p.mesh.s_nodes[p.layout.local_nodes] / p.mesh.length
+
+    def twist_predictor(self, dlam):
+        """Spread the end rotation's increment along the rod as material twist (twist_angles):
+        R_i <- R_i exp(phi_i e3^x)."""
+        phi = self.twist_angles(dlam)
+        if phi is None:
             return
-        s = p.mesh.s_nodes[p.layout.local_nodes] / p.mesh.length
-        phi = 2.0 * np.pi * T * dlam * s
-        e3 = np.zeros((len(s), 3))
+        e3 = np.zeros((len(phi), 3))
         e3[:, 2] = phi
-        q = p.state.q_ref
+        q = self.problem.state.q_ref
         q[:] = so3.qmul(q, so3.qexp(e3))
 
     def keep_promise(self, res, max_raises=4):
@@ -139,21 +146,35 @@ class LoadPath:
 
     def predict(self, prev, lam, dl):
         """The start of the step lam -> lam + dl: the secant through the last two converged
-        states (positions and rotations, problem.RodState.predict) when there is a step before
-        and the predicted state penetrates no deeper than the line search allows, else the last
-        state with the end turns spread as twist (twist_predictor).  Collective."""
+        states (positions and rotations, problem.RodState.predict) when there is a step before,
+        as far along as the minimiser's move limits let any node move (the rest of the end's
+        turn spread as twist, which moves no node), and kept when it penetrates no deeper than
+        the line search allows; else the last state with the end turns spread as twist
+        (twist_predictor).  Unlimited, a long step's secant once carried a strand through
+        another (the plectoneme at 2.22 turns, +0.6: the step converged with the link off by
+        2 and was cut back).  Collective."""
         p = self.problem
         if prev is not None and PREDICTOR:
-            same = self.minimizer._same
+            m = self.minimizer
             depth0 = p.deepest(p.state.local_config()[0], report=False)   # None: no such term
             if depth0 is not None:
-                allow = p.depth_allowed(same(depth0))
+                allow = p.depth_allowed(m._same(depth0))
             snap = p.state.snapshot()
-            p.state.predict(prev[0], dl / (lam - prev[1]))
+            ratio = dl / (lam - prev[1])
+            twist = self.twist_angles(lam - prev[1])     # the last step's, factored out
+            p.state.predict(prev[0], ratio, twist)
+            move = p.state.X.copy()
+            move.axpy(-1.0, snap[1])
+            p.state.restore(snap)
+            share = m._longest_step(move)         # at the start, as a line search's step
+            move.destroy()
+            p.state.predict(prev[0], share * ratio, twist)
             p.state.recentre()
+            if share < 1.0:
+                self.twist_predictor((1.0 - share) * dl)
             if depth0 is None:
                 return
-            if same(p.deepest(p.state.local_config()[0], report=False)) <= allow:
+            if m._same(p.deepest(p.state.local_config()[0], report=False)) <= allow:
                 return
             p.state.restore(snap)
         self.twist_predictor(dl)
