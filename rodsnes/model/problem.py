@@ -90,11 +90,8 @@ class RodState:
         if twist is None:
             psi = so3.log_relative(self.q_ref[:no], q_prev[:no])
         else:
-            e3 = np.zeros((len(twist), 3))
-            e3[:, 2] = twist
-            psi = so3.log_relative(self.q_ref[:no], so3.qmul(q_prev, so3.qexp(e3))[:no])
-            e3 *= ratio
-            self.q_ref[:] = so3.qmul(self.q_ref, so3.qexp(e3))
+            psi = so3.log_relative(self.q_ref[:no], so3.twisted(q_prev, twist)[:no])
+            self.q_ref[:] = so3.twisted(self.q_ref, ratio * twist)
         xp = X_prev.getArray(readonly=True).reshape(-1, NDOF)
         with self.X as a:
             a = a.reshape(-1, NDOF)

@@ -68,6 +68,14 @@ def qlog(q):
     return fac * q[..., 1:]
 
 
+def twisted(q, phi):
+    """q exp(phi e3^x): the rotations q turned about their own third director by the angles
+    phi (material twist), batched over the leading axis."""
+    e3 = np.zeros((len(phi), 3))
+    e3[:, 2] = phi
+    return qmul(q, qexp(e3))
+
+
 def log_relative(qa, qb):
     """psi = log(R_a R_b^T) as a rotation vector (spatial: R_a = exp(psi^x) R_b), batched over
     the leading axes of the unit quaternions qa, qb."""

@@ -74,12 +74,9 @@ class LoadPath:
         """Spread the end rotation's increment along the rod as material twist (twist_angles):
         R_i <- R_i exp(phi_i e3^x)."""
         phi = self.twist_angles(dlam)
-        if phi is None:
-            return
-        e3 = np.zeros((len(phi), 3))
-        e3[:, 2] = phi
-        q = self.problem.state.q_ref
-        q[:] = so3.qmul(q, so3.qexp(e3))
+        if phi is not None:
+            q = self.problem.state.q_ref
+            q[:] = so3.twisted(q, phi)
 
     def keep_promise(self, res, max_raises=4):
         """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the

@@ -77,7 +77,11 @@ LIMITED_TRIES = 3
 EXTRAPOLATE = 8.0
 # a first trial that falls by less than this share of the linear prediction is interpolated too
 INTERPOLATE = 0.25
-WATCH_ALL = True
+
+
+def _quadratic_min(E0, slope, alpha, E):
+    """The minimiser of the quadratic through E(0) = E0, E'(0) = slope and E(alpha) = E."""
+    return -slope * alpha ** 2 / (2.0 * (E - E0 - slope * alpha))
 
 
 def _depth_cut(depth0, depth, allow):
@@ -98,10 +102,11 @@ def _depth_cut(depth0, depth, allow):
 class MinimizeResult:
     """One load step's minimisation: load, converged, iterations, reason, |g| history, seconds,
     negative eigenvalues (of H at the last iterate), shifts (factorisations with sigma > 0),
-    line-search cuts, saddle escapes, soft-valley points and walks."""
+    line-search cuts, saddle escapes, soft-valley points, steps shifted to fit the move
+    limits."""
 
     def __init__(self, lam, converged, its, reason, history, seconds, nneg, shifts, cuts,
-                 escapes, factorizations, valley_points=0, walks=()):
+                 escapes, factorizations, valley_points=0, limited_steps=0):
         self.lam, self.converged, self.its, self.reason = lam, converged, its, reason
         self.history = np.asarray(history)
         self.fnorm = float(history[-1]) if len(history) else float("nan")
@@ -110,7 +115,7 @@ class MinimizeResult:
         self.shifts, self.line_search_cuts, self.escapes = shifts, cuts, escapes
         self.factorizations = factorizations
         self.valley_points = valley_points      # points of the soft-valley walks (valley.py)
-        self.walks = list(walks)                # their ValleyResults
+        self.limited_steps = limited_steps      # Newton steps shifted to fit the move limits
 
 
 class EnergyMinimizer:
@@ -207,6 +212,39 @@ class EnergyMinimizer:
         shift.destroy()
         return np.inf
 
+    def metric_dot(self, a, b):
+        """<M a, b>, the same on every rank.  Collective."""
+        w = a.duplicate()
+        w.pointwiseMult(self.metric, a)
+        val = self._same(w.dot(b))
+        w.destroy()
+        return val
+
+    def metric_normalise(self, v):
+        """v scaled to |v|_M = 1 (unless 0); returns its former M-norm.  Collective."""
+        n = np.sqrt(self.metric_dot(v, v))
+        if n > 0:
+            v.scale(1.0 / n)
+        return n
+
+    def zero_fixed(self, v):
+        """The Dirichlet rows of v set to 0."""
+        with v as a:
+            a[self.problem.constraints.rows_local] = 0.0
+
+    def inverse_iterate(self, solve, v, its, normalise):
+        """its inverse iterations of A v = lambda M v on v in place: v <- A^-1 M v with
+        ``solve(b, x)`` (x = A^-1 b, a factorisation's), the Dirichlet rows 0, then
+        ``normalise(v)``.  Collective."""
+        w = v.duplicate()
+        for _ in range(its):
+            w.pointwiseMult(self.metric, v)
+            self.zero_fixed(w)
+            solve(w, v)
+            self.zero_fixed(v)
+            normalise(v)
+        w.destroy()
+
     def _lowest_mode(self, its=6):
         """Lowest mode of H v = lambda M v by inverse iteration on the current factor of
         H + sigma M (rows of Dirichlet dofs zero).  Collective."""
@@ -218,17 +256,7 @@ class EnergyMinimizer:
             lo, hi = v.getOwnershipRange()
             idx = np.arange(lo, hi, dtype=float)
             v.setArray(np.sin(12.9898 * idx + 0.5) * 43758.5453 % 1.0 - 0.5)
-        w = v.duplicate()
-        rows = p.constraints.rows_local
-        for _ in range(its):
-            w.pointwiseMult(self.metric, v)
-            with w as a:
-                a[rows] = 0.0
-            self.factor.solve(w, v)
-            with v as a:
-                a[rows] = 0.0
-            v.scale(1.0 / v.norm())
-        w.destroy()
+        self.inverse_iterate(self.factor.solve, v, its, lambda x: x.scale(1.0 / x.norm()))
         if self._mode is not None:
             self._mode.destroy()
         self._mode = v.copy()
@@ -295,8 +323,7 @@ class EnergyMinimizer:
         Xt = X.duplicate()
         hist = []
         energies = []               # E at every iterate: is the minimisation still descending?
-        its = shifts = cuts = escapes = free_steps = valley_points = trusted = 0
-        walks = []
+        its = shifts = cuts = escapes = free_steps = valley_points = limited = 0
         if self.valley is not None:
             self.valley.start()
         nneg, reason, prev = -1, "iteration limit", np.inf
@@ -319,7 +346,6 @@ class EnergyMinimizer:
                 self.valley.walked(its, walk)
                 cuts += walk.cuts
                 valley_points += walk.points
-                walks.append(walk)
                 accepted = None
                 continue        # from the walk's last point, or the state it went back to
             if not newton:
@@ -348,7 +374,7 @@ class EnergyMinimizer:
             alpha = self._longest_step(d)
             if newton and self.by_ksp and alpha < LIMITED:
                 slope, alpha = self._limited_step(g, d, slope, alpha)
-                trusted += 1
+                limited += 1
             # the energy here was the accepted trial's of the last iteration (the same chart
             # point; recentre moves it by round-off only): one evaluation fewer per iteration
             E0, depth0 = accepted if accepted is not None else self.energy_at(X)
@@ -377,7 +403,7 @@ class EnergyMinimizer:
             elif not ok:
                 reason = "line search"
                 break
-            if watch is not None and (WATCH_ALL or ok == "free"):
+            if watch is not None:
                 # every step since the reference point counts, not only the free ones: a step
                 # that lowers E from a risen E0 has not paid the rise off
                 watch["steps"] += 1
@@ -391,8 +417,7 @@ class EnergyMinimizer:
         self.total_its += its
         res = MinimizeResult(lam, reason == "converged", its, reason, hist,
                              time.perf_counter() - t0, nneg, shifts, cuts, escapes,
-                             self.factorizations, valley_points, walks)
-        res.limited_steps = trusted
+                             self.factorizations, valley_points, limited)
         self.last = res
         return res
 
@@ -433,10 +458,7 @@ class EnergyMinimizer:
         at most LIMITED_TRIES factorisations.  Kept only when it descends and is cut less;
         returns (slope, alpha) of the step taken (in d).  Collective."""
         p = self.problem
-        Md = d.duplicate()
-        Md.pointwiseMult(self.metric, d)
-        dMd = self._same(Md.dot(d))
-        Md.destroy()
+        dMd = self.metric_dot(d, d)
         if not dMd > 0.0:
             return slope, alpha
         sigma = -slope / dMd * (1.0 / alpha - 1.0)
@@ -448,8 +470,7 @@ class EnergyMinimizer:
                     break
                 self.metric.copy(shift)
                 shift.scale(sigma)
-                with shift as a:
-                    a[p.constraints.rows_local] = 0.0
+                self.zero_fixed(shift)
                 p.J.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
                 self.ksp.setOperators(p.J)
                 self.factorizations += 1
@@ -545,8 +566,7 @@ class EnergyMinimizer:
         gradient bounces back), the minimiser of the quadratic through E0, the slope and E1
         too; the lower of the two is taken.  Returns alpha (Xt and self._trial at it)."""
         trial = self._trial
-        aq = -slope * alpha ** 2 / (2.0 * (E1 - E0 - slope * alpha))
-        aq = min(max(aq, 0.1 * alpha), 0.9 * alpha)
+        aq = min(max(_quadratic_min(E0, slope, alpha, E1), 0.1 * alpha), 0.9 * alpha)
         X.copy(Xt)
         Xt.axpy(aq, d)
         E, depth = self.energy_at(Xt)
@@ -602,8 +622,7 @@ class EnergyMinimizer:
                 if gt < gnorm:
                     return True, alpha, k
             if slope < 0.0:       # minimiser of the quadratic through E0, slope, E(alpha)
-                aq = -slope * alpha ** 2 / (2.0 * (E - E0 - slope * alpha))
-                alpha = min(max(aq, 0.1 * alpha), 0.5 * alpha)
+                alpha = min(max(_quadratic_min(E0, slope, alpha, E), 0.1 * alpha), 0.5 * alpha)
             else:
                 alpha *= 0.5
         return False, alpha, LINE_SEARCH_TRIES

@@ -52,7 +52,6 @@ INVERSE_ITS = 2
 MAX_POINTS = 200
 # predictors rejected in a row before the follower gives up
 MISSES = 2
-KEEP_SHORT = True
 
 
 class ValleyResult:
@@ -97,37 +96,24 @@ class ValleyFollower:
     def destroy(self):
         self.reset()
 
-    # -- vector helpers ----------------------------------------------------------------
-    def _mdot(self, a, b):
-        w = a.duplicate()
-        w.pointwiseMult(self.m.metric, a)
-        val = self.m._same(w.dot(b))
-        w.destroy()
-        return val
-
-    def _normalise(self, v):
-        n = np.sqrt(self._mdot(v, v))
-        if n > 0:
-            v.scale(1.0 / n)
-        return n
-
-    def _zero_fixed(self, v):
-        rows = self.m.problem.constraints.rows_local
-        with v as a:
-            a[rows] = 0.0
+    def _unit(self, d):
+        """A copy of d with its Dirichlet rows 0, M-normalised (the caller destroys it)."""
+        u = d.copy()
+        self.m.zero_fixed(u)
+        self.m.metric_normalise(u)
+        return u
 
     # -- when to follow --------------------------------------------------------------
     def wants(self, its, d):
         """Called with each Newton direction d: True when the minimisation has run
         VALLEY_AFTER iterations and its last ALIGNED_RUN directions agree (the crawl's
         signature).  Collective."""
-        u = d.copy()
-        self._zero_fixed(u)
-        if self._normalise(u) == 0.0:
+        u = self._unit(d)
+        if u.norm() == 0.0:
             u.destroy()
             self.reset()
             return False
-        if self.prev is not None and abs(self._mdot(u, self.prev)) >= ALIGNED:
+        if self.prev is not None and abs(self.m.metric_dot(u, self.prev)) >= ALIGNED:
             self.run += 1
         else:
             self.run = 0
@@ -139,14 +125,7 @@ class ValleyFollower:
     def _mode(self, ksp, v):
         """INVERSE_ITS inverse iterations of K v = lambda M v on the KSP's factor, from v (in
         place, M-normalised, Dirichlet rows 0)."""
-        w = v.duplicate()
-        for _ in range(INVERSE_ITS):
-            w.pointwiseMult(self.m.metric, v)
-            self._zero_fixed(w)
-            ksp.solve(w, v)
-            self._zero_fixed(v)
-            self._normalise(v)
-        w.destroy()
+        self.m.inverse_iterate(ksp.solve, v, INVERSE_ITS, self.m.metric_normalise)
 
     # -- the walk --------------------------------------------------------------------
     def follow(self, d):
@@ -157,23 +136,19 @@ class ValleyFollower:
         p = m.problem
         X, g = p.state.X, p.F
         out = ValleyResult()
-        v = d.copy()
-        self._zero_fixed(v)
-        self._normalise(v)
+        u = self._unit(d)
+        v = u.copy()
         self._mode(m.ksp, v)
-        u = d.copy()
-        self._zero_fixed(u)
-        self._normalise(u)
-        if abs(self._mdot(u, v)) < MODE:
-            u.destroy()
+        cos = abs(m.metric_dot(u, v))
+        u.destroy()
+        if cos < MODE:
             v.destroy()
             out.reason = "Newton's direction is not the soft mode"
             return out
-        u.destroy()
         if m._same(g.dot(v)) > 0.0:
             v.scale(-1.0)
         # the first length: Newton's along the mode (the quadratic model's valley minimum)
-        s = abs(self._mdot(d, v))
+        s = abs(m.metric_dot(d, v))
         E0, depth0 = m.energy_at(X)
         Mv = v.duplicate()
         a, b, dc = v.duplicate(), v.duplicate(), v.duplicate()
@@ -205,7 +180,7 @@ class ValleyFollower:
                 if bend is not None:
                     X.axpy(0.5 * s * s, bend)
                 ok, its, E1, depth1, gn = self._correct(v, Mv, a, b, dc, Xt, out)
-                if KEEP_SHORT and not ok and E1 < E0 and its > 0:
+                if not ok and E1 < E0 and its > 0:
                     # short of the floor, but lower: the minimiser goes on from here
                     out.points += 1
                     out.reason = "the corrector stopped short of the floor"
@@ -231,7 +206,7 @@ class ValleyFollower:
                 # the direction at the new point, continued from the last
                 old = v.copy()
                 self._mode(m.ksp, v)
-                turn = self._mdot(v, old)
+                turn = m.metric_dot(v, old)
                 if turn < 0.0:
                     v.scale(-1.0)
                 if bend is None:
@@ -276,7 +251,7 @@ class ValleyFollower:
         p = m.problem
         X, g = p.state.X, p.F
         Mv.pointwiseMult(m.metric, v)
-        self._zero_fixed(Mv)
+        m.zero_fixed(Mv)
         nn = m._same(Mv.dot(Mv))
         E, depth, gn = np.inf, None, np.inf
         accepted = None
