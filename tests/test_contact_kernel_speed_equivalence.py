@@ -86,6 +86,43 @@ def test_sampled_projection_is_the_reference_search(p):
     assert np.all(f2 <= f * (1 + 1e-14))
 
 
+@pytest.mark.parametrize("p", [2, 3, 4])
+def test_bounded_slots_and_monotone_slots_keep_the_closest_point(p):
+    """Random curved elements, each slave point with 6 slots (next to each other, as ``find``
+    passes them): projecting with the Bernstein bound (``project`` with ``point``: slots that
+    cannot hold the point's closest point are left out) gives every point the minimum and
+    minimiser of projecting every slot; and where the Bernstein coefficients of phi' show phi
+    monotone on the slot (``_monotone``), all the roots of phi' (``stationary_minimum`` without
+    the mask) give the same ends."""
+    rng = np.random.default_rng(10 + p)
+    k = ClosestPoint(p, eps=0.01, delta=0.05, L=1.0, nelem=10, closed=False)
+    npt, ns = 300, 6
+    A = rng.normal(scale=0.3, size=(npt * ns, p + 1, 3))
+    P = np.repeat(rng.normal(scale=0.5, size=(npt, 3)), ns, axis=0)
+    lo, hi = np.sort(rng.uniform(-1.0, 1.0, size=(2, npt * ns)), axis=0)
+    lo[::2], hi[::2] = -1.0, 1.0
+    point = np.repeat(np.arange(npt), ns)
+    xi_all, f_all = k.project(P, A, lo, hi)
+    xi, f = k.project(P, A, lo, hi, point)
+    f_all, f, xi_all, xi = (v.reshape(npt, ns) for v in (f_all, f, xi_all, xi))
+    best = np.argmin(f_all, axis=1)
+    assert np.array_equal(np.argmin(f, axis=1), best)
+    rows = np.arange(npt)
+    assert np.allclose(f[rows, best], f_all[rows, best], rtol=1e-13, atol=0.0)
+    assert np.allclose(xi[rows, best], xi_all[rows, best], rtol=0.0, atol=1e-12)
+    assert 0.5 * f.size < np.count_nonzero(np.isinf(f)) < f.size - npt      # bounded away
+    Dc = A.copy()
+    Dc[:, 0] -= P
+    mono = k._monotone(k._taylor(Dc, lo, hi - lo), Dc, np.ones(len(P), dtype=bool))
+    assert 0 < np.count_nonzero(mono) < len(mono)
+    x_roots, f_roots = k.stationary_minimum(P, A, lo, hi)
+    x_ends, f_ends = k.stationary_minimum(P, A, lo, hi, mono)
+    assert np.array_equal(x_ends[mono], x_roots[mono]) and np.array_equal(f_ends[mono],
+                                                                          f_roots[mono])
+    assert np.all((x_ends[mono] == lo[mono]) | (x_ends[mono] == hi[mono]))
+    assert np.allclose(f_ends[~mono], f_roots[~mono], rtol=1e-13, atol=0.0)
+
+
 def test_bisection_several_levels_at_once_is_the_bisection():
     """The cuts of two strands crossing at 60 degrees (the closest point crosses master nodes):
     ``ContactZones.bisect_kind`` with the bisection tree's next levels located in one closest-point search

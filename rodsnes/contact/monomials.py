@@ -47,7 +47,7 @@ def powers(order, x, nder):
     pw[..., 0] = 1.0
     if order:
         pw[..., 1:] = x[..., None]
-        np.cumprod(pw, axis=-1, out=pw)
+        np.multiply.accumulate(pw, axis=-1, out=pw)
     if nder == 0:
         return pw[..., None, :]
     E, F = _power_tables(order)
