@@ -124,3 +124,25 @@ def test_a_step_the_move_limits_cut_short_is_shifted_to_fit_them(monkeypatch):
         assert slope < 0.0 and alpha2 >= alpha and restored <= 1e-14   # (+ sigma M - sigma M)
         assert alpha2 == longest                 # d holds the step taken
     assert any(a2 > 5 * a for a, (_, a2), _, _ in seen)
+
+
+def test_a_declined_walk_does_not_delay_the_next():
+    """A walk turned down at no cost (Newton's direction is not the soft mode) lets the next
+    one come as soon as Newton's directions agree again; a walk that spent iterations without
+    taking a valley point doubles the wait; one that took points resets it."""
+    f = valley.ValleyFollower(None)
+    f.start()
+    declined = valley.ValleyResult()
+    declined.declined = True
+    f.walked(10, declined)
+    assert (f.after, f.wait) == (10, valley.VALLEY_AFTER)
+    futile = valley.ValleyResult()
+    futile.its, futile.rejected = 4, 2
+    f.walked(20, futile)
+    assert (f.after, f.wait) == (20 + 2 * valley.VALLEY_AFTER, 2 * valley.VALLEY_AFTER)
+    f.walked(40, declined)
+    assert (f.after, f.wait) == (40, 2 * valley.VALLEY_AFTER)
+    took = valley.ValleyResult()
+    took.points, took.its = 3, 7
+    f.walked(50, took)
+    assert (f.after, f.wait) == (50, valley.VALLEY_AFTER)
