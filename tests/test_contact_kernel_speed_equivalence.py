@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 
 from rodsnes.contact.closest_point import ClosestPoint, phi, phi_derivatives
+from rodsnes.contact.monomials import monomials
 from rodsnes.contact.search import strand_index
 from rodsnes.contact.zones import ContactZones
 
 from test_contact_math import EPS
 from test_contact_strands import sandwich
-from test_contact_zones import crossing, plectoneme_end_loop
+from test_contact_zones import crossing, noisy_helix, plectoneme_end_loop
 
 
 def sampled_newton_reference(k, P, A, lo, hi):
@@ -160,6 +161,56 @@ def test_bisection_several_levels_at_once_is_the_bisection():
         for r1, r2 in zip(one, many):
             for v1, v2 in zip(r1, r2):
                 assert np.max(np.abs(v1 - v2)) <= 2e-13
+
+
+@pytest.mark.parametrize("p", [1, 2, 3, 4])
+def test_phi_at_several_points_and_its_derivatives_are_the_plain_formulas(p):
+    """``phi`` at n points of every problem (x (M, n), as ``stationary_minimum`` takes both slot
+    ends) is ``phi`` at each column; ``phi_derivatives`` (one product of the monomials and
+    their derivatives with A, one contraction) is |D|^2 / 2, D . r', |r'|^2 + D . r'' of r, r',
+    r'' summed one by one."""
+    rng = np.random.default_rng(20 + p)
+    M = 200
+    A = rng.normal(scale=0.3, size=(M, p + 1, 3))
+    P = rng.normal(scale=0.5, size=(M, 3))
+    x = rng.uniform(-1.0, 1.0, size=(M, 2))
+    both = phi(x, A, P)
+    assert np.array_equal(both[:, 0], phi(x[:, 0], A, P))
+    assert np.array_equal(both[:, 1], phi(x[:, 1], A, P))
+    pw, pw1, pw2 = monomials(p, x[:, 0])
+    r, r1, r2 = (np.einsum("mk,mkd->md", w, A) for w in (pw, pw1, pw2))
+    D = r - P
+    plain = (0.5 * np.einsum("md,md->m", D, D), np.einsum("md,md->m", D, r1),
+             np.einsum("md,md->m", r1, r1) + np.einsum("md,md->m", D, r2))
+    scale = np.einsum("md,md->m", P, P) + np.einsum("mkd,mkd->m", A, A)
+    for v, w in zip(phi_derivatives(x[:, 0], A, P), plain):
+        assert np.all(np.abs(v - w) <= 1e-14 * scale)
+
+
+def test_kinds_of_repeated_points_are_searched_once():
+    """``ContactZones.kind_at`` (the bisection's test, ``bisect_kind``) searches every distinct
+    slave point once and gives every point the kind (``ClosestPoint.kind``) of its own search:
+    points of the noisy helix, a third of them repeated."""
+    rod, X = noisy_helix(3)
+    k = rod.k
+    xe = X[rod.conn]
+    ctx = k._context(rod.ids, xe, rod.ids, xe, rod.pairs(X))
+    rng = np.random.default_rng(5)
+    o = rng.integers(0, len(rod.ids), 60)
+    xi = rng.uniform(-1.0, 1.0, 60)
+    o, xi = np.r_[o, o[::3]], np.r_[xi, xi[::3]]
+    searched = []
+    find = k.closest_point.find
+
+    def count(*a, **kw):
+        searched.append(len(a[1]))
+        return find(*a, **kw)
+    k.closest_point.find = count
+    kinds = k.zones.kind_at(ctx, o, xi)
+    del k.closest_point.find
+    assert searched == [60]
+    plain = k.closest_point.kind(ctx, find(ctx, o, xi))
+    assert np.array_equal(kinds, plain) and len(np.unique(plain)) > 5
 
 
 def strand_by_strand(k, ids, xe, pairs, tangent):

@@ -38,7 +38,7 @@ candidates of every slave element are gathered once per evaluation (``ClosestPoi
 """
 import numpy as np
 
-from rodsnes.contact.monomials import monomial_matrix, monomials, powers
+from rodsnes.contact.monomials import monomial_matrix, powers
 from rodsnes.contact.search import element_bounds, positions
 
 __all__ = ["ClosestPoint", "phi", "phi_derivatives", "master_pool", "master_pool_rows"]
@@ -46,25 +46,32 @@ __all__ = ["ClosestPoint", "phi", "phi_derivatives", "master_pool", "master_pool
 
 def phi(x, A, P):
     """phi = |r(x) - P|^2 / 2 by Horner, r(x) = sum_k A_k x^k (A (M, p+1, 3) monomial
-    coefficients, ``monomials.monomial_matrix``), M points x and P."""
+    coefficients, ``monomials.monomial_matrix``), M points x and P; x (M, n): n points of
+    every problem (phi (M, n))."""
     p = A.shape[1] - 1
-    D = A[:, p].copy()
-    for j in range(p - 1, -1, -1):
-        D = D * x[:, None] + A[:, j]
+    if x.ndim > 1:
+        A, P = A[:, None], P[:, None]
+    xc = x[..., None]
+    D = A[..., p, :] * xc
+    D += A[..., p - 1, :]
+    for j in range(p - 2, -1, -1):
+        D *= xc
+        D += A[..., j, :]
     D -= P
-    return 0.5 * np.einsum("md,md->m", D, D)
+    return 0.5 * np.einsum("...d,...d->...", D, D)
 
 
 def phi_derivatives(x, A, P):
     """phi = |r(x) - P|^2 / 2 and its first two x-derivatives, phi' = D . r', phi'' = |r'|^2
     + D . r'' (D = r(x) - P); A (M, p+1, 3) monomial coefficients of r."""
-    pw, pw1, pw2 = monomials(A.shape[1] - 1, x)
-    r = np.einsum("mk,mkd->md", pw, A)
-    r1 = np.einsum("mk,mkd->md", pw1, A)
-    r2 = np.einsum("mk,mkd->md", pw2, A)
-    D = r - P
-    return 0.5 * np.einsum("md,md->m", D, D), np.einsum("md,md->m", D, r1), \
-        np.einsum("md,md->m", r1, r1) + np.einsum("md,md->m", D, r2)
+    R = powers(A.shape[1] - 1, x, 2) @ A              # (M, 3, 3): r, r', r''
+    R[:, 0] -= P                                         # D
+    s = np.einsum("mjd,mjd->mj", R[:, _PHI_LEFT], R[:, _PHI_RIGHT])
+    return 0.5 * s[:, 0], s[:, 1], s[:, 2] + s[:, 3]
+
+
+# phi_derivatives: the four products D . D, D . r', r' . r', D . r'' of the rows (D, r', r'')
+_PHI_LEFT, _PHI_RIGHT = [0, 0, 1, 0], [0, 1, 1, 2]
 
 
 def master_pool(own_ids, x_own, other_ids, x_other):
@@ -425,7 +432,8 @@ class ClosestPoint:
         valleys of a slave point near a centre of curvature of the master, cannot be missed).
         ``monotone`` (M,) bool: problems whose phi' keeps one sign on the slot
         (``_monotone``): the ends alone."""
-        flo, fhi = phi(lo, A, P), phi(hi, A, P)
+        fe = phi(np.stack([lo, hi], axis=1), A, P)
+        flo, fhi = fe[:, 0], fe[:, 1]
         x = np.where(fhi < flo, hi, lo)
         f = np.minimum(flo, fhi)
         rows = np.arange(len(P)) if monotone is None else np.flatnonzero(~monotone)
@@ -452,7 +460,9 @@ class ClosestPoint:
         D = Ar.copy()
         D[:, 0] -= Pr
         G = np.matmul(D, np.swapaxes(Ar, 1, 2))                       # D_i . A_j
-        c = G.reshape(len(rows), -1) @ self._dphi.reshape(-1, 2 * p)  # phi' coefficients
+        # phi' coefficients, summed row by row (a GEMM rounds a row by its place in the batch:
+        # the roots of a point then depended on the points searched with it)
+        c = np.einsum("nk,kj->nj", G.reshape(len(rows), -1), self._dphi.reshape(-1, 2 * p))
         lead = c[:, deg]
         big = np.abs(c).max(axis=1)
         # a (nearly) vanishing leading coefficient: its roots run off to infinity, those in

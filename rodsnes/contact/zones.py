@@ -46,6 +46,18 @@ def _split_record(cl, n):
     return {k: v[:n] for k, v in cl.items()}, {k: v[n:] for k, v in cl.items()}
 
 
+def _distinct(o, xi):
+    """The distinct points (o, xi): indices of their first occurrences, and for every point
+    the position of its own among them."""
+    order = np.lexsort((xi, o))
+    os_, xs_ = o[order], xi[order]
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (os_[1:] != os_[:-1]) | (xs_[1:] != xs_[:-1])
+    inverse = np.empty(len(order), dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return order[new], inverse
+
+
 def _illinois_update(act, a, b, fa, fb, side, A_, B_, FA, FB, c, fc):
     """One Illinois (modified regula falsi) update, in place on the entries act of the
     brackets [a, b] with values fa, fb: the end whose value has the sign of f(c) moves to c;
@@ -297,8 +309,7 @@ off; levels from the number of problems
             nodes = [np.nonzero(nd) for nd in need]          # (problem, node) per level
             pr = np.concatenate([p for p, _ in nodes])
             pc = np.concatenate([mids[lev][p, j] for lev, (p, j) in enumerate(nodes)])
-            cl = self.closest_point.find(ctx, o[act][pr], pc)
-            hit = self.closest_point.kind(ctx, cl) == target[act][pr]
+            hit = self.kind_at(ctx, o[act][pr], pc) == target[act][pr]
             moves_a = hit != negate[act][pr]
             outcome, k0 = [], 0
             for lev, (p, j) in enumerate(nodes):
@@ -325,6 +336,14 @@ off; levels from the number of problems
                     break
             act = act[alive]
         return x, a, b
+
+    def kind_at(self, ctx, o, xi):
+        """The kind of closest point (``ClosestPoint.kind``) of the slave points (own index o,
+        xi), each distinct point searched once (``_distinct``): the two bisections of a direct
+        change a -> b (``split``) visit the same midpoints until a third kind shows."""
+        first, inverse = _distinct(o, xi)
+        cl = self.closest_point.find(ctx, o[first], xi[first])
+        return self.closest_point.kind(ctx, cl)[inverse]
 
     def rival_brackets(self, ctx, oz, Xs, cl, kind, iters=60):
         """Stretches between two samples of the same kind where the runner-up takes over
