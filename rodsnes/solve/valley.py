@@ -47,7 +47,7 @@ MODE = 0.9
 # predictor without the predicted point showing the overlap (the depth allowance); the
 # rotation limit and half the clearance elsewhere hold as in the line search
 PREDICTOR_REACH = 2.0
-CORRECTOR_ITS = 5
+CORRECTOR_ITS = 20
 INVERSE_ITS = 2
 MAX_POINTS = 200
 # predictors rejected in a row before the follower gives up
