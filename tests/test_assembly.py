@@ -31,9 +31,10 @@ def zero_rows_columns_reference(p, P, symmetric=False):
     _, _, H = p.elastic.element_terms(q[p.lconn], r[p.lconn], tangent=True, symmetric=symmetric)
     P.zeroEntries()
     g = p.layout.gconn.astype(PETSc.IntType)
-    P.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
+    V = partition.node_view(P)          # node blocks of 6 (a split contact Jacobian: of 3)
+    V.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
     for t in p.terms:
-        t.add_jacobian(p.lam, r, q, P, symmetric=symmetric)
+        t.add_jacobian(p.lam, r, q, V, symmetric=symmetric)
     P.assemble()
     P.zeroRowsColumns(p.constraints.is_rows, 1.0)
 
@@ -56,6 +57,8 @@ def masked_against_reference(run, symmetric=False):
     p.ensure_pattern()
     J = p.J
     ref = J.duplicate()
+    if partition.is_split(J):           # (a duplicate does not carry the attribute)
+        ref.setAttr(partition.SPLIT_ATTR, True)
     zero_rows_columns_reference(p, ref, symmetric)
     p.jacobian(None, p.state.X, J, J, symmetric=symmetric)
     A, B = owned_dense(J), owned_dense(ref)
@@ -167,3 +170,40 @@ def test_position_blocks_add_as_the_dense_blocks_did(monkeypatch, chunk):
         out.append(owned_dense(J))
     assert_bitwise_equal(out[1], out[0])
     assert np.count_nonzero(out[1]) > 0
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_split_contact_jacobian_equals_the_node_block_one(monkeypatch, symmetric):
+    """With contact (a term coupling positions only) the Jacobian and the Hessian are split
+    (block size 3: a node's position and rotation in blocks 2n and 2n + 1, the contact blocks
+    their 3 x 3 position parts alone): bit for bit the matrix of node blocks of 6 on one rank
+    (to round-off on two), with a quarter of the stored contact entries."""
+    run = coiled_rollup()
+    p = run.problem
+    p.ensure_pattern()
+
+    def assembled(split):
+        monkeypatch.setattr(partition, "SPLIT_CONTACT", split)
+        M = p.layout.create_matrix(p.node_groups(p.patterns), symmetric=symmetric,
+                                   positions_only=p.positions_only())
+        p.jacobian(None, p.state.X, M, M, symmetric=symmetric)
+        return M
+
+    S, B = assembled(True), assembled(False)
+    assert partition.is_split(S) and not partition.is_split(B)
+    assert S.getBlockSize() == 3 and B.getBlockSize() == NDOF
+    A, A6 = owned_dense(S), owned_dense(B)
+    if symmetric:       # SBAIJ: the upper triangle (a node's diagonal block of 6 holds both)
+        lo = S.getOwnershipRange()[0]
+        upper = np.arange(A.shape[1])[None, :] >= lo + np.arange(A.shape[0])[:, None]
+        A, A6 = np.where(upper, A, 0.0), np.where(upper, A6, 0.0)
+    if PETSc.COMM_WORLD.getSize() == 1:
+        assert_bitwise_equal(A, A6)
+    else:               # the stash of rows owned elsewhere sums blocks of 3 in another order
+        assert np.abs(A - A6).max() <= 1e-14 * np.abs(A6).max()
+    assert np.count_nonzero(A) > 10 * A.shape[0]
+    stored = [M.getInfo(PETSc.Mat.InfoType.GLOBAL_SUM)["nz_used"] for M in (S, B)]
+    assert stored[0] < 0.8 * stored[1]
+    S.destroy()
+    B.destroy()

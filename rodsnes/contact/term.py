@@ -56,6 +56,7 @@ class ContactTerm(Term):
     """Self-contact (and the clamps' mounts) as a term of the problem (module docstring)."""
 
     name = "contact"
+    positions_only = True       # gap and potential depend on the centreline only
     moving_pattern = True
     keeps_link = True
     SKIN = 1.0          # Verlet skin of the candidate search, in eps (module docstring, 2.)

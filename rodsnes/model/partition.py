@@ -130,25 +130,53 @@ class Layout:
         ai = np.concatenate([[0], np.cumsum(np.bincount(r - lo, minlength=hi - lo))])
         return ai.astype(PETSc.IntType), c.astype(PETSc.IntType)
 
-    def create_matrix(self, extra_pairs=None, symmetric=False):
+    def create_matrix(self, extra_pairs=None, symmetric=False, positions_only=False):
         """MPIBAIJ (block size 6; -mat_type overrides) with the exact block structure of the
         element coupling and the extra node groups, every entry present (explicit zeros).
         symmetric=True: MPISBAIJ, the upper block triangle only (values set below the
         diagonal are ignored), for a symmetric matrix factored by LDL^T (MUMPS Cholesky
         cannot take BAIJ).
 
+        ``positions_only`` (the extra groups couple the nodes' positions only: contact, unless
+        -mat_type is given): a split matrix, block size 3, node n's position in block 2n and
+        its rotation in 2n + 1 (SplitBlocks, which DirichletRows inserts through), where the
+        extra groups' blocks between nodes that no element couples are the 3 x 3 position
+        blocks alone.  A contact block of block size 6 is three quarters zeros, which the
+        factorisations carry along: on the plectoneme's Jacobian (1086 dofs, 1900 contact
+        blocks) PETSc's LU took 1.6-1.9 ms with block size 6, 0.60-0.67 ms split; MUMPS's
+        LDL^T of the Hessian 4.3 ms against 2.1 ms over a run.
+
         Present, not merely preallocated: the first assembly squeezes out preallocated slots
         that hold no value, so contact blocks that are zero at that moment would need mallocs
         later, and on PETSc 3.18 a new off-diagonal block inserted into an assembled MPIBAIJ
         lands in a wrong column.  A pattern change therefore takes a new matrix
         (RodProblem._new_matrix), never an in-place re-preallocation."""
+        split = positions_only and SPLIT_CONTACT and extra_pairs is not None \
+            and len(extra_pairs) > 0 and not PETSc.Options().hasName("mat_type")
+        bs = 3 if split else NDOF
         J = PETSc.Mat().create(comm=self.comm)
-        J.setSizes(((NDOF * self.n_owned, NDOF * self.n_global),) * 2, bsize=NDOF)
+        J.setSizes(((NDOF * self.n_owned, NDOF * self.n_global),) * 2, bsize=bs)
         J.setType(PETSc.Mat.Type.SBAIJ if symmetric else PETSc.Mat.Type.BAIJ)
-        J.setBlockSize(NDOF)
+        J.setBlockSize(bs)
         J.setFromOptions()
         ai, aj = self.block_pattern(extra_pairs)
         kind = J.getType()
+        self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(len(aj))))
+        if split:
+            ae, je = self.block_pattern(None)
+            lo = self.starts[self.comm.getRank()]
+            full = np.isin(_block_codes(ai, aj, lo, self.n_global),
+                           _block_codes(ae, je, lo, self.n_global))
+            a3, j3 = _split_csr(ai, aj, full)
+            if symmetric:
+                J.setPreallocationCSR(_upper_blocks(a3, j3, 2 * lo))
+                J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
+                J.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+            else:
+                J.setPreallocationCSR((a3, j3))
+            J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+            J.setAttr(SPLIT_ATTR, True)
+            return J
         if kind in (PETSc.Mat.Type.SEQSBAIJ, PETSc.Mat.Type.MPISBAIJ):
             ai, aj = _upper_blocks(ai, aj, self.starts[self.comm.getRank()])
             J.setPreallocationCSR((ai, aj))
@@ -161,7 +189,6 @@ class Layout:
         J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
         if symmetric:
             J.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-        self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(len(aj))))
         return J
 
     def gather_nodes(self, owned_values, root=0):
@@ -205,9 +232,22 @@ class DirichletRows:
     MAX_RUNS = 32       # more runs of touched groups than this: one masked copy of all of V
 
     def __init__(self, mat, mask):
-        self.mat, self.mask = mat, mask
+        self.split = is_split(mat)
+        self.mat, self.mask = (SplitBlocks(mat) if self.split else mat), mask
         self.touched = np.zeros(len(mask), dtype=bool)       # blocks with a constrained dof
         self.touched[np.flatnonzero(mask.ravel()) // mask.shape[1]] = True
+
+    def add_positions(self, R, V, addv=None):
+        """Position-only tangents V (n, 3k, 3k) of the node groups R (n, k) (PETSc node
+        blocks) into a split matrix (SplitBlocks), the constrained position rows and columns
+        zeroed first."""
+        hit = self._touching(R)
+        if hit.any():
+            V = np.array(V, copy=True)
+            idx = np.flatnonzero(hit)
+            keep = ~self.mask[R[idx]][:, :, 0:3].reshape(len(idx), -1)
+            V[idx] *= keep[:, :, None] & keep[:, None, :]
+        self.mat.add_positions(R, V, addv=addv)
 
     def setValuesBlockedRCV(self, R, C, V, addv=None):
         R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
@@ -257,6 +297,52 @@ class DirichletRows:
         return getattr(self.mat, name)
 
 
+SPLIT_ATTR = "rodsnes_split_blocks"
+
+
+def is_split(mat):
+    """Whether mat is a split matrix of Layout.create_matrix (block size 3, a node's position
+    and rotation in blocks 2n and 2n + 1)."""
+    return bool(getattr(mat, "getAttr", None) and mat.getAttr(SPLIT_ATTR))
+
+
+class SplitBlocks:
+    """A split matrix (Layout.create_matrix with positions_only) seen in node blocks of 6:
+    setValuesBlockedRCV takes node block indices and (n, 6k, 6k) values, as for block size 6
+    (the values of node blocks i, j are those of the 3-blocks 2i, 2i + 1 and 2j, 2j + 1 in
+    the same order); add_positions inserts position-only tangents into the position blocks
+    alone, without the zeros of a node block's rotation rows and columns."""
+
+    split = True
+
+    def __init__(self, mat):
+        self.mat = mat
+
+    def setValuesBlockedRCV(self, R, C, V, addv=None):
+        self.mat.setValuesBlockedRCV(split_index(R), split_index(C), V, addv=addv)
+
+    def add_positions(self, R, V, addv=None):
+        I = (2 * np.asarray(R)).astype(PETSc.IntType)
+        self.mat.setValuesBlockedRCV(I, I, V, addv=addv)
+
+    def __getattr__(self, name):
+        return getattr(self.mat, name)
+
+
+def node_view(mat):
+    """mat seen in node blocks of 6 (setValuesBlockedRCV): SplitBlocks of a split matrix,
+    else mat itself."""
+    return SplitBlocks(mat) if is_split(mat) else mat
+
+
+def split_index(R):
+    """Node blocks (n, k) as the 3-blocks (n, 2k) of their positions and rotations."""
+    R = np.asarray(R)
+    n = len(R)
+    R2 = R.reshape(n, -1)
+    return np.stack([2 * R2, 2 * R2 + 1], axis=2).reshape(n, -1).astype(PETSc.IntType)
+
+
 def _runs(hit):
     """The maximal runs [a, b) of True in the bool array hit, as an (m, 2) array."""
     d = np.diff(np.concatenate([[0], hit.view(np.int8), [0]]))
@@ -271,6 +357,27 @@ def _upper_blocks(ai, aj, row0):
     keep = aj >= rows
     ai = np.concatenate([[0], np.cumsum(np.bincount(rows[keep] - row0, minlength=len(counts)))])
     return ai.astype(PETSc.IntType), aj[keep]
+
+
+def _block_codes(ai, aj, row0, n):
+    """A key per block of the block CSR (ai, aj) of owned block rows row0, row0 + 1, ...:
+    row * n + column."""
+    rows = row0 + np.repeat(np.arange(len(ai) - 1), np.diff(ai))
+    return rows.astype(np.int64) * n + aj
+
+
+def _split_csr(ai, aj, full):
+    """The block CSR (block size 3) of a split matrix from the node block CSR (ai, aj) of
+    block size 6: a node block (i, j) where ``full`` is all four 3-blocks (2i + a, 2j + b),
+    elsewhere the position block (2i, 2j) alone."""
+    counts = np.diff(ai)
+    i = np.repeat(np.arange(len(counts)), counts)
+    r = np.concatenate([2 * i, 2 * i[full], 2 * i[full] + 1, 2 * i[full] + 1])
+    c = np.concatenate([2 * aj, 2 * aj[full] + 1, 2 * aj[full], 2 * aj[full] + 1])
+    order = np.lexsort((c, r))
+    r, c = r[order], c[order]
+    a3 = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=2 * len(counts)))])
+    return a3.astype(PETSc.IntType), c.astype(PETSc.IntType)
 
 
 def _scalar_csr(ai, aj, bs):
@@ -288,16 +395,21 @@ def _scalar_csr(ai, aj, bs):
     return ai_s.astype(PETSc.IntType), c.astype(PETSc.IntType)
 
 
+# the Jacobian of a problem whose extra couplings are positions only (contact) is split
+# (Layout.create_matrix)
+SPLIT_CONTACT = True
 POSITION_CHUNK = 64    # node groups per insertion of add_position_blocks (a 1 MB temporary)
 
 
 def add_position_blocks(P, layout, nodes, mat):
     """Add (ADD_VALUES) the position-only tangents mat of the natural node groups nodes (n, k)
-    into the block matrix P: each 3 x 3 block into the position part of its 6 x 6 block.
+    into the block matrix P: into a split matrix (Layout.create_matrix: the Jacobian with
+    contact) as blocks of 3 in one insertion (SplitBlocks.add_positions, through DirichletRows
+    as every tangent); else each 3 x 3 block into the position part of its 6 x 6 block.
     mat: (n, 3k, 3k), rows and columns ordered (node, component), or the same as (n, k, 3, k, 3)
     (any strides: a transposed view is not copied whole).
 
-    The groups go in POSITION_CHUNK at a time, in their order, through one reused
+    Into a matrix of node blocks of 6 the groups go in POSITION_CHUNK at a time, in their order, through one reused
     (chunk, k, 6, k, 6) block whose rotation parts stay zero: the same insertions as one dense
     (n, k, 6, k, 6) array, so the same sums bit for bit, without an array 4 x the tangents'
     size (the coil at 10^4 elements: hundreds of MB) written and read back out of cache.
@@ -307,6 +419,10 @@ def add_position_blocks(P, layout, nodes, mat):
     rows = layout.nat2petsc[nodes].astype(PETSc.IntType)
     n, k = rows.shape
     if not n:
+        return
+    view = P if isinstance(P, (DirichletRows, SplitBlocks)) else node_view(P)
+    if getattr(view, "split", False):       # a split matrix: the position blocks alone
+        view.add_positions(rows, mat.reshape(n, 3 * k, 3 * k), addv=PETSc.InsertMode.ADD)
         return
     m = mat.reshape(n, k, 3, k, 3) if mat.ndim == 3 else mat
     c = min(POSITION_CHUNK, n)

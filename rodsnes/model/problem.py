@@ -231,7 +231,8 @@ class RodProblem:
         self._topology = None              # (state key, topology) of the last topology()
         # every term's pattern (Term.pattern) the Jacobian J is preallocated for
         self.patterns = self.patterns_at(mesh.x_init[layout.local_nodes])
-        self.J = layout.create_matrix(self.node_groups(self.patterns))
+        self.J = layout.create_matrix(self.node_groups(self.patterns),
+                                      positions_only=self.positions_only())
         self.F = layout.create_vec()
         self.lconn = lconn
         self._gconn = layout.gconn.astype(PETSc.IntType)     # element node blocks, PETSc ids
@@ -414,6 +415,13 @@ class RodProblem:
             return None
         return groups[0] if len(groups) == 1 else np.concatenate(groups)
 
+    def positions_only(self, patterns=None):
+        """Whether every term with a pattern (``patterns``, default the current ones) couples
+        its node groups by positions only (Term.positions_only): the Jacobian is then split
+        (Layout.create_matrix)."""
+        patterns = self.patterns if patterns is None else patterns
+        return all(t.positions_only for t, pat in zip(self.terms, patterns) if pat is not None)
+
     def coupled_groups(self):
         """The natural node groups the Jacobian couples all-to-all: the elements' and the
         terms' of the current patterns (Layout.coupled_groups), the same on every rank."""
@@ -450,7 +458,8 @@ class RodProblem:
         re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
         (on_pattern_change) takes the new matrix and drops its factorisation."""
         old = self.J
-        self.J = self.layout.create_matrix(self.node_groups(patterns))
+        self.J = self.layout.create_matrix(self.node_groups(patterns),
+                                           positions_only=self.positions_only(patterns))
         self.patterns = patterns
         if self.on_pattern_change is not None:
             self.on_pattern_change(self.J)

@@ -30,6 +30,7 @@ class Term:
     conservative = True         # has a potential: the energy is a merit function for its steps
     depends_on_load = False     # its residual changes with lambda (arclength: dF/dlambda)
     moving_pattern = False      # couples dofs beyond the elements, in a pattern that follows the state
+    positions_only = False      # couples its pattern's node groups by their positions only
     step_limit = None           # largest move per Newton step of the nodes it watches (None: none)
     length_scale = None         # the smallest length it resolves (the contact radius)
     keeps_link = False          # strands cannot pass through each other: the link is conserved

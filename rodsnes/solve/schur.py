@@ -37,6 +37,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from rodsnes.solve import petsc_exit
+from rodsnes.model.partition import is_split, split_index
 
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
 # nodes per rank below which the whole matrix is factored instead: the condensation's fixed
@@ -57,13 +58,15 @@ WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankS
 
 def separator(problem, A):
     """(sep, near): the separator's block rows of A (sorted global block indices: the
-    problem's nodes, block size 6 or 3) and the other block rows that share a group with one
+    problem's nodes, block size 6 or 3, or both blocks of each node of a split matrix) and the other block rows that share a group with one
     of them (the only rows and columns of A_IG and A_GI that hold entries).  The separator: in
     every element and term node group (problem.node_groups of its patterns) whose nodes belong
     to several ranks, the nodes not owned by the rank owning most of them (the lowest rank of
     a tie): the group's other nodes are then one rank's.  The same on every rank (the
     groups are global)."""
     groups = [problem.layout.nat2petsc[g] for g in problem.coupled_groups()]
+    if is_split(A):             # a node's position and rotation blocks 2n, 2n + 1
+        groups = [split_index(g) for g in groups]
     first = np.asarray(A.getOwnershipRanges()) // A.getBlockSize()
     out = []
     nranks = len(first) - 1

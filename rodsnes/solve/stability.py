@@ -61,7 +61,8 @@ class Inertia:
     def _matrix(self, patterns):
         """The SBAIJ matrix the Hessian goes into (the problem's layout)."""
         p = self.problem
-        return p.layout.create_matrix(p.node_groups(patterns), symmetric=True)
+        return p.layout.create_matrix(p.node_groups(patterns), symmetric=True,
+                                      positions_only=p.positions_only(patterns))
 
     def _view(self):
         """What the Hessian is assembled through (None: H itself, Dirichlet rows masked)."""
