@@ -13,6 +13,7 @@ residual and Jacobian into the elastic kernel and the parts of self-contact
     MinNewton        the consistent tangent, its LU and the Newton direction
     MinHessian       the symmetric Hessian and its LDL^T factorisations (shifts, certificate)
     MinLineSearch    the energy line search (trial energies)
+    MinCurved        the curved trial of a full Newton step (a residual, a factorisation, a trial)
 
 A call site is either a ``with timed("ContactSearch"):`` block or a method decorated with
 ``@logged("ContactSearch")``.  Events nest in PETSc's log: the time of one counts inside the
@@ -24,7 +25,8 @@ import contextlib
 import functools
 
 NAMES = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "ContactHalo",
-         "ContactAssemble", "MinStep", "MinGradient", "MinNewton", "MinHessian", "MinLineSearch")
+         "ContactAssemble", "MinStep", "MinGradient", "MinNewton", "MinHessian", "MinLineSearch",
+         "MinCurved")
 
 _events = {}
 

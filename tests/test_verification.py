@@ -99,7 +99,16 @@ def test_two_ranks_match_one_rank_open_and_closed():
         Xs = gathered_positions(ser)
         assert par.ok and ser.ok
         assert np.abs(Xp - Xs).max() < 1e-9
-        assert [h["newton_iterations"] for h in par.history] == [h["newton_iterations"] for h in ser.history]
+        # the same iterations, but for the last one of a load step: at the residual's round-off
+        # floor (|g| ~ 1e-12 here) neither the energy (its change below its round-off) nor |g|
+        # can decide alike on 1 and 2 ranks whether one more iteration is taken (measured:
+        # michell's last step, 30 iterations on one rank, 29 on two: at |g| 7.9e-13 the full
+        # step's energy change is below the energy's round-off, one rank took it on the
+        # watchdog's credit and came back to the point before, the other accepted it)
+        its_p = [h["newton_iterations"] for h in par.history]
+        its_s = [h["newton_iterations"] for h in ser.history]
+        assert len(its_p) == len(its_s)
+        assert all(abs(a - b) <= 1 for a, b in zip(its_p, its_s)), (its_p, its_s)
 
 
 @pytest.mark.mpi
