@@ -2,30 +2,18 @@
 ply lengthens (7.2 turns, tests/data/plectoneme_7.2) the straight step climbs the contact's
 wall at second order and the line search keeps a fraction of it; the step x + d + a / 2, a the
 second-order departure of the residual corrected in the stiff modes, goes further down."""
-import os
-
 import numpy as np
-import pytest
 
 from conftest import build_run
 from rodsnes.solve import minimize
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SEVEN_TURNS = os.path.join(ROOT, "tests", "data", "plectoneme_7.2")
-LOAD = 0.7236           # 0.036 turns on: the step that crawls from this state
+from test_valley import LOAD, SEVEN_TURNS, _one_step as valley_step
 
 
 def _one_step(monkeypatch, curved, spy=None):
-    """The step 0.72 -> LOAD from the checkpoint (its secant predictor, as the run takes it);
-    returns (MinimizeResult, energy, the minimiser)."""
+    """The crawling step 0.72 -> LOAD from the checkpoint (test_valley._one_step, the walks
+    on), with or without the curved trial; returns (MinimizeResult, energy)."""
     monkeypatch.setattr(minimize, "CURVED", curved)
-    run = build_run("plectoneme", restart=SEVEN_TURNS)
-    lp = run.solver
-    if spy is not None:
-        spy(lp.minimizer)
-    lp.predict(run.prev0, run.lam0, LOAD - run.lam0)
-    res = lp.minimizer.solve_at(LOAD)
-    return res, lp.minimizer.energy_at(run.problem.state.X)[0]
+    return valley_step(monkeypatch, True, spy)
 
 
 def test_the_departure_from_newtons_prediction_is_second_order(monkeypatch):
