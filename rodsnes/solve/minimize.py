@@ -34,6 +34,8 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
    (_limited_step).  So no strand passes through
    another and no rotation wraps: the link is kept.  A step whose energy change is below the
    energy's round-off is accepted when it lowers |g|.
+   Before it, a full Newton step is tried along its curve (_curved): x + d + a/2, a the
+   residual's second-order departure along d corrected in the modes stiffer than the step.
 5. Where Newton's steps crawl along one soft mode (a ply sliding), the minimiser walks the
    valley floor by predictor-corrector (valley.py) and goes on from the walk's last point.
 6. Converged when |g| <= tolerance (relative to the force scale, or the round-off floor of
