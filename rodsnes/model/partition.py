@@ -160,25 +160,18 @@ class Layout:
         J.setBlockSize(bs)
         J.setFromOptions()
         ai, aj = self.block_pattern(extra_pairs)
-        kind = J.getType()
         self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(len(aj))))
-        if split:
+        row0 = self.starts[self.comm.getRank()]
+        if split:                 # the node blocks as blocks of 3, the block rows from 2 row0
             ae, je = self.block_pattern(None)
-            lo = self.starts[self.comm.getRank()]
-            full = np.isin(_block_codes(ai, aj, lo, self.n_global),
-                           _block_codes(ae, je, lo, self.n_global))
-            a3, j3 = _split_csr(ai, aj, full)
-            if symmetric:
-                J.setPreallocationCSR(_upper_blocks(a3, j3, 2 * lo))
-                J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
-                J.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-            else:
-                J.setPreallocationCSR((a3, j3))
-            J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+            full = np.isin(_block_codes(ai, aj, row0, self.n_global),
+                           _block_codes(ae, je, row0, self.n_global))
+            ai, aj = _split_csr(ai, aj, full)
+            row0 *= 2
             J.setAttr(SPLIT_ATTR, True)
-            return J
+        kind = J.getType()
         if kind in (PETSc.Mat.Type.SEQSBAIJ, PETSc.Mat.Type.MPISBAIJ):
-            ai, aj = _upper_blocks(ai, aj, self.starts[self.comm.getRank()])
+            ai, aj = _upper_blocks(ai, aj, row0)
             J.setPreallocationCSR((ai, aj))
             # only once the blocks exist (before it, MPISBAIJ crashes in MatSetOption)
             J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
@@ -409,8 +402,9 @@ def add_position_blocks(P, layout, nodes, mat):
     mat: (n, 3k, 3k), rows and columns ordered (node, component), or the same as (n, k, 3, k, 3)
     (any strides: a transposed view is not copied whole).
 
-    Into a matrix of node blocks of 6 the groups go in POSITION_CHUNK at a time, in their order, through one reused
-    (chunk, k, 6, k, 6) block whose rotation parts stay zero: the same insertions as one dense
+    Into a matrix of node blocks of 6 the groups go in POSITION_CHUNK at a time, in their
+    order, through one reused (chunk, k, 6, k, 6) block whose rotation parts stay zero: the
+    same insertions as one dense
     (n, k, 6, k, 6) array, so the same sums bit for bit, without an array 4 x the tangents'
     size (the coil at 10^4 elements: hundreds of MB) written and read back out of cache.
     Blocked insertion, not scalar (setValuesRCV): on 2 ranks MPIBAIJ adds the scalar stash

@@ -10,10 +10,11 @@ into it).  A rod's Jacobian is a chain of small blocks plus
 the contact couplings, and on it PETSc's LU was 3-5 x faster than MUMPS at every size measured
 (plectoneme, 60 elements, blocks of 6: 1.8 ms against 4.2 ms per factorisation, 0.6-0.7 ms
 split into blocks of 3 as a contact Jacobian is, partition.Layout.create_matrix; cantilever,
-1e4 elements: 50-75 ms against 256 ms; 2 ranks, 1e4 elements: 0.16 s against 0.94 s; tools/bench_scaling.py,
-docs/bench_scaling.md).  MUMPS stays one option away (-pc_factor_mat_solver_type mumps, and on
-several ranks -pc_type lu), and it factors the symmetric LDL^T whose inertia the stability
-count and the minimiser's shifts read (solve/stability.py), where its pivoting is needed.
+1e4 elements: 50-75 ms against 256 ms; 2 ranks, 1e4 elements: 0.16 s against 0.94 s;
+tools/bench_scaling.py, docs/bench_scaling.md).  MUMPS stays one option away
+(-pc_factor_mat_solver_type mumps, and on several ranks -pc_type lu), and it factors the
+symmetric LDL^T whose inertia the stability count and the minimiser's shifts read
+(solve/stability.py), where its pivoting is needed.
 
 The ordering is AMD, not PETSc's default nested dissection: on a chain the two are alike
 (3-D cantilever, 1e4 elements: 37 against 46 ms per factorisation), but where contact couples

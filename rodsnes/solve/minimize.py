@@ -220,6 +220,11 @@ class EnergyMinimizer:
         shift.destroy()
         return np.inf
 
+    def _above_roundoff(self, E0, change):
+        """Whether an energy change of this size near E0 lies far (1e3 x) above the energy's
+        round-off: only there may a decision depend on energies, the same on every rank."""
+        return change > 1e3 * self.roundoff * (abs(E0) + self.energy_scale)
+
     def metric_dot(self, a, b):
         """<M a, b>, the same on every rank.  Collective."""
         w = a.duplicate()
@@ -396,21 +401,17 @@ class EnergyMinimizer:
                 X.copy(Xt)
                 slope, alpha, E0, depth0 = watch["slope"], watch["alpha"], watch["E"], watch["depth"]
                 watch["d"].destroy()
-                watch, free = None, False
+                watch, free, reverted = None, False, True
                 free_ok = False                 # the same free step would come again
             else:
-                free = free_ok
-                if newton and (self.by_ksp or self.by_plane) and alpha == 1.0 and CURVED \
-                        and self._curved(X, Xt, d, slope, E0, depth0):
-                    curved += 1
-                    X.axpy(1.0, d)              # d is the curved step now; Xt, bit for bit
-                    accepted = self._trial
-                    its += 1
-                    if watch is not None:
-                        watch["steps"] += 1
-                    continue
-            ok, alpha, tries = self._line_search(X, Xt, d, slope, alpha, gnorm, E0, depth0,
-                                                 free=free)
+                free, reverted = free_ok, False
+            if newton and (self.by_ksp or self.by_plane) and alpha == 1.0 and CURVED \
+                    and not reverted and self._curved(X, Xt, d, slope, E0, depth0):
+                curved += 1                     # d is the curved step now, Xt its point
+                ok, alpha, tries = True, 1.0, 0
+            else:
+                ok, alpha, tries = self._line_search(X, Xt, d, slope, alpha, gnorm, E0, depth0,
+                                                     free=free)
             cuts += tries
             if ok == "free":                    # a full step that has not lowered E (yet)
                 if watch is None:
@@ -521,8 +522,7 @@ class EnergyMinimizer:
         a plectoneme run from its stored start: 3154 -> 2455 iterations (70 % of the curved
         trials kept).  Collective."""
         p = self.problem
-        slack = self.roundoff * (abs(E0) + self.energy_scale)
-        if not -slope > 1e3 * slack:
+        if not self._above_roundoff(E0, -slope):
             return False
         h = CURVE_H
         c, a = X.duplicate(), X.duplicate()
@@ -710,7 +710,7 @@ class EnergyMinimizer:
             if E <= E0 + ARMIJO * alpha * min(slope, 0.0):
                 # (only where the predicted change is far above the energy's round-off: the
                 # decision must not depend on it, nor differ between ranks)
-                if k == 0 and -slope * alpha > 1e3 * slack:
+                if k == 0 and self._above_roundoff(E0, -slope * alpha):
                     if EXTRAPOLATE and alpha == 1.0 and E - E0 <= 0.9 * slope:
                         alpha = self._extrapolate(X, Xt, d, slope, E, E0, allow)
                     elif INTERPOLATE and E - E0 > INTERPOLATE * alpha * slope:

@@ -58,12 +58,12 @@ WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankS
 
 def separator(problem, A):
     """(sep, near): the separator's block rows of A (sorted global block indices: the
-    problem's nodes, block size 6 or 3, or both blocks of each node of a split matrix) and the other block rows that share a group with one
-    of them (the only rows and columns of A_IG and A_GI that hold entries).  The separator: in
-    every element and term node group (problem.node_groups of its patterns) whose nodes belong
-    to several ranks, the nodes not owned by the rank owning most of them (the lowest rank of
-    a tie): the group's other nodes are then one rank's.  The same on every rank (the
-    groups are global)."""
+    problem's nodes, block size 6 or 3, or both blocks of each node of a split matrix) and
+    the other block rows that share a group with one of them (the only rows and columns of
+    A_IG and A_GI that hold entries).  The separator: in every element and term node group
+    (problem.node_groups of its patterns) whose nodes belong to several ranks, the nodes not
+    owned by the rank owning most of them (the lowest rank of a tie): the group's other nodes
+    are then one rank's.  The same on every rank (the groups are global)."""
     groups = [problem.layout.nat2petsc[g] for g in problem.coupled_groups()]
     if is_split(A):             # a node's position and rotation blocks 2n, 2n + 1
         groups = [split_index(g) for g in groups]
