@@ -285,7 +285,8 @@ def test_newton_step_may_not_deepen_the_penetration_beyond_the_limit():
 # each caller pays for what it needs (ContactTerm.evaluate): residual alone, tangent and report
 # made later at the same positions, the candidate search kept within its skin
 # ------------------------------------------------------------------------------------------
-LAW = {"projection": {}, "potential": dict(contact_model="potential", contact_quadrature=24)}
+LAW = {"projection": {},    # the coiled rod's overlap is deeper than the potential's wall
+       "potential": dict(contact_model="potential", contact_quadrature=24, contact_wall=0)}
 @pytest.mark.mpi
 @pytest.mark.parametrize("model", ["projection", "potential"])
 def test_residual_alone_is_the_residual_of_the_full_evaluation(model):

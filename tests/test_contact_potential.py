@@ -341,7 +341,8 @@ def test_zones_with_the_potential_and_an_unresolved_mesh_are_refused():
                      contact_standoff=0.02).contact.kernel.nqp == 39
 
 
-POTENTIAL = dict(contact_model="potential", contact_quadrature=24)
+# the coiled rod's overlap is deeper than the wall (-contact_wall), where the energy is infinite
+POTENTIAL = dict(contact_model="potential", contact_quadrature=24, contact_wall=0)
 
 
 def coiled(comm=None, outdir=None):
@@ -555,3 +556,114 @@ def test_pattern_pairs_are_the_pairs_with_a_couple_of_points_within_reach():
             near = capsules_within([v[e] for v in caps], [v[m] for v in caps], 2.0 * eps)
             assert 100 < len(rows) < 0.6 * np.count_nonzero(near), \
                 (len(rows), np.count_nonzero(near))
+
+
+def test_wall_law_is_twice_differentiable_and_infinite_at_the_wall():
+    """The wall's barrier (module docstring, The wall) added to the onset law: psi, psi',
+    psi'' each the derivative of the one before (central differences) inside the barrier,
+    continuous where it starts (a_b: the law without it up to there, C^2), growing without
+    bound towards the wall a_w and infinite from there on."""
+    a_s = onset_layer(0.025, 0.01)
+    wall = (0.6 * a_s, a_s)
+    a = np.linspace(0.62, 0.999, 200) * a_s
+    da = 1e-7 * a_s
+    fd1 = (law_energy(a + da, a_s, wall) - law_energy(a - da, a_s, wall)) / (2 * da)
+    fd2 = (law_force(a + da, a_s, wall) - law_force(a - da, a_s, wall)) / (2 * da)
+    assert np.allclose(fd1, law_force(a, a_s, wall), rtol=1e-6, atol=1e-9 * a_s)
+    assert np.allclose(fd2, law_stiffness(a, a_s, wall), rtol=1e-5)
+    below = np.linspace(0.0, 0.6, 50) * a_s
+    for f in (law_energy, law_force, law_stiffness):
+        assert np.array_equal(f(below, a_s, wall), f(below, a_s))
+        lo, hi = f(wall[0] * (1 - 1e-12), a_s, wall), f(wall[0] * (1 + 1e-12), a_s, wall)
+        assert abs(hi - lo) <= 1e-9 * abs(hi)
+        assert np.all(np.isinf(f(np.array([a_s, 1.5 * a_s]), a_s, wall)))
+    near = law_stiffness(np.array([0.9, 0.99, 0.999]) * a_s, a_s, wall)
+    assert np.all(np.diff(near) > 0) and near[-1] > 1e4 * law_stiffness(0.9 * a_s, a_s)
+
+
+def wall_state(kind="numpy"):
+    """A rod of two elements folded onto itself (as in the test above) with a kernel whose
+    wall stands beyond its deepest couple and whose barrier acts on it: (rod, pairs, depth)."""
+    X = np.array([[0, 0, 0], [0.5, 0, 0], [1, 0, 0], [1.05, 0.06, 0], [1, 0.12, 0],
+                  [0.5, 0.12, 0], [0, 0.12, 0.0]])
+    X = X + 1e-3 * np.random.default_rng(0).standard_normal(X.shape)
+    rod = potential_rod(X, 3, False, 2.2, 0.1, 1e4, nqp=48, kernel=kind)
+    pairs = rod.pairs(X)
+    depth = rod.k.evaluate(*evaluation_args(rod, X, pairs), tangent=False, report=False)["depth"]
+    # the wall at 1.1 depth (the promise d* = the wall + the sampling error, which depends on
+    # d*: a fixed point), its barrier over 40 % of it
+    pen = 0.01
+    for _ in range(30):
+        rod.k = PotentialKernel(3, rod.k.nqc, 0.1, 1e4, rod.delta, 2.2, rod.nelem, False,
+                                nqp=48, penetration=pen, wall=0.4 * 1.1 * depth, kernel=kind)
+        pen = (1.1 * depth + rod.k.sampling_error()) / (2 * 0.1)
+    assert rod.k.wall[1] == pytest.approx(1.1 * depth, rel=1e-6)
+    return rod, X, pairs, depth
+
+
+def evaluation_args(rod, X, pairs):
+    return rod.ids, X[rod.conn[rod.ids]], rod.ids, X[rod.conn], pairs
+
+
+def test_gradient_and_tangent_with_the_wall():
+    """Inside the wall's barrier (the deepest couple at 0.91 of the way to the wall, 0.77 of
+    it into the barrier): the residual the energy's gradient, the tangent the residual's
+    Jacobian (finite differences), symmetric; the compiled kernel equals the numpy path
+    (energy, residual, tangent, report) to 1e-12; beyond the wall the energy is infinite."""
+    rod, X, pairs, depth = wall_state()
+    a_b, a_w = rod.k.wall
+    assert a_b < depth < a_w
+    plain = rod.k.evaluate(*evaluation_args(rod, X, pairs), tangent=False, report=False)
+    check_gradient(rod, X, pairs, 1e-8, tol=1e-6)
+    K, _ = check_tangent(rod, X, pairs, 1e-8, tol=1e-5)
+    assert np.abs(K - K.T).max() <= 1e-12 * np.abs(K).max()
+    from rodsnes.contact import potential_compiled
+    assert potential_compiled.available(), "the compiled potential kernel is not built"
+    out = {}
+    for kind in ("numpy", "compiled"):
+        r, *_ = wall_state(kind)
+        out[kind] = r.k.evaluate(*evaluation_args(r, X, pairs), tangent=True, report=True)
+    for key in ("energy", "vec", "mat", "gap", "force", "total_force", "d_active"):
+        assert same(out["compiled"][key], out["numpy"][key]), key
+    assert np.isfinite(plain["energy"]) and np.all(np.isfinite(out["numpy"]["force"]))
+    # the same fold pressed beyond the wall: the energy is infinite
+    Y = X.copy()
+    Y[3:] -= [0, 1.5 * (a_w - depth), 0]
+    for kind in ("numpy", "compiled"):
+        r, *_ = wall_state(kind)
+        deep = r.k.evaluate(*evaluation_args(r, Y, pairs), tangent=False, report=False)
+        assert deep["depth"] > a_w and deep["energy"] == np.inf
+
+
+@pytest.mark.parametrize("p", [2, 3])
+def test_the_couples_see_the_closest_distance_within_the_sampling_error(p):
+    """Two straight strands a distance g apart, crossing at angles from parallel to square,
+    the crossing anywhere along both elements: the closest couple of the law's points is
+    never farther apart than g by more than PotentialKernel.sampling_error, by which the wall
+    stands short of the promise (The wall); crossing square at both elements' middles (an
+    even number of points: the middle halfway between two) it is that far apart, to 5 %.
+    The report (closest-point projections at its points) never sees closer than g."""
+    eps, pen, n, nqp = 0.025, 0.03, 8, 16
+    h, g = 1.0 / n, 2 * eps * (1 - pen)
+    rng = np.random.default_rng(p)
+    s = np.linspace(0.0, 1.0, p * n + 1)
+    lower = np.stack([s, 0 * s, 0 * s], 1)
+    excess = {}
+    for angle in (0.0, 0.3, np.pi / 4, np.pi / 2):
+        for at in [(0.0, 0.0)] + [tuple(rng.uniform(-0.5, 0.5, 2)) for _ in range(3)]:
+            xc = 0.5 + (0.5 + at[0]) * h                    # in the lower strand's element 4
+            t = s - (0.5 + (0.5 + at[1]) * h)               # ... the upper's element 4
+            upper = np.stack([xc + t * np.cos(angle), t * np.sin(angle), g + 0 * s], 1)[::-1]
+            link = lower[-1] + np.linspace(0, 1, p + 1)[1:-1, None] * (upper[0] - lower[-1])
+            X = np.concatenate([lower, link, upper])        # element n links the strands
+            rod = potential_rod(X, p, False, (2 * n + 1) * h, eps, 1e6, penetration=pen,
+                                nqp=nqp)
+            pairs = rod.pairs(X)
+            pairs = pairs[((pairs[:, 0] < n) & (pairs[:, 1] > n))
+                          | ((pairs[:, 0] > n) & (pairs[:, 1] < n))]
+            out = rod.k.evaluate(*evaluation_args(rod, X, pairs), tangent=False, report=True)
+            assert out["gap"].max() <= 2 * eps - g + 1e-15
+            excess[angle, at] = (2 * eps - g) - out["depth"]
+    bound = rod.k.sampling_error()
+    assert max(excess.values()) <= bound
+    assert excess[np.pi / 2, (0.0, 0.0)] == pytest.approx(bound, rel=0.05)

@@ -10,8 +10,8 @@
  *
  * over the couples in contact: admissible (|s_q - sigma_j| >= delta, periodic on a ring, on the
  * pairs the exclusion cuts) and r < 2 eps.  psi is the onset law of contact_potential.py
- * (a_s = 0: the quadratic law).  Distances and the exclusion test are evaluated with the same
- * floating-point operations, in the same order, as the numpy path (build with
+ * (a_s = 0: the quadratic law) with its wall.  Distances and the exclusion test are evaluated
+ * with the same floating-point operations, in the same order, as the numpy path (build with
  * -ffp-contract=off: no fused multiply-adds), so the couples in contact are the same ones;
  * sums over couples differ from numpy's by round-off only.
  *
@@ -35,28 +35,54 @@ typedef struct {
     const int64_t *oi, *mi;         /* (nn) slave / master element of each pair */
     const double *Np, *Nm;          /* (nqp, n1), (nm, n1) */
     const double *wpJ, *wm;         /* (nqp), (nn, nm) */
-    double two_eps, a_s, k;
+    double two_eps;
+    const double *law;             /* {a_s, a_b, a_w} */
+    double k;
 } Setup;
 
-static double law_energy(double a, double a_s)
+/* The law (contact_potential.py, Onset law and The wall): law = {a_s, a_b, a_w}, a_w = 0 for
+ * no wall.  wall() adds the barrier x^2 B(t), t = (a_w - a) / x, x = a_w - a_b,
+ * B = -(t - 1)^2 ln t, and its first two derivatives in a (which = 0, 1, 2); +inf from a_w. */
+static double wall(double a, const double *law, int which)
 {
-    if (a_s <= 0.0)
-        return 0.5 * a * a;
-    return a < a_s ? a * a * a / (6.0 * a_s) : a * (0.5 * a - 0.5 * a_s) + a_s * a_s / 6.0;
+    const double a_b = law[1], a_w = law[2];
+    if (!(a_w > 0.0) || a <= a_b)
+        return 0.0;
+    if (a >= a_w)
+        return INFINITY;
+    const double x = a_w - a_b, t = (a_w - a) / x, u = t - 1.0, lt = log(t);
+    if (which == 0)
+        return -x * x * u * u * lt;
+    if (which == 1)
+        return x * (2.0 * u * lt + u * u / t);
+    return -2.0 * lt - 4.0 * u / t + u * u / (t * t);
 }
 
-static double law_force(double a, double a_s)
+static double law_energy(double a, const double *law)
 {
+    const double a_s = law[0];
+    const double w = wall(a, law, 0);
     if (a_s <= 0.0)
-        return a;
-    return a < a_s ? a * a / (2.0 * a_s) : a - 0.5 * a_s;
+        return 0.5 * a * a + w;
+    return (a < a_s ? a * a * a / (6.0 * a_s) : a * (0.5 * a - 0.5 * a_s) + a_s * a_s / 6.0) + w;
 }
 
-static double law_stiffness(double a, double a_s)
+static double law_force(double a, const double *law)
 {
+    const double a_s = law[0];
+    const double w = wall(a, law, 1);
     if (a_s <= 0.0)
-        return 1.0;
-    return fmin(a / a_s, 1.0);
+        return a + w;
+    return (a < a_s ? a * a / (2.0 * a_s) : a - 0.5 * a_s) + w;
+}
+
+static double law_stiffness(double a, const double *law)
+{
+    const double a_s = law[0];
+    const double w = wall(a, law, 2);
+    if (a_s <= 0.0)
+        return 1.0 + w;
+    return fmin(a / a_s, 1.0) + w;
 }
 
 /* D = xs[oi[p], q] - xm[mi[p], j] */
@@ -120,7 +146,7 @@ static int64_t couples_pass(
     const int64_t *e, const int64_t *m, int64_t nelem, double h, double delta, double L,
     int closed, const double *sq, const double *sm,
     const double *Np, const double *Nm, const double *wpJ, const double *wm,
-    double two_eps, double a_s, double k, int64_t maxc,
+    double two_eps, const double *law, double k, int64_t maxc,
     int64_t *cp, int64_t *cq, int64_t *cj, double *cr,
     int64_t *act, double *vec, double *work, double *state)
 {
@@ -191,10 +217,10 @@ static int64_t couples_pass(
                     active = 1;
                 }
                 double a = two_eps - r, W = wpJ[q] * wmp[j];
-                const double term = W * law_energy(a, a_s), sum = energy + term;
+                const double term = W * law_energy(a, law), sum = energy + term;
                 lost += fabs(energy) >= fabs(term) ? (energy - sum) + term : (term - sum) + energy;
                 energy = sum;
-                double g = -k * W * law_force(a, a_s) / (r > 0.0 ? r : 1.0);
+                double g = -k * W * law_force(a, law) / (r > 0.0 ? r : 1.0);
                 for (int d = 0; d < 3; d++) {
                     Gs[q * 3 + d] += g * D[d];
                     Gm[j * 3 + d] += g * D[d];
@@ -230,7 +256,7 @@ int64_t rodsnes_potential_residual(
     const int64_t *e, const int64_t *m, int64_t nelem, double h, double delta, double L,
     int closed, const double *sq, const double *sm,
     const double *Np, const double *Nm, const double *wpJ, const double *wm,
-    double two_eps, double a_s, double k, int64_t maxc,
+    double two_eps, const double *law, double k, int64_t maxc,
     int64_t *cp, int64_t *cq, int64_t *cj, double *cr,
     int64_t *act, double *vec, double *work, double *state)
 {
@@ -238,10 +264,10 @@ int64_t rodsnes_potential_residual(
      * inner loops made the pass 1.4 times slower, measured on the bench coil) */
     if (prune)
         return couples_pass(1, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem, h, delta, L,
-                            closed, sq, sm, Np, Nm, wpJ, wm, two_eps, a_s, k, maxc, cp, cq, cj,
+                            closed, sq, sm, Np, Nm, wpJ, wm, two_eps, law, k, maxc, cp, cq, cj,
                             cr, act, vec, work, state);
     return couples_pass(0, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem, h, delta, L,
-                        closed, sq, sm, Np, Nm, wpJ, wm, two_eps, a_s, k, maxc, cp, cq, cj, cr,
+                        closed, sq, sm, Np, Nm, wpJ, wm, two_eps, law, k, maxc, cp, cq, cj, cr,
                         act, vec, work, state);
 }
 
@@ -254,11 +280,11 @@ int64_t rodsnes_potential_tangent(
     int64_t nc, int64_t nqp, int64_t nm, int64_t n1,
     const double *xs, const double *xm, const int64_t *oi, const int64_t *mi,
     const double *Np, const double *Nm, const double *wpJ, const double *wm,
-    double two_eps, double a_s, double k,
+    double two_eps, const double *law, double k,
     const int64_t *cp, const int64_t *cq, const int64_t *cj, const double *cr,
     int64_t nrow, double *mat, double *work)
 {
-    Setup S = {nqp, nm, n1, xs, xm, oi, mi, Np, Nm, wpJ, wm, two_eps, a_s, k};
+    Setup S = {nqp, nm, n1, xs, xm, oi, mi, Np, Nm, wpJ, wm, two_eps, law, k};
     const int64_t n6 = 6 * n1;
     double *Hs = work, *Hm = work + nqp * 6, *T = work + (nqp + nm) * 6;
     const size_t wsize = (size_t)((nqp + nm + nqp * n1) * 6) * sizeof(double);
@@ -286,8 +312,8 @@ int64_t rodsnes_potential_tangent(
             couple_vector(&S, p, q, j, D);
             const double r = cr[i], a = two_eps - r, W = wpJ[q] * wmj;
             const double rs = r > 0.0 ? r : 1.0, on = k * W;
-            const double crr = law_force(a, a_s) / rs;
-            const double coef = on * (law_stiffness(a, a_s) + crr) / (rs * rs);
+            const double crr = law_force(a, law) / rs;
+            const double coef = on * (law_stiffness(a, law) + crr) / (rs * rs);
             const double U[3] = {coef * D[0], coef * D[1], coef * D[2]};
             double H[6] = {U[0] * D[0], U[1] * D[1], U[2] * D[2],
                            U[0] * D[1], U[0] * D[2], U[1] * D[2]};

@@ -55,6 +55,40 @@ d* = -contact_penetration x 2 eps: k = mu d* / f_1(d*) (``pair_stiffness``, f_1:
 k = 1).  Below d* the potential is softer than mu d, above it stiffer; the
 -contact_penalty_adapt raises of mu act on k in proportion.
 
+The wall (-contact_wall, on by default).  The penalty alone lets the depth grow with the
+force: a load step that presses harder than mu was set for ends beyond the promise, and the
+step had to be solved again with a raised mu (the plectoneme: 10 such re-solves from the
+straight rod to 10 turns).  With the wall, the promise is part of the law: psi gains the
+barrier of IPC (Li et al. 2020),
+
+    beta(a) = x^2 B(t),   B(t) = -(t - 1)^2 ln t,   t = (a_w - a) / x,   a_b < a < a_w      (4)
+
+0 up to a_b = a_w - x, C^2 there (beta'' = B''(t) = 0 at t = 1), infinite at the wall a_w.
+Its stiffness beta'' is dimensionless as psi'' is (the same k), 6.4 halfway through the
+barrier, 122 at t = 0.1, so no point couple comes to a_w whatever the load.  a_w stands short
+of the promised depth d* by the couples' sampling error (``sampling_error``: two strands
+touching between the sample points are closer than their closest couple, by at most
+(h_s^2 + h_m^2) / (8 g) for the largest spacings h_s, h_m of the slave and master points,
+g = 2 eps - d*), so that the report's closest-point depth keeps the promise too; the
+barrier's range x = WALL x the promised penetration into the tube (-contact_penetration x
+2 radius; with a standoff the law acts from 2 eps, the tube's surface lies deeper), so the
+standoff's soft start is untouched.  A state beyond the wall has infinite energy: the line
+searches refuse it (ContactTerm.depth_allowed caps every trial short of a_w).  The report
+evaluates the law at its own points, up to the sampling error deeper than the couples; there
+its depth is that of the deepest couple.  With -contact_penalty_adapt a converged load step
+whose deepest couple sits in the barrier (a > a_b) keeps its state (it keeps the promise) and
+raises mu for the next step, 1.25 mu a / a_b (load_path.LoadPath._ease_wall): the barrier
+takes the overshoot within a step, the penalty the growth of the force between steps, and
+nothing is solved twice.  Measured on cases/plectoneme.opts from the straight rod (Intel Xeon
+VM, back to back): 31 load steps, 2378 Newton iterations, 22.8 s with the penalty alone (10
+re-solves, 0.99 % the deepest converged penetration); 29, 2401, 22.7 s with the wall (0
+re-solves, 11 raises between steps, 0.93 %); docs/contact.md (The wall) has four more scenes
+(0-23 % more iterations where the contact works inside the barrier) and where the wall cannot
+see the depth (the edge of the exclusion in a loop tighter than the flexure bound: the
+re-solve stays there).  A barrier over the whole promise without the
+raises between steps (the penalty at its default throughout) took 6823 iterations: Newton
+inside a log barrier is slow, so the barrier is the guard, not the working range.
+
 End caps.  A slave point beside an open rod's end sees only the half line of material that
 is there, so (1) gives it half the force a point beside a strand's middle gets (the closest-point
 law, whose closest point sits on the end, gives the full mu d: the end is a ball).  Each open
@@ -127,6 +161,8 @@ compiled energy bit for bit (one compensated sum carried across the chunks), num
 round-off of its chunks' sums.  The Jacobian's pattern (``pairs_within``) holds the pairs
 with a couple of these points within reach, not every pair whose capsules are.
 """
+import functools
+
 import numpy as np
 
 from rodsnes.profiling import logged
@@ -138,37 +174,66 @@ from rodsnes.contact.closest_point import master_pool_rows
 from rodsnes.contact.search import capsules_within, element_capsules, same_bits
 from rodsnes.contact.search import positions as _lookup
 
-__all__ = ["ONSET", "DENSITY", "MAX_POINTS", "law_energy", "law_force", "law_stiffness",
-           "onset_layer", "pair_stiffness", "support_length", "points_per_element",
+__all__ = ["ONSET", "WALL", "DENSITY", "MAX_POINTS", "law_energy", "law_force",
+           "law_stiffness", "wall_law", "onset_layer", "pair_stiffness", "support_length", "points_per_element",
            "PotentialKernel"]
 
 
 ONSET = 1.0             # onset layer a_s / d* of the law (0: the quadratic, C^1 law)
+WALL = 0.5              # the wall's barrier acts over this share of the promised penetration
 
 
-def law_energy(a, a_s):
+def law_energy(a, a_s, wall=None):
     """psi(a) of (1) per unit k (Onset law): a^2/2 when a_s = 0; a^3 / (6 a_s) below a_s,
-    a^2/2 - a_s a/2 + a_s^2/6 above."""
+    a^2/2 - a_s a/2 + a_s^2/6 above; with ``wall`` = (a_b, a_w) the wall's barrier added
+    (wall_law; +inf from a_w on)."""
     a = np.asarray(a, dtype=float)
     if a_s <= 0.0:
-        return 0.5 * a * a
-    return np.where(a < a_s, a * a * a / (6.0 * a_s), a * (0.5 * a - 0.5 * a_s) + a_s * a_s / 6.0)
+        psi = 0.5 * a * a
+    else:
+        psi = np.where(a < a_s, a * a * a / (6.0 * a_s),
+                       a * (0.5 * a - 0.5 * a_s) + a_s * a_s / 6.0)
+    return psi if wall is None else psi + wall_law(a, wall)[0]
 
 
-def law_force(a, a_s):
-    """psi'(a): a when a_s = 0; a^2 / (2 a_s) below a_s, a - a_s/2 above."""
+def law_force(a, a_s, wall=None):
+    """psi'(a): a when a_s = 0; a^2 / (2 a_s) below a_s, a - a_s/2 above (+ the wall's)."""
     a = np.asarray(a, dtype=float)
     if a_s <= 0.0:
-        return a
-    return np.where(a < a_s, a * a / (2.0 * a_s), a - 0.5 * a_s)
+        f = a
+    else:
+        f = np.where(a < a_s, a * a / (2.0 * a_s), a - 0.5 * a_s)
+    return f if wall is None else f + wall_law(a, wall)[1]
 
 
-def law_stiffness(a, a_s):
-    """psi''(a) for a > 0: 1 when a_s = 0; a / a_s below a_s, 1 above."""
+def law_stiffness(a, a_s, wall=None):
+    """psi''(a) for a > 0: 1 when a_s = 0; a / a_s below a_s, 1 above (+ the wall's)."""
     a = np.asarray(a, dtype=float)
     if a_s <= 0.0:
-        return np.ones_like(a)
-    return np.minimum(a / a_s, 1.0)
+        s = np.ones_like(a)
+    else:
+        s = np.minimum(a / a_s, 1.0)
+    return s if wall is None else s + wall_law(a, wall)[2]
+
+
+def wall_law(a, wall):
+    """(beta, beta', beta'') of the wall (module docstring, The wall) at depths a, wall =
+    (a_b, a_w): 0 up to a_b, then x^2 B(t), t = (a_w - a) / x, x = a_w - a_b,
+    B(t) = -(t - 1)^2 ln t (IPC's barrier), C^2 at a_b; +inf from a_w on."""
+    a_b, a_w = wall
+    x = a_w - a_b
+    a = np.asarray(a, dtype=float)
+    t = np.clip((a_w - a) / x, 0.0, 1.0)
+    on, inside = a > a_b, a < a_w
+    ts = np.where(inside, np.where(on, t, 1.0), 1.0)        # safe t for the logarithms
+    lt, u = np.log(ts), ts - 1.0
+    beta = -x * x * u * u * lt
+    dbeta = x * (2.0 * u * lt + u * u / ts)
+    ddbeta = -2.0 * lt - 4.0 * u / ts + u * u / (ts * ts)
+    out = []
+    for v in (beta, dbeta, ddbeta):
+        out.append(np.where(inside, np.where(on, v, 0.0), np.inf))
+    return tuple(out)
 
 
 def onset_layer(eps, penetration, onset=None):
@@ -213,6 +278,18 @@ def points_per_element(h, eps, penetration, density=DENSITY):
     return int(np.ceil(density * float(h) / support_length(eps, penetration)))
 
 
+def _quiet_beyond_the_wall(method):
+    """A state beyond the wall has infinite energy, and its residual, tangent and report
+    infinite or undefined entries (a trial the line search then refuses): no warnings."""
+    @functools.wraps(method)
+    def quiet(self, *args, **kw):
+        if self.wall is None:
+            return method(self, *args, **kw)
+        with np.errstate(invalid="ignore", over="ignore"):
+            return method(self, *args, **kw)
+    return quiet
+
+
 _SYM6 = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))     # entries of a symmetric 3 x 3
 _FULL9 = np.array([0, 3, 4, 3, 1, 5, 4, 5, 2])                   # ... back to its 9, row-major
 
@@ -226,7 +303,7 @@ class PotentialKernel:
     CHUNK_COUPLES = 1 << 19     # point couples per chunk of a pass over the near pairs (Cost)
 
     def __init__(self, order, nqc, eps, mu, delta, L, nelem, closed, penetration=0.01, nqp=None,
-                 onset=None, kernel="auto"):
+                 onset=None, kernel="auto", wall=None):
         if kernel not in ("auto", "compiled", "numpy"):
             raise ValueError(f"unknown potential kernel {kernel!r}: use auto, compiled or numpy")
         self.compiled = kernel != "numpy" and potential_compiled.available()
@@ -245,6 +322,13 @@ class PotentialKernel:
             nqp = max(self.nqc, points_per_element(self.h, self.eps, self.penetration))
         self.nqp = int(nqp)
         self.xp, self.wp = fe.gauss_legendre(self.nqp)
+        # the wall (The wall): short of the promised depth d* by the couples' sampling error,
+        # its barrier from there - wall on
+        self.wall = None
+        if wall:
+            a_w = self.penetration * 2.0 * self.eps - self.sampling_error()
+            self.wall = (a_w - float(wall), a_w)
+        self.law = np.array([self.a_s, *(self.wall if self.wall else (0.0, 0.0))])
         self.Np = fe.lagrange(self.p, self.xp)[0]
         # master points: the Gauss points and the two element ends (the rod's end caps)
         self.xm = np.concatenate([self.xp, [-1.0, 1.0]])
@@ -266,6 +350,17 @@ class PotentialKernel:
         self._rows = {}                 # _pair_rows: the ids they were made for, the rows
         self._wm = (None, None)         # master_weights of every element: (cap, table)
         self.chunk_couples = self.CHUNK_COUPLES
+
+    def sampling_error(self):
+        """How much closer than the closest couple of points two strands that touch at the
+        promised depth d* may come: a point between two sample points h_s apart is at most
+        h_s^2 / (8 g) farther from a straight strand at distance g = 2 eps - d* than its
+        closest point, on either strand: (h_slave^2 + h_master^2) / (8 g), h the largest
+        spacing of the slave points (across element ends too) and of the master points."""
+        h_slave = 0.5 * self.h * max(np.diff(self.xp).max(initial=0.0), 2.0 * (1.0 - self.xp[-1]))
+        h_master = 0.5 * self.h * np.diff(np.concatenate([[-1.0], self.xp, [1.0]])).max()
+        g = 2.0 * self.eps * (1.0 - self.penetration)
+        return (h_slave ** 2 + h_master ** 2) / (8.0 * g)
 
     @property
     def mu(self):
@@ -320,6 +415,7 @@ class PotentialKernel:
         return a, r, nu
 
     @logged("ContactEval")
+    @_quiet_beyond_the_wall
     def evaluate(self, own_ids, x_own, other_ids, x_other, pairs, tangent=True, report=True):
         """Energy and residual of (1) over the own elements, with the outputs of
         contact.ContactKernel.evaluate_strand (active = element pairs, no switch points); with
@@ -587,13 +683,15 @@ class PotentialKernel:
             k = self.k
             ac = self._active_couples(c)
             a, W, r, act = ac["a"], ac["W"], ac["r"], ac["act"]
-            out["energy"] = k * self._energy_sum(ac, W * law_energy(a, self.a_s))
+            out["energy"] = k * self._energy_sum(ac, W * law_energy(a, self.a_s, self.wall))
             # dE/dD = -k W psi'(a) nu per couple
-            G = (-k * W * law_force(a, self.a_s) / np.where(r > 0.0, r, 1.0))[:, None] * ac["D"]
+            G = (-k * W * law_force(a, self.a_s, self.wall) / np.where(r > 0.0, r, 1.0))[:, None] * ac["D"]
             vec = np.empty((len(act), 2 * n1, 3))
             vec[:, :n1] = self._NpT @ self._per_point(G, ac["row"], ac["q"], len(act), self.nqp)
             vec[:, n1:] = -(self._NmT @ self._per_point(G, ac["row"], ac["j"], len(act),
                                                         self.nqp + 2))
+        if self.wall is not None and out["depth"] >= self.wall[1]:
+            out["energy"] = np.inf          # beyond the wall (at a couple of any weight)
         nact = len(act)
         if not nact:
             return
@@ -603,6 +701,7 @@ class PotentialKernel:
                    interior=np.zeros(nact, dtype=bool), vec=vec)
 
     @logged("ContactTangent")
+    @_quiet_beyond_the_wall
     def add_tangent(self, out):
         """The tangent blocks of an evaluation (in place; nothing to do if it has them), from
         the couples in contact its residual kept:
@@ -631,9 +730,9 @@ class PotentialKernel:
         a, r, D, W, row, q, j = (ac[v] for v in ("a", "r", "D", "W", "row", "q", "j"))
         rs = np.where(r > 0.0, r, 1.0)
         on = self.k * W
-        cr = law_force(a, self.a_s) / rs
+        cr = law_force(a, self.a_s, self.wall) / rs
         # H = on (psi'' + psi'/|D|) nu nu^T - on (psi'/|D|) I (nu nu^T = D D^T / |D|^2): 6 entries
-        U = (on * (law_stiffness(a, self.a_s) + cr) / rs ** 2)[:, None] * D
+        U = (on * (law_stiffness(a, self.a_s, self.wall) + cr) / rs ** 2)[:, None] * D
         H = np.empty((len(a), 6))
         for n, (i, k) in enumerate(_SYM6):
             np.multiply(U[:, i], D[:, k], out=H[:, n])
@@ -654,6 +753,7 @@ class PotentialKernel:
         out["mat"] = m6.reshape(nact, 6 * n1, 6 * n1)
         return out
 
+    @_quiet_beyond_the_wall
     def add_report(self, out):
         """The report of an evaluation (in place; nothing to do if it has it): the gap and
         sbar at the nqc Gauss points by the closest-point projection of contact.py, the line
@@ -680,7 +780,9 @@ class PotentialKernel:
             oi, e, m = c["oi"][lo:hi], c["e"][lo:hi], c["m"][lo:hi]
             a, r, nu = self.couples(xq_own[oi], c["xm"][c["mi"][lo:hi]],
                                      self.admissible(e, m, self.xq, self.xm))
-            fa = self.master_weights(m)[:, None, :] * law_force(a, self.a_s)
+            if self.wall is not None:       # the report points, not the law's: The wall
+                a = np.minimum(a, c["depth"])
+            fa = self.master_weights(m)[:, None, :] * law_force(a, self.a_s, self.wall)
             # np.add.at(f, oi, ...) (scatter.py: the same sums)
             add_in_order(f.reshape(no, -1), in_order_rows(oi),
                          k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
@@ -690,7 +792,7 @@ class PotentialKernel:
         fp = np.zeros((no, self.nqp, 3))
         ac = self._active_couples(c)
         if len(ac["act"]):
-            coef = ac["wm"] * law_force(ac["a"], self.a_s) / np.where(ac["r"] > 0.0, ac["r"], 1.0)
+            coef = ac["wm"] * law_force(ac["a"], self.a_s, self.wall) / np.where(ac["r"] > 0.0, ac["r"], 1.0)
             # np.add.at(fp, (slave element, q), ...) (scatter.py: the same sums)
             add_in_order(fp.reshape(-1, 3),
                          in_order_rows(c["oi"][ac["act"][ac["row"]]] * self.nqp + ac["q"]),

@@ -11,15 +11,16 @@ per master point and per slave point and master shape function, and contracts th
 blocks.  The numpy path of PotentialKernel stays the reference: equal to round-off
 (tests/test_contact_potential.py).
 
-C entry points (int64 indices, C-contiguous float64 arrays):
+C entry points (int64 indices, C-contiguous float64 arrays; law = {a_s, a_b, a_w}, the onset
+layer and the wall of PotentialKernel.law, a_w = 0 without the wall):
 
     int64 rodsnes_potential_residual(prune, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem,
-        h, delta, L, closed, sq, sm, Np, Nm, wpJ, wm, two_eps, a_s, k, maxc, cp, cq, cj, cr,
+        h, delta, L, closed, sq, sm, Np, Nm, wpJ, wm, two_eps, law, k, maxc, cp, cq, cj, cr,
         act, vec, work, state)  -> couples in contact of the chunk from pair p0 (-1: maxc
                                    below one pair's nqp nm); state: the running sums and the
                                    next pair
     int64 rodsnes_potential_tangent(nc, nqp, nm, n1, xs, xm, oi, mi, Np, Nm, wpJ, wm,
-        two_eps, a_s, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
+        two_eps, law, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
 """
 import ctypes
 import functools
@@ -42,10 +43,10 @@ def _declare(lib):
     res = compiled.Foreign(lib.rodsnes_potential_residual,
                            [ctypes.c_int, n, n, n, n, n, f64, f64, i64, i64, i64, i64, n, x, x, x,
                             ctypes.c_int,
-                            f64, f64, f64, f64, f64, f64, x, x, x, n, i64, i64, i64, f64, i64,
+                            f64, f64, f64, f64, f64, f64, x, f64, x, n, i64, i64, i64, f64, i64,
                             f64, f64, f64], n)
     tan = compiled.Foreign(lib.rodsnes_potential_tangent,
-                           [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, x, x,
+                           [n, n, n, n, f64, f64, i64, i64, f64, f64, f64, f64, x, f64, x,
                             i64, i64, i64, f64, n, f64, f64], n)
     return res, tan
 
@@ -125,7 +126,7 @@ def _chunked_couples(kern, c, args, scratch, prune, two_eps=None, k=None):
     while True:
         nc = res(prune, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, kern.nelem, kern.h,
                  kern.delta, kern.L, int(bool(kern.closed)), kern._sq, kern._sm, kern._Npc,
-                 kern._Nmc, kern._wpJ, wm, two_eps, kern.a_s, k, maxc, cp, cq, cj,
+                 kern._Nmc, kern._wpJ, wm, two_eps, kern.law, k, maxc, cp, cq, cj,
                  cr, act, vec, work, state)
         if nc < 0:
             raise RuntimeError("rodsnes_potential_residual: couple buffers below one pair")
@@ -155,7 +156,7 @@ def tangent(kern, c):
     p, q, j, r = c["couples"]
     got = tan(len(p), nqp, nm, n1, _c(c["xs"]), _c(c["xm"]), _c(c["oi"], np.int64),
               _c(c["mi"], np.int64), kern._Npc, kern._Nmc, kern._wpJ, c["wm_table"],
-              2.0 * kern.eps, kern.a_s, kern.k, p, q, j, r, nrow, mat, work)
+              2.0 * kern.eps, kern.law, kern.k, p, q, j, r, nrow, mat, work)
     if got != nrow:
         raise RuntimeError(f"rodsnes_potential_tangent: {got} rows, expected {nrow}")
     return mat

@@ -48,7 +48,7 @@ from rodsnes.contact.scatter import add_in_order, in_order_rows
 from rodsnes.model import so3
 from rodsnes.model.partition import add_position_blocks, allreduce
 from rodsnes.model.term import Term
-from rodsnes.contact.potential import PotentialKernel
+from rodsnes.contact.potential import WALL, PotentialKernel
 from rodsnes.contact.mounts import SupportTerm
 
 
@@ -80,6 +80,7 @@ class ContactTerm(Term):
                         ck.default_penalty(min(rod.EI1, rod.EI2), self.eps, self.law_penetration))
         self.penalty_raises = 0         # -contact_penalty_adapt: re-solves with a raised mu
         self.penalty_failures = 0       # ... that failed (state and mu put back)
+        self.penalty_eased = 0          # ... raises for the next step, no re-solve (the wall)
         self.nqc = int(c.quadrature if c.quadrature else rod.order + 2)
         self.p = rod.order
         self.model = c.model
@@ -88,11 +89,16 @@ class ContactTerm(Term):
             self.kernel = PotentialKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                           mesh.length, mesh.nelem, mesh.closed,
                                           penetration=self.law_penetration,
-                                          nqp=c.potential_points)
+                                          nqp=c.potential_points,
+                                          wall=(WALL * self.penetration * 2.0 * self.radius
+                                                if c.wall else None))
         else:
             self.kernel = ck.ContactKernel(rod.order, self.nqc, self.eps, self.mu, self.delta,
                                            mesh.length, mesh.nelem, mesh.closed,
                                            segments=c.zones)
+        # the law's depths where the wall's barrier starts and where it stands (potential.py,
+        # The wall), None without one
+        self.wall = self.kernel.wall if self.model == "potential" else None
         self.step_limit = 0.5 * self.eps                         # largest nodal move per Newton step
         self.length_scale = self.eps
         self.reach = 2.0 * self.eps + 0.5 * self.eps            # search margin within a Newton step
@@ -324,8 +330,9 @@ class ContactTerm(Term):
         leaf_force = np.zeros((len(out["nodes"]), 3))
         if len(act):
             slave, master = self._residual_rows(act, out["nodes"])
-            add_in_order(Floc[:, 0:3], slave, out["vec"][:, :n1])
-            add_in_order(leaf_force, master, out["vec"][:, n1:])
+            with np.errstate(invalid="ignore"):     # beyond the wall: not finite, refused
+                add_in_order(Floc[:, 0:3], slave, out["vec"][:, :n1])
+                add_in_order(leaf_force, master, out["vec"][:, n1:])
         Floc[:self.layout.n_owned, 0:3] += self._send_back(leaf_force)
         if self.supports is not None:
             self.supports.add_residual(out["support"], Floc)
@@ -565,6 +572,18 @@ class ContactTerm(Term):
             return pen, None
         return pen, 1.25 * self.mu * depth / (self.law_penetration * 2.0 * self.eps)
 
+    def eased_penalty(self, r_loc):
+        """With the wall (-contact_wall) and -contact_penalty_adapt: the penalty for the next
+        load step when the converged state at r_loc presses into the wall's barrier (its
+        deepest couple beyond the barrier's start a_b), else None.  The state keeps the
+        promise (the wall); the raised penalty carries the next step's larger forces before
+        the barrier: 1.25 mu d / a_b, as promised_penalty's (a line contact has d ~ 1/mu).
+        No re-solve.  Collective."""
+        if self.wall is None:
+            return None
+        depth = self.deepest(r_loc, report=False)
+        return 1.25 * self.mu * depth / self.wall[0] if depth > self.wall[0] else None
+
     def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
         positions r_loc (local nodes), or of the last evaluation.  Collective.  With ``report``
@@ -580,8 +599,12 @@ class ContactTerm(Term):
     def depth_allowed(self, depth):
         """The deepest penetration a Newton step or a predictor may reach from a state whose
         deepest is ``depth``: twice it, or 2 % of the contact diameter (RodProblem.precheck,
-        the minimiser's line search and predictor)."""
-        return max(2.0 * depth, 0.02 * 2.0 * self.eps)
+        the minimiser's line search and predictor); never the wall (-contact_wall), where the
+        pair potential's energy is infinite."""
+        allow = max(2.0 * depth, 0.02 * 2.0 * self.eps)
+        if self.wall is None:
+            return allow
+        return min(allow, self.wall[1] * (1.0 - 1e-9))
 
     @staticmethod
     def deepest_local(out, report=False):
@@ -618,7 +641,8 @@ class ContactTerm(Term):
         for key in ("limited_steps", "penetration_limited_steps", "energy_limited_steps"):
             s[key] = stats.get(key, 0)
         s.update({"penetration_promised": self.penetration, "penalty_adapt": self.adapt,
-                  "penalty_raises": self.penalty_raises,
+                  "penalty_raises": self.penalty_raises, "contact_wall": self.wall is not None,
+                  "penalty_raises_between_steps": self.penalty_eased,
                   "penalty_raise_failures": self.penalty_failures})
         return s
 

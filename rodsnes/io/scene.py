@@ -293,8 +293,15 @@ class O:
                            "tight bend)", "contact", rng="[0,0.1]",
                            note="a fraction of the contact diameter, e.g. 0.02 for 2 %")
     contact_penalty_adapt = Opt(BOOL, True, "after a converged load step whose penetration exceeds "
-                                "-contact_penetration, raise the penalty and solve the step again",
+                                "-contact_penetration, raise the penalty and solve the step again "
+                                "(with -contact_wall: after one whose contact presses into the "
+                                "wall, raise it for the next step)",
                                 "contact", shown="true unless -contact_penalty is given")
+    contact_wall = Opt(BOOL, True, "the pair potential (-contact_model potential) keeps "
+                       "-contact_penetration as a wall: a barrier over its last half whose "
+                       "energy is infinite at the promised penetration, so that no step goes "
+                       "deeper and the penalty is not raised (false: the penalty alone)",
+                       "contact")
     contact_radius = Opt(REAL, None, "contact radius (distance of closest approach / 2)",
                          "contact", rng="(0,inf)", shown="rod radius",
                          note="radius of the contact tube, in length units")
@@ -517,6 +524,7 @@ class Contact:
     penetration: float = 0.01       # promised largest penetration, fraction of 2 radius
     standoff: float = 0.0           # the law acts from 2 eps (1 + standoff) (law_tube)
     adapt: bool = True              # raise mu after a step that breaks the promise
+    wall: bool = True               # the pair potential's promise as a wall (potential.py)
     curvature: bool = True          # thickness bound on bending: flexure <= 1/eps (elastic.py)
     supports: bool = True           # the clamps' mounts as obstacles (support.py)
     model: str = "projection"       # contact law: projection (contact/projection.py), potential (contact/potential.py)
@@ -1186,7 +1194,7 @@ def _contact(c, rod, bc):
                    zones=bool(c[O.contact_zones]), model=model,
                    model_auto=c[O.contact_model] == "auto",
                    penetration=float(c[O.contact_penetration]), standoff=standoff,
-                   adapt=adapt,
+                   adapt=adapt, wall=bool(c[O.contact_wall]),
                    curvature=bool(c[O.contact_curvature]),
                    supports=bool(c[O.contact_supports]))
 

@@ -530,6 +530,8 @@ class EnergyMinimizer:
             X.copy(Xt)
             Xt.axpy(h, d)
             p.residual(None, Xt, c)
+            if not np.isfinite(c.norm()):               # beyond the contact's wall
+                return False
             c.axpy(-(1.0 - h), p.F)
             c.scale(2.0 / (h * h))
             lam_max = self._stiffest()
