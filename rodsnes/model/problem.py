@@ -103,8 +103,7 @@ class RodState:
         xl = self.layout.to_local(self.X)
         th = xl[:, 3:6]
         if np.any(th):
-            self.q_ref[:] = so3.qmul(so3.qexp(th), self.q_ref)
-            self.q_ref /= np.linalg.norm(self.q_ref, axis=1, keepdims=True)
+            self.q_ref[:] = so3.rotated(th, self.q_ref, normalize=True)
             with self.X as a:
                 a.reshape(-1, NDOF)[:, 3:6] = 0.0
 
@@ -114,7 +113,7 @@ class RodState:
         th = xl[:, 3:6]
         if not th.any():            # at a recentred iterate: exp(0) q_ref = q_ref, bit for bit
             return xl[:, 0:3], self.q_ref.copy()
-        return xl[:, 0:3], so3.qmul(so3.qexp(th), self.q_ref)
+        return xl[:, 0:3], so3.rotated(th, self.q_ref)
 
 
 class Constraints:

@@ -4,8 +4,11 @@ Quaternions are arrays (..., 4) = (q0, qv), Hamilton product, R(q) rotates mater
 vectors into space: R = d_i (x) e_i, i.e. column i of R is the director d_i.
 exp of a spatial rotation vector theta:  exp(theta^x) = R(qexp(theta)),
 qexp(theta) = (cos|theta|/2, sin(|theta|/2) theta/|theta|).
+``rotated`` (exp(theta) q at every node of a rod) has a compiled kernel (so3_compiled).
 """
 import numpy as np
+
+from rodsnes.model import so3_compiled
 
 
 def hat(w):
@@ -54,6 +57,18 @@ def qexp(theta):
     out = np.empty(theta.shape[:-1] + (4,))
     out[..., 0] = np.cos(half)
     out[..., 1:] = s_over[..., None] * theta
+    return out
+
+
+def rotated(theta, q, normalize=False):
+    """exp(theta_i) q_i per node (qmul(qexp(theta), q)), divided by its norm with
+    ``normalize``: by the compiled kernel (so3_compiled; theta read in place) when it is built,
+    else by numpy."""
+    out = so3_compiled.rotate(theta, q, normalize)
+    if out is None:
+        out = qmul(qexp(theta), q)
+        if normalize:
+            out /= np.linalg.norm(out, axis=-1, keepdims=True)
     return out
 
 
