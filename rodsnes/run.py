@@ -160,6 +160,9 @@ class Run:
         st.restore(st.snapshot_of_step(last))
         for term in self.problem.terms:
             term.restart(last["attrs"])            # e.g. the adapted penalty
+            why = term.refuses(st.local_config()[0])
+            if why is not None:
+                raise SceneError(f"-restart {rdir}: {why}", ("-restart",))
         self.lam0 = float(last["attrs"]["load"])
         self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
         self.step = int(last["step"])

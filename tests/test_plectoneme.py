@@ -134,3 +134,23 @@ def test_a_penalty_raise_whose_solve_fails_is_cut_back_to_a_smaller_one(tmp_path
     assert c.penalty_failures == 0 and c.penalty_raises >= 1 and c.mu > mu0
     assert (c.deepest(run.problem.state.local_config()[0]) - c.offset) / (2 * c.radius) <= target
     assert res.fnorm <= s.tolerance()
+
+
+def test_a_restart_beyond_the_wall_is_refused_with_the_promise_that_fits(tmp_path):
+    """A restart whose state presses deeper than the wall of a tighter -contact_penetration
+    (the pair potential's energy infinite there) is refused before any step, with the promise
+    that would fit or -contact_wall 0; the promise it names fits, and so does the penalty
+    alone."""
+    import re
+    from rodsnes.errors import SceneError
+    with pytest.raises(SceneError, match="-contact_wall 0") as err:
+        build_run("plectoneme", outdir=tmp_path / "a", restart=TEN_TURNS,
+                  contact_penetration=0.003)
+    need = float(re.search(r"-contact_penetration (\S+) or more", str(err.value)).group(1))
+    assert 0.003 < need < 0.01
+    run = build_run("plectoneme", outdir=tmp_path / "b", restart=TEN_TURNS,
+                    contact_penetration=need)
+    assert run.contact.deepest(run.problem.state.local_config()[0], report=False) \
+        < run.contact.wall[1]
+    build_run("plectoneme", outdir=tmp_path / "c", restart=TEN_TURNS, contact_penetration=0.003,
+              contact_wall=0)

@@ -628,6 +628,22 @@ class ContactTerm(Term):
         if self.adapt and mu is not None:
             self.set_penalty(max(self.mu, float(mu)))
 
+    def refuses(self, r_loc):
+        """A state beyond the wall (a restart from a run with a larger promise or without the
+        wall): the pair potential's energy is infinite there, no minimisation can start."""
+        if self.wall is None:
+            return None
+        depth = self.deepest(r_loc, report=False)
+        if depth < self.wall[1]:
+            return None
+        pen = (depth - self.offset) / (2.0 * self.radius)
+        need = (depth + (self.kernel.penetration * 2.0 * self.eps - self.wall[1]) - self.offset) \
+            / (2.0 * self.radius)
+        return (f"its state presses {pen:.3%} of the diameter into the contact tube, beyond the "
+                f"wall that keeps -contact_penetration {self.penetration:g} (the pair "
+                f"potential's energy is infinite there): restart with -contact_penetration "
+                f"{1.05 * need:.3g} or more, or with -contact_wall 0")
+
     def report(self, r_loc):
         """The KKT picture (summary) at the local positions r_loc.  Collective."""
         self.evaluate(r_loc, tangent=False)

@@ -103,6 +103,11 @@ class Term:
     def restart(self, attrs):
         """Take what a restart needs from the result.h5 attributes of the step it starts from."""
 
+    def refuses(self, r):
+        """Why the term cannot start from the positions r (local nodes), as a sentence naming
+        the option that would let it, or None.  Collective."""
+        return None
+
     def report(self, r):
         """Its section of summary.json at positions r (collective); {} for none."""
         return {}
