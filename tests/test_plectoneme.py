@@ -154,3 +154,27 @@ def test_a_restart_beyond_the_wall_is_refused_with_the_promise_that_fits(tmp_pat
         < run.contact.wall[1]
     build_run("plectoneme", outdir=tmp_path / "c", restart=TEN_TURNS, contact_penetration=0.003,
               contact_wall=0)
+
+
+@pytest.mark.parametrize("path", ["newton", "minimize"])
+def test_a_state_pressing_into_the_wall_raises_the_penalty_for_the_next_step(tmp_path, path):
+    """The 10-turn state under a promise whose wall's barrier it presses into (-contact_wall,
+    0.45 %: the state's deepest couple between the barrier's start and the wall): the step is
+    kept as it is, no solve, and mu rises for the next step to 1.25 mu d / a_b, on both load
+    paths; a state short of the barrier raises nothing."""
+    from rodsnes.solve.newton import StepResult
+    run = build_run("plectoneme", outdir=tmp_path, restart=TEN_TURNS, load_path=path,
+                    contact_penetration=0.0045)
+    s, c = run.solver, run.contact
+    r = run.problem.state.local_config()[0]
+    depth = c.deepest(r, report=False)
+    assert c.wall[0] < depth < c.wall[1]
+    res = StepResult(run.lam0, True, 0, "restart", np.nan, np.array([]), 0.0)
+    mu0 = c.mu
+    (s.keep_penetration if path == "newton" else s.keep_promise)(res)
+    assert res.its == 0 and c.penalty_raises == 0 and c.penalty_eased == 1
+    assert c.mu == pytest.approx(1.25 * mu0 * depth / c.wall[0], rel=1e-12)
+    run = build_run("plectoneme", outdir=tmp_path / "far", restart=TEN_TURNS, load_path=path)
+    res = StepResult(run.lam0, True, 0, "restart", np.nan, np.array([]), 0.0)
+    (run.solver.keep_penetration if path == "newton" else run.solver.keep_promise)(res)
+    assert run.contact.penalty_eased == 0 and res.its == 0

@@ -572,17 +572,22 @@ class ContactTerm(Term):
             return pen, None
         return pen, 1.25 * self.mu * depth / (self.law_penetration * 2.0 * self.eps)
 
-    def eased_penalty(self, r_loc):
-        """With the wall (-contact_wall) and -contact_penalty_adapt: the penalty for the next
-        load step when the converged state at r_loc presses into the wall's barrier (its
-        deepest couple beyond the barrier's start a_b), else None.  The state keeps the
-        promise (the wall); the raised penalty carries the next step's larger forces before
-        the barrier: 1.25 mu d / a_b, as promised_penalty's (a line contact has d ~ 1/mu).
-        No re-solve.  Collective."""
+    def ease_wall(self, r_loc):
+        """With the wall (-contact_wall) and -contact_penalty_adapt, after a converged load step
+        at r_loc whose deepest couple lies inside the wall's barrier (beyond its start a_b): the
+        state keeps the promise (the wall), and the penalty is raised for the next step, which
+        then carries its larger forces before the barrier: 1.25 mu d / a_b, as
+        promised_penalty's (a line contact has d ~ 1/mu).  No re-solve.  Returns (mu before,
+        mu after), or None when nothing was raised.  Collective."""
         if self.wall is None:
             return None
         depth = self.deepest(r_loc, report=False)
-        return 1.25 * self.mu * depth / self.wall[0] if depth > self.wall[0] else None
+        if depth <= self.wall[0]:
+            return None
+        mu0 = self.mu
+        self.set_penalty(1.25 * mu0 * depth / self.wall[0])
+        self.penalty_eased += 1
+        return mu0, self.mu
 
     def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the

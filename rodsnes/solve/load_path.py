@@ -114,15 +114,11 @@ class LoadPath:
 
     def _ease_wall(self, ct, lam):
         """A converged state that keeps the promise by pressing into the wall's barrier: the
-        penalty raised for the next load step, without a re-solve (ContactTerm.eased_penalty)."""
-        mu1 = ct.eased_penalty(self.problem.state.local_config()[0])
-        if mu1 is None:
-            return
-        mu0 = ct.mu
-        ct.set_penalty(mu1)
-        ct.penalty_eased += 1
-        self._say(f"  load {lam:.6f}: the contact presses into the wall: penalty {mu0:.4g} -> "
-                  f"{ct.mu:.4g} for the next step")
+        penalty raised for the next load step, without a re-solve (ContactTerm.ease_wall)."""
+        raised = ct.ease_wall(self.problem.state.local_config()[0])
+        if raised is not None:
+            self._say(f"  load {lam:.6f}: the contact presses into the wall: penalty "
+                      f"{raised[0]:.4g} -> {raised[1]:.4g} for the next step")
 
     def check_plane(self, res):
         """A planar run's converged step: the out-of-plane block of the Hessian factored
