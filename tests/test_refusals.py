@@ -372,6 +372,10 @@ WARNINGS = [
      "-load_arclength_its = 5 does nothing: it acts with -load_arclength only"),
     ("follower_without_force", ROLLUP + ("-load_end_force_follower",),
      "-load_end_force_follower does nothing: there is no end force"),
+    ("wall_with_the_closest_point_law", ROLLUP_CONTACT + ("-contact_model", "projection",
+                                                         "-contact_wall", "0"),
+     "-contact_wall = 0 does nothing: the wall is the pair potential's (-contact_model "
+     "potential), and this run's contact law is projection; drop it"),
     ("gauge_on_open_rod", MATT + ("-rod_closed_gauge", "0"),
      "-rod_closed_gauge = 0 does nothing: it holds a closed ring"),
     ("misspelt_petsc_option", MATT + ("-snes_monitr",),

@@ -1663,6 +1663,9 @@ def _idle_reasons(scene, options, path):
     if not c.enabled:
         out += [(o, "self-contact is off (add -contact)") for o in OPTIONS
                 if o.section == "contact" and o is not O.contact]
+    elif c.model != "potential":
+        out.append((O.contact_wall, "the wall is the pair potential's (-contact_model "
+                                    "potential), and this run's contact law is %s" % c.model))
     if not bool(options.getBool("load_arclength", False)):
         out += [(o, "it acts with -load_arclength only")
                 for o in (O.load_arclength_its, O.load_arclength_max_steps)]
