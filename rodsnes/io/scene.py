@@ -300,7 +300,8 @@ class O:
     contact_wall = Opt(BOOL, True, "the pair potential (-contact_model potential) keeps "
                        "-contact_penetration as a wall: a barrier over its last half whose "
                        "energy is infinite at the promised penetration, so that no step goes "
-                       "deeper and the penalty is not raised (false: the penalty alone)",
+                       "deeper and none is solved twice (-contact_penalty_adapt raises the "
+                       "penalty between steps instead; false: the penalty alone)",
                        "contact")
     contact_radius = Opt(REAL, None, "contact radius (distance of closest approach / 2)",
                          "contact", rng="(0,inf)", shown="rod radius",
