@@ -95,6 +95,12 @@ class Term:
         """(measure, the penalty that keeps the promise or None while it is kept).  Collective."""
         return 0.0, None
 
+    def ease_wall(self, r):
+        """After a converged step that keeps the promise: the penalty raised for the next step
+        where a wall holds the promise by pressing on it, as (before, after); None when nothing
+        was raised.  Collective."""
+        return None
+
     def adopt(self, other):
         """Take what ``other``, the same term of another discretisation of the scene, has
         adapted during its run (the raised penalty), so that both pose the same problem."""
