@@ -3,6 +3,7 @@
 to the assembled sum, and the contact's position blocks (partition.add_position_blocks) enter
 only their 3 x 3 position parts, bit for bit as the dense 6 x 6 blocks did.  Open and closed
 rods, with and without contact, 1 and 2 ranks (mpi)."""
+from mpi4py import MPI
 import numpy as np
 import pytest
 from petsc4py import PETSc
@@ -110,7 +111,8 @@ def test_contact_state_has_contact_blocks_in_the_compared_matrix():
     p.terms = [t for t in terms if t is not run.contact]
     try:
         p.jacobian(None, p.state.X, p.J, p.J)
-        assert not np.array_equal(owned_dense(p.J), A)
+        differs = not np.array_equal(owned_dense(p.J), A)   # on a rank that owns contact rows
+        assert PETSc.COMM_WORLD.tompi4py().allreduce(differs, op=MPI.LOR)
     finally:
         p.terms = terms
 
@@ -144,7 +146,8 @@ def dense_position_blocks(P, layout, nodes, mat):
 def test_position_blocks_add_as_the_dense_blocks_did(monkeypatch, chunk):
     """Random position tangents of random node groups (some on constrained nodes, some
     repeated) added through DirichletRows on top of the elastic tangent: the same matrix
-    bit for bit as the dense 6 x 6 blocks, in bounded chunks or in one."""
+    bit for bit as the dense 6 x 6 blocks (on up to 2 ranks; to round-off on more), in
+    bounded chunks or in one."""
     if chunk is not None:
         monkeypatch.setattr(partition, "POSITION_CHUNK", chunk)
     run = perturbed(build_run("mattiasson", rod_nelem=6, rod_error_estimate="off"))
@@ -168,7 +171,10 @@ def test_position_blocks_add_as_the_dense_blocks_did(monkeypatch, chunk):
         T.finish(p.constraints.rows_global)
         J.assemble()
         out.append(owned_dense(J))
-    assert_bitwise_equal(out[1], out[0])
+    if PETSc.COMM_WORLD.getSize() <= 2:
+        assert_bitwise_equal(out[1], out[0])
+    else:       # from several other ranks the stashed additions arrive in no fixed order
+        assert np.abs(out[1] - out[0]).max() <= 1e-14 * np.abs(out[0]).max()
     assert np.count_nonzero(out[1]) > 0
 
 
