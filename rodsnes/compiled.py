@@ -2,6 +2,7 @@
 Python API) and opened with ctypes (model/elastic_compiled.py, contact/potential_compiled.py).
 """
 import ctypes
+import functools
 import importlib.util
 import os
 
@@ -37,7 +38,8 @@ def open_library(module):
 def load(module, declare):
     """declare(lib): the ctypes functions, with their argument types, of the built extension
     ``module``; False when it is not built, does not load or lacks a declared function (built
-    from an older source; the caller then uses its numpy path).  The kernels' modules cache it (functools.cache on their _load)."""
+    from an older source; the caller then uses its numpy path).  The kernels' modules load it
+    once, through ``loader``."""
     lib = open_library(module)
     if lib is None:
         return False
@@ -45,6 +47,12 @@ def load(module, declare):
         return declare(lib)
     except AttributeError:          # a library built from an older source: rebuild (make install)
         return False
+
+
+def loader(module, declare):
+    """A function of no arguments that returns load(module, declare), made on its first call
+    and kept (each kernel's module holds one as its _load)."""
+    return functools.lru_cache(maxsize=None)(functools.partial(load, module, declare))
 
 
 def address(a, dtype):

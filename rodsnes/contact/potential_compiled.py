@@ -23,7 +23,6 @@ layer and the wall of PotentialKernel.law, a_w = 0 without the wall):
         two_eps, law, k, cp, cq, cj, cr, nrow, mat, work)   -> rows (-1: more than nrow)
 """
 import ctypes
-import functools
 
 import numpy as np
 
@@ -51,10 +50,8 @@ def _declare(lib):
     return res, tan
 
 
-@functools.lru_cache(maxsize=None)
-def _load():
-    """(residual, tangent), or False when the library is not built or does not load."""
-    return compiled.load("rodsnes.contact._potential_kernel", _declare)
+# (residual, tangent), or False when the library is not built or does not load.
+_load = compiled.loader("rodsnes.contact._potential_kernel", _declare)
 
 
 def available():

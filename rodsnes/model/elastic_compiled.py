@@ -23,7 +23,6 @@ C entry point:
                                double *energy);          (the energy alone: line searches)
 """
 import ctypes
-import functools
 
 import numpy as np
 
@@ -47,10 +46,8 @@ def _declare(lib):
     return fn, en
 
 
-@functools.lru_cache(maxsize=None)
-def _load():
-    """The kernel's ctypes function, or False when the library is not built or does not load."""
-    return compiled.load("rodsnes.model._elastic_kernel", _declare)
+# the kernel's ctypes function, or False when the library is not built or does not load.
+_load = compiled.loader("rodsnes.model._elastic_kernel", _declare)
 
 
 def available():

@@ -49,7 +49,6 @@ Methods and references
   writhing number of a non-closed curve" (2005)).
 """
 import ctypes
-import functools
 
 import numpy as np
 
@@ -197,10 +196,8 @@ def _declare(lib):
                              ctypes.c_int], ctypes.c_double)
 
 
-@functools.lru_cache(maxsize=None)
-def _load():
-    """The compiled Gauss sum, or False when the library is not built or does not load."""
-    return compiled.load("rodsnes.model._topology_kernel", _declare)
+# the compiled Gauss sum, or False when the library is not built or does not load.
+_load = compiled.loader("rodsnes.model._topology_kernel", _declare)
 
 
 def _kernel():
