@@ -572,13 +572,13 @@ class ContactTerm(Term):
             return pen, None
         return pen, 1.25 * self.mu * depth / (self.law_penetration * 2.0 * self.eps)
 
-    def ease_wall(self, r_loc):
+    def ease_wall(self, r_loc, lam):
         """With the wall (-contact_wall) and -contact_penalty_adapt, after a converged load step
         at r_loc whose deepest couple lies inside the wall's barrier (beyond its start a_b): the
         state keeps the promise (the wall), and the penalty is raised for the next step, which
         then carries its larger forces before the barrier: 1.25 mu d / a_b, as
-        promised_penalty's (a line contact has d ~ 1/mu).  No re-solve.  Returns (mu before,
-        mu after), or None when nothing was raised.  Collective."""
+        promised_penalty's (a line contact has d ~ 1/mu).  No re-solve.  Returns the line that
+        says so at load ``lam``, or None when nothing was raised.  Collective."""
         if self.wall is None:
             return None
         depth = self.deepest(r_loc, report=False)
@@ -587,7 +587,8 @@ class ContactTerm(Term):
         mu0 = self.mu
         self.set_penalty(1.25 * mu0 * depth / self.wall[0])
         self.penalty_eased += 1
-        return mu0, self.mu
+        return (f"  load {lam:.6f}: the contact presses into the wall: penalty {mu0:.4g} -> "
+                f"{self.mu:.4g} for the next step")
 
     def deepest(self, r_loc=None, report=True):
         """max d = 2 eps - distance over all ranks (positive: the deepest penetration), at the
@@ -642,8 +643,7 @@ class ContactTerm(Term):
         if depth < self.wall[1]:
             return None
         pen = (depth - self.offset) / (2.0 * self.radius)
-        need = (depth + (self.kernel.penetration * 2.0 * self.eps - self.wall[1]) - self.offset) \
-            / (2.0 * self.radius)
+        need = (depth + self.kernel.sampling_error() - self.offset) / (2.0 * self.radius)
         return (f"its state presses {pen:.3%} of the diameter into the contact tube, beyond the "
                 f"wall that keeps -contact_penetration {self.penetration:g} (the pair "
                 f"potential's energy is infinite there): restart with -contact_penetration "

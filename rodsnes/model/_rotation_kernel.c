@@ -1,18 +1,18 @@
 /* Rotations of rodsnes' nodes (C99, no Python API; loaded with ctypes by
  * rodsnes/model/so3_compiled.py): out_i = exp(theta_i) * q_i, one pass over the nodes, with
  * the formulas of so3.qexp and so3.qmul (quaternions (w, x, y, z), Hamilton product), and with
- * ``normalize`` out_i / |out_i|.  theta_i = x[i * stride + col + (0, 1, 2)]: the rotation
+ * ``normalize`` out_i / |out_i|.  theta_i = x[i * stride + (0, 1, 2)]: the rotation
  * increments in place in the rows of the local dof array, no copy.  Built with
  * -ffp-contract=off: the same floating-point operations as the numpy path, up to sin and cos.
  */
 #include <math.h>
 #include <stdint.h>
 
-void rodsnes_rotate(int64_t n, const double *x, int64_t stride, int64_t col, const double *q,
-                    int normalize, double *out)
+void rodsnes_rotate(int64_t n, const double *x, int64_t stride, const double *q, int normalize,
+                    double *out)
 {
     for (int64_t i = 0; i < n; i++) {
-        const double *t = x + i * stride + col;
+        const double *t = x + i * stride;
         const double t1 = t[0], t2 = t[1], t3 = t[2];
         const double ang = sqrt(t1 * t1 + t2 * t2 + t3 * t3), half = 0.5 * ang;
         const double s = ang < 1e-8 ? 0.5 - ang * ang / 48.0 : sin(half) / ang;

@@ -9,11 +9,10 @@ normalisation 7) against C 8 ms (the sines and cosines).
 
 C entry point:
 
-    void rodsnes_rotate(int64 n, const double *x, int64 stride, int64 col, const double *q,
-                        int normalize, double *out)
+    void rodsnes_rotate(int64 n, const double *x, int64 stride, const double *q, int normalize,
+                        double *out)
 """
 import ctypes
-import functools
 
 import numpy as np
 
@@ -23,14 +22,12 @@ from rodsnes import compiled
 def _declare(lib):
     n = ctypes.c_int64
     return compiled.Foreign(lib.rodsnes_rotate,
-                            [n, ctypes.c_void_p, n, n, compiled.F64, ctypes.c_int,
-                             compiled.F64], None)
+                            [n, ctypes.c_void_p, n, compiled.F64, ctypes.c_int, compiled.F64],
+                            None)
 
 
-@functools.lru_cache(maxsize=None)
-def _load():
-    """The kernel's ctypes function, or False when the library is not built or does not load."""
-    return compiled.load("rodsnes.model._rotation_kernel", _declare)
+# the kernel's ctypes function, or False when the library is not built or does not load.
+_load = compiled.loader("rodsnes.model._rotation_kernel", _declare)
 
 
 def available():
@@ -48,6 +45,6 @@ def rotate(theta, q, normalize):
     q = np.ascontiguousarray(q, dtype=np.float64)
     out = np.empty((len(q), 4))
     if len(q):
-        fn(len(q), theta.__array_interface__["data"][0], theta.strides[0] // 8, 0, q,
+        fn(len(q), theta.__array_interface__["data"][0], theta.strides[0] // 8, q,
            int(bool(normalize)), out)
     return out

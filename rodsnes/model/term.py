@@ -95,10 +95,10 @@ class Term:
         """(measure, the penalty that keeps the promise or None while it is kept).  Collective."""
         return 0.0, None
 
-    def ease_wall(self, r):
-        """After a converged step that keeps the promise: the penalty raised for the next step
-        where a wall holds the promise by pressing on it, as (before, after); None when nothing
-        was raised.  Collective."""
+    def ease_wall(self, r, lam):
+        """After a converged step at load lam that keeps the promise: the penalty raised for
+        the next step where a wall holds the promise by pressing on it; the line that says so,
+        or None when nothing was raised.  Collective."""
         return None
 
     def adopt(self, other):

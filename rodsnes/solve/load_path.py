@@ -93,7 +93,9 @@ class LoadPath:
         for _ in range(max_raises):
             pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
             if mu1 is None:
-                self._ease_wall(ct, res.lam)
+                said = ct.ease_wall(p.state.local_config()[0], res.lam)
+                if said is not None:
+                    self._say(said)
                 return True
             mu0 = ct.mu
             ct.set_penalty(mu1)
@@ -111,14 +113,6 @@ class LoadPath:
                 ct.set_penalty(mu0)
                 return False
         return True
-
-    def _ease_wall(self, ct, lam):
-        """A converged state that keeps the promise by pressing into the wall's barrier: the
-        penalty raised for the next load step, without a re-solve (ContactTerm.ease_wall)."""
-        raised = ct.ease_wall(self.problem.state.local_config()[0])
-        if raised is not None:
-            self._say(f"  load {lam:.6f}: the contact presses into the wall: penalty "
-                      f"{raised[0]:.4g} -> {raised[1]:.4g} for the next step")
 
     def check_plane(self, res):
         """A planar run's converged step: the out-of-plane block of the Hessian factored

@@ -329,10 +329,9 @@ class NewtonSolver:
         for _ in range(max_raises):
             pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
             if mu1 is None:
-                eased = ct.ease_wall(p.state.local_config()[0])
-                if eased is not None:
-                    self.say(f"  load {res.lam:.6f}: the contact presses into the wall: "
-                             f"penalty {eased[0]:.4g} -> {eased[1]:.4g} for the next step")
+                said = ct.ease_wall(p.state.local_config()[0], res.lam)
+                if said is not None:
+                    self.say(said)
                 break
             mu0, snap = ct.mu, p.state.snapshot()
             while True:
