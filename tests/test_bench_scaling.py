@@ -145,15 +145,32 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
     factors its own stretch by PETSc's LU: solve/schur.py, tests/test_schur.py), whose factors
     petsc4py does not reach: the fill is that of the Jacobian's node graph (linear.pattern_fill,
     equal to the serial LU's: 3.355 for the coil at 1000 elements), and above FILL_MUMPS the
-    Newton steps factor by MUMPS over the ranks."""
+    Newton steps factor by MUMPS: each rank its own stretch with the Schur complement where the
+    stretches meet (schur.RankSchur with package mumps), over the ranks on a short rod."""
     from conftest import run_case
+    from petsc4py import PETSc
     from rodsnes.solve.linear import FILL_MUMPS, pattern_fill
     coil = run_case("bench_coil", rod_nelem=200, rod_length=4.0, load_path="newton",
                     rod_error_estimate="off")
     pc = coil.solver.snes.getKSP().getPC()
     assert coil.ok and pattern_fill(coil.problem) > FILL_MUMPS
-    if coil.comm.getSize() > 1:
+    size = coil.comm.getSize()
+    if size > 1:
+        # 601 nodes: too short for the condensation (schur.MIN_NODES_PER_RANK_MUMPS)
         assert pc.getType() == "lu" and pc.getFactorSolverType() == "mumps"
+        # long enough: every rank factors its stretch by MUMPS, the ranks share the Schur
+        # complement; the run is the serial run's
+        n = 150 * size
+        kw = dict(rod_nelem=n, rod_length=0.02 * n, load_path="newton", rod_error_estimate="off")
+        long = run_case("bench_coil", **kw)
+        ser = run_case("bench_coil", comm=PETSc.COMM_SELF, **kw,
+                       outdir=long.outdir + f"_s{PETSc.COMM_WORLD.getRank()}")
+        ctx = long.solver.snes.getKSP().getPC().getPythonContext()
+        assert long.ok and ser.ok
+        assert ctx.package == "mumps" and ctx.setups["schur"] > 0 and ctx.setups["whole"] == 0
+        sl, ss = long.summary(converged=True), ser.summary(converged=True)
+        assert sl["newton_iterations"] == ss["newton_iterations"]
+        assert sl["energy"] == pytest.approx(ss["energy"], rel=1e-9)
     chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()

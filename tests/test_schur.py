@@ -1,6 +1,6 @@
 """solve/schur.py: exact solves over several ranks by static condensation (RankSchur), the
-default LU of a chain on more than one rank (solve/linear.py); its kept interior (the rank's
-diagonal block, or a kept copy with the identity on the separator rows it owns) taking new
+default LU of a chain on more than one rank (solve/linear.py); its interior (the rank's
+diagonal block, with the identity on the separator rows it owns while it is factored) taking new
 values by re-assembly, by ADD_VALUES without zeroEntries, under -mat_type aij and after a
 failed factorisation, on 2 and 3 ranks (make test-mpi, or mpirun -n 3 --oversubscribe)."""
 import numpy as np
@@ -180,11 +180,18 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     assert error(xr) < 1e-6 and as_accurate(y), (backward(y), error(y), error(xr))
     # a new set-up of the same matrix with new values keeps the blocks and takes the values
     # (2 A: half the solution; stale blocks would give another)
+    # the matrix is A as it was: the diagonal block's separator rows and columns, the
+    # identity's while factored, have their values back
+    Ay, Ay2 = y.duplicate(), y.duplicate()
+    A.mult(y, Ay)
+    _solve(A, b, schur.RankSchur(run.problem))
+    A.mult(y, Ay2)
+    assert Ay.equal(Ay2)
     kept = ctx.kept["AII"]
     A.scale(2.0)
     y2 = _solve(A, b, ctx)
     A.scale(0.5)
-    assert ctx.kept["AII"] is kept and ctx.setups["schur"] == 2
+    assert ctx.kept["AII"].handle == kept.handle and ctx.setups["schur"] == 2
     d = y2.copy()
     d.axpy(-0.5, y)
     assert d.norm() <= 1e-12 * y.norm()
@@ -245,7 +252,7 @@ def test_a_failed_interior_fails_on_every_rank(monkeypatch):
         assert np.isnan(a).all()
 
 
-# -- the kept interior takes new values (RankSchur._interior) -------------------------
+# -- the interior takes new values (RankSchur._factor_interior) --------------------------
 def _check(ksp, A, p):
     """ksp's solution of A x = b for a smooth x (b = A x) is a fresh RankSchur's (the kept
     blocks hold A's values: a stale block would differ at O(1)) and within a loose factor of
@@ -275,7 +282,7 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
     diagonal block itself; on the ring every rank owns one): the condensed solve equals the LU's for the first
     Jacobian, for a re-assembled one at another state (zeroEntries and ADD_VALUES), and for
     entries added without zeroEntries (ADD_VALUES then assembly, separator rows included); the
-    kept interior is reused (the same object) each time."""
+    interior is the diagonal block each time (no copy)."""
     comm = PETSc.COMM_WORLD
     p = _condensed_problem(monkeypatch, case, **kw)
     A = p.J
@@ -285,8 +292,8 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
     assert ctx.mode == "schur"
     mpi = comm.tompi4py()
     owners = mpi.allgather(len(ctx.kept["G"]) > 0)
-    # both kinds of interior: the diagonal block itself (a rank owning no separator node)
-    # and the kept copy; on the ring every rank owns one (a cut 3 + 1 on each side)
+    # both kinds of interior: the diagonal block as it is (a rank owning no separator node)
+    # and with separator rows; on the ring every rank owns one (a cut 3 + 1 on each side)
     assert any(owners)
     assert all(owners) if case == "michell" else not all(owners)
     kept = ctx.kept["AII"]
@@ -294,7 +301,7 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
     perturb_state(p, scale=3e-3)
     p.jacobian(None, p.state.X, p.J, p.J)
     _check(ksp, A, p)
-    assert ctx.kept["AII"] is kept and ctx.setups["schur"] == 2
+    assert ctx.kept["AII"].handle == kept.handle and ctx.setups["schur"] == 2
     # entries added to an assembled matrix (no zeroEntries): on every rank's first, last and
     # separator rows
     lo, hi = A.getOwnershipRange()
@@ -305,7 +312,7 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
         A.setValue(r, r, 5.0e3 * (1 + r % 7), addv=PETSc.InsertMode.ADD_VALUES)
     A.assemble()
     _check(ksp, A, p)
-    assert ctx.kept["AII"] is kept and ctx.setups["schur"] == 3
+    assert ctx.kept["AII"].handle == kept.handle and ctx.setups["schur"] == 3
 
 
 @pytest.mark.mpi
@@ -383,8 +390,8 @@ def _redistributed(A, ranges):
 @pytest.mark.mpi
 def test_a_middle_rank_owning_separator_nodes_on_both_sides(monkeypatch):
     """3 ranks (or 2) owning the chain's cubic elements so that each cut is 3 + 1 with the
-    lone node on the middle rank: it owns the separator on both sides (its kept copy has the
-    identity at both ends), rank 0 none (its diagonal block itself).  The solution is a fresh
+    lone node on the middle rank: it owns the separator on both sides (its diagonal block has the
+    identity at both ends while factored), rank 0 none (its diagonal block as it is).  The solution is a fresh
     condensation's and the LU's, for the first values and for new values (2 A, then ADD_VALUES
     on the separator rows)."""
     comm = PETSc.COMM_WORLD
@@ -433,3 +440,101 @@ def test_a_middle_rank_owning_separator_nodes_on_both_sides(monkeypatch):
     A.assemble()
     _check(ksp, A, p)
     assert ctx.setups["schur"] == 3
+
+
+# -- interiors factored by MUMPS with its Schur complement (a contact-filled pattern) ----------
+def test_mumps_forms_the_schur_complement_of_the_chosen_unknowns():
+    """schur.set_schur_unknowns and schur_complement (PETSc's MatFactorSetSchurIS and
+    MatFactorGetSchurComplement, which petsc4py 3.18 lacks, through ctypes) on a sparse matrix
+    of block size 3: T = A_NN - A_NF A_FF^-1 A_FN to round-off, the factor's solve is A's, and
+    a new factorisation of new values gives their T."""
+    rng = np.random.default_rng(3)
+    n = 60
+    D = rng.standard_normal((n, n)) * (rng.random((n, n)) < 0.15) + 6.0 * np.eye(n)
+    A = PETSc.Mat().createAIJ((n, n), bsize=3, comm=PETSc.COMM_SELF)
+    A.setUp()
+    rows, cols = np.nonzero(D)
+    for i, j in zip(rows, cols):
+        A.setValue(int(i), int(j), D[i, j])
+    A.assemble()
+    A = A.convert("baij")
+    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("lu")
+    pc.setFactorSolverType("mumps")
+    ksp.setOperators(A)
+    pc.setFactorSetUpSolverType()
+    near = np.arange(40, 55)
+    far = np.setdiff1d(np.arange(n), near)
+    schur.set_schur_unknowns(pc.getFactorMatrix(), near)
+    ref = D[np.ix_(near, near)] - D[np.ix_(near, far)] @ np.linalg.solve(D[np.ix_(far, far)],
+                                                                         D[np.ix_(far, near)])
+    for scale in (1.0, 2.0):
+        if scale != 1.0:
+            A.scale(scale)
+            ksp.setOperators(A)
+        ksp.setUp()
+        T = schur.schur_complement(pc.getFactorMatrix(), len(near))
+        assert np.abs(T - scale * ref).max() <= 1e-13 * np.abs(ref).max()
+        b = A.createVecLeft()
+        b.setArray(rng.standard_normal(n))
+        x = b.duplicate()
+        ksp.solve(b, x)
+        assert np.abs(scale * D @ x.getArray() - b.getArray()).max() <= 1e-13 * b.norm()
+
+
+def _coil_system(elements):
+    """The bench coil's Jacobian (turns touching along the rod: a pattern whose fill sends the
+    LU to MUMPS, linear.FILL_MUMPS) and b = J x for a smooth x."""
+    run = build_run("bench_coil", rod_nelem=elements, rod_length=0.02 * elements)
+    return _system(run) + (run,)
+
+
+def _backward(A, b, v):
+    """Normwise backward error |A v - b| / (|A| |v| + |b|)."""
+    r = b.duplicate()
+    A.mult(v, r)
+    r.axpy(-1.0, b)
+    return r.norm() / (A.norm(PETSc.NormType.INFINITY) * v.norm() + b.norm())
+
+
+@pytest.mark.mpi
+def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
+    """The bench coil on several ranks, each rank's interior factored by MUMPS with the Schur
+    complement of its unknowns next to the separator (no column solves): backward stable as
+    MUMPS over the ranks, the solution within the LU's error of the smooth x; a second set-up
+    takes new values (it solves 2 A y = b as well); above SCHUR_MAX the whole matrix by MUMPS over
+    the ranks; a rank's interior that fails to factor fails the solve on every rank."""
+    if PETSc.COMM_WORLD.getSize() == 1:
+        pytest.skip("several ranks only (make test-mpi)")
+    monkeypatch.setattr(schur, "MIN_NODES_PER_RANK_MUMPS", 0)
+    A, b, x, run = _coil_system(120 * PETSc.COMM_WORLD.getSize())
+    ctx = schur.RankSchur(run.problem, package="mumps")
+    y = _solve(A, b, ctx)
+    assert ctx.mode == "schur" and ctx.setups == {"schur": 1, "whole": 0}
+    assert ctx.kept["sep"].size > 2 and ctx.kept["nn"] > 0     # contact across the cuts
+    monkeypatch.setattr(schur, "SCHUR_MAX", 0)
+    whole = schur.RankSchur(run.problem, package="mumps")
+    yw = _solve(A, b, whole)
+    assert whole.mode == "whole"
+    assert whole.whole.getPC().getFactorSolverType() == "mumps"
+    # backward errors 1e-16 - 1e-15 (a missed coupling: O(1)); forward errors of the smooth x
+    # 3.6e-9 against MUMPS's 4.7e-10 (the condensation's, as with PETSc's LU interiors, above)
+    stable = max(10.0 * _backward(A, b, yw), 1e-15)
+    error = lambda v: np.sqrt(abs((v - x).dot(v - x))) / x.norm()
+    assert _backward(A, b, y) <= stable and error(y) < 1e-6
+    monkeypatch.setattr(schur, "SCHUR_MAX", 600)
+    A.scale(2.0)
+    y2 = _solve(A, b, ctx)
+    assert ctx.setups["schur"] == 2 and _backward(A, b, y2) <= stable
+    # a NaN in rank 0's block: NaN everywhere, no rank waiting
+    lo, _ = A.getOwnershipRange()
+    if PETSc.COMM_WORLD.getRank() == 0:
+        A.setValue(lo + 12, lo + 12, np.nan, addv=PETSc.InsertMode.INSERT_VALUES)
+    A.assemble()
+    bad = schur.RankSchur(run.problem, package="mumps")
+    yb = _solve(A, b, bad)
+    assert bad.failed
+    with yb as a:
+        assert np.isnan(a).all()

@@ -34,7 +34,9 @@ or factorisation, serial, this 2-core machine, AMD ordering):
 
 so where the fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed) of the Jacobian's
 pattern exceeds FILL_MUMPS, checked for every new pattern before its first factorisation, the
-rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose the package."""
+rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose the package:
+on several ranks each rank its own stretch, with the Schur complement where the stretches
+meet (schur.RankSchur, package "mumps"), on a short rod MUMPS over the ranks."""
 import numpy as np
 from petsc4py import PETSc
 
@@ -205,7 +207,13 @@ def use_mumps_when_filled(ksp, problem):
     if not native or not pattern_fill(problem, lu_ordering(ksp.getOptionsPrefix() or "")
                                       or ORDERING) > FILL_MUMPS:
         return False
-    _retype(pc, PETSc.PC.Type.LU, lambda pc: pc.setFactorSolverType("mumps"))
+    size = problem.layout.comm.getSize()
+    if size > 1 and schur.pays(problem.mesh.n_nodes, size, "mumps"):
+        # every rank factors its own stretch by MUMPS, the ranks share the Schur complement
+        _retype(pc, PETSc.PC.Type.PYTHON,
+                lambda pc: pc.setPythonContext(schur.RankSchur(problem, package="mumps")))
+    else:
+        _retype(pc, PETSc.PC.Type.LU, lambda pc: pc.setFactorSolverType("mumps"))
     return True
 
 

@@ -21,15 +21,35 @@ ranks add their parts of S (dense, small) and every rank factors it.  Against PC
 where every rank gathers the whole matrix and factors all of it, each rank factors only its
 share (the planar cantilever at 10^4 elements on 2 ranks: docs/parallel.md).
 
-Where the rod is short (fewer than MIN_NODES_PER_RANK nodes a rank: the condensation's fixed
-cost outweighs what it saves), the separator large (contact coupling much of the rod across
-ranks: more than SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole
-matrix on every rank instead (PCREDUNDANT with PETSc's LU, the previous default).  The sub-matrices, the interior's
+Where contact couples much of the rod (linear.use_mumps_when_filled: a pattern PETSc's LU fills
+in) each rank factors its interior by MUMPS (``package="mumps"``), which forms in the same
+factorisation the Schur complement T of the interior unknowns N next to the separator
+(MatFactorSetSchurIS, through ctypes: petsc4py 3.18 lacks it; N eliminated last).  As A_IG
+has entries on the rows N only and the N block of A_II^-1 is T^-1,
+
+    A_{G I_r} A_{I_r I_r}^-1 A_{I_r G} = A_GN T^-1 A_NG,
+
+no column solves (as many as G has unknowns: hundreds where the turns of a coil touch across
+the cut, each costing a whole forward and backward substitution), and x_{I_r} =
+A_{I_r I_r}^-1 (b_{I_r} - A_{I_r G} x_G), a second interior solve.  Against MUMPS over the
+ranks, whose factorisation scales 1.3 x on 2 ranks and whose redistribution of the matrix not
+at all, the bench coil at 10^4 elements: 1.2 against 1.5 s per Newton iteration on 2 ranks
+(2.1 s on one; docs/bench_scaling.md).
+
+Where the rod is short (fewer than MIN_NODES_PER_RANK nodes a rank, or
+MIN_NODES_PER_RANK_MUMPS with MUMPS interiors: the condensation's fixed cost outweighs what it
+saves), the separator large (contact coupling much of the rod across ranks: more than
+SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole matrix instead:
+PCREDUNDANT with PETSc's LU on every rank (the previous default), or MUMPS over the ranks.  The sub-matrices, the interior's
 symbolic factorisation and the index sets are kept while the matrix and its separator stay
 (decided on all ranks together: every branch here is collective).  A failed factorisation on
 any rank makes the solution NaN on every rank (a python PC cannot set a failed reason in
 petsc4py 3.18), which fails the Newton step as the planar solve's failure does (planar.py).
 """
+import ctypes
+import ctypes.util
+import functools
+
 import numpy as np
 import scipy.linalg as sla
 from mpi4py import MPI
@@ -39,6 +59,7 @@ from rodsnes.solve import petsc_exit
 from rodsnes.model.partition import is_split, split_index
 
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
+PACKAGES = ("petsc", "mumps")       # the interiors' LU (module docstring)
 # nodes per rank below which the whole matrix is factored instead: the condensation's fixed
 # cost per set-up (sub-matrices, the separator's columns, the gathers; ~3 ms) outweighs what
 # it saves on the factorisation.  Measured per Newton iteration on 2 ranks (cantilever,
@@ -46,13 +67,95 @@ SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is fa
 # 1000 10.6 / 8.6 ms, 3000 15.7 / 16.1 ms, 10^4 36.7 / 41.5 ms; the plectoneme's 181 nodes
 # 27.8 / 11.7 ms (its pattern changes every few iterations)
 MIN_NODES_PER_RANK = 4000
+# the same where the interiors are factored by MUMPS (a contact-filled pattern: its factorisation
+# dwarfs the condensation's fixed cost).  Measured per Newton iteration on 2 ranks, the bench
+# coil (tools/bench_scaling.py), condensed against MUMPS over the ranks: 100 elements (301
+# nodes) 19.0 / 17.6 ms, 300 elements 37.7 / 40.4 ms, 1000 elements 102 / 135 ms
+MIN_NODES_PER_RANK_MUMPS = 400
 
 
-def pays(n_nodes, ranks):
+def pays(n_nodes, ranks, package="petsc"):
     """Whether a rod of ``n_nodes`` nodes on ``ranks`` ranks is long enough for the
-    condensation to pay (MIN_NODES_PER_RANK nodes a rank)."""
-    return n_nodes >= MIN_NODES_PER_RANK * ranks
+    condensation with interiors factored by ``package`` to pay (MIN_NODES_PER_RANK or
+    MIN_NODES_PER_RANK_MUMPS nodes a rank)."""
+    least = MIN_NODES_PER_RANK_MUMPS if package == "mumps" else MIN_NODES_PER_RANK
+    return n_nodes >= least * ranks
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
+INTERIOR_PREFIX = "rodsnes_interior_"   # the options of the interiors' MUMPS LU
+
+
+# -- MUMPS's Schur complement (PETSc's MatFactorSetSchurIS ..., which petsc4py 3.18 lacks) ----
+@functools.lru_cache(maxsize=None)
+def _libpetsc():
+    """The PETSc library petsc4py runs on (already loaded: found in the process's maps), with
+    the signatures of the few functions called here."""
+    path = None
+    try:
+        with open("/proc/self/maps") as maps:
+            for line in maps:
+                name = line.split()[-1]
+                if "/libpetsc" in name and ".so" in name:
+                    path = name
+                    break
+    except OSError:
+        pass
+    lib = ctypes.CDLL(path or ctypes.util.find_library("petsc_real")
+                      or ctypes.util.find_library("petsc"))
+    ptr, int_ = ctypes.c_void_p, ctypes.c_int
+    for name, args in (("MatFactorSetSchurIS", [ptr, ptr]),
+                       ("MatFactorGetSchurComplement", [ptr, ptr, ptr]),
+                       ("MatFactorRestoreSchurComplement", [ptr, ptr, int_]),
+                       ("MatDenseGetArrayRead", [ptr, ptr]),
+                       ("MatDenseRestoreArrayRead", [ptr, ptr]),
+                       ("MatDenseGetLDA", [ptr, ptr]),
+                       ("MatMumpsSetIcntl", [ptr, int_, int_])):
+        fn = getattr(lib, name)
+        fn.argtypes, fn.restype = args, int_
+    return lib
+
+
+def _checked(code):
+    if code:
+        raise PETSc.Error(code)
+
+
+def mumps_icntl(F, i, value):
+    """ICNTL(i) = value of the MUMPS factor ``F`` (before its analysis; an option given under
+    its prefix, read at the analysis, wins)."""
+    _checked(_libpetsc().MatMumpsSetIcntl(F.handle, i, value))
+
+
+def set_schur_unknowns(F, rows):
+    """Before the symbolic factorisation of the MUMPS factor ``F`` (sequential): its Schur
+    complement is to be that of the unknowns ``rows`` (local indices), eliminated last."""
+    is_ = PETSc.IS().createGeneral(np.asarray(rows, dtype=PETSc.IntType), comm=PETSc.COMM_SELF)
+    try:
+        _checked(_libpetsc().MatFactorSetSchurIS(F.handle, is_.handle))
+    finally:
+        is_.destroy()
+
+
+def schur_complement(F, n):
+    """A copy (n x n) of the Schur complement T = A_NN - A_NF A_FF^-1 A_FN that MUMPS formed in
+    the numeric factorisation of ``F`` (set_schur_unknowns), read before any solve (which
+    factors it in place)."""
+    lib = _libpetsc()
+    S, status = ctypes.c_void_p(), ctypes.c_int()
+    _checked(lib.MatFactorGetSchurComplement(F.handle, ctypes.byref(S), ctypes.byref(status)))
+    try:
+        if status.value != 0:           # MAT_FACTOR_SCHUR_UNFACTORED
+            raise PETSc.Error(73)
+        lda = (ctypes.c_int64 if PETSc.IntType().itemsize == 8 else ctypes.c_int32)()
+        _checked(lib.MatDenseGetLDA(S, ctypes.byref(lda)))
+        data = ctypes.POINTER(ctypes.c_double)()
+        _checked(lib.MatDenseGetArrayRead(S, ctypes.byref(data)))
+        try:                            # column-major, leading dimension lda
+            T = np.ctypeslib.as_array(data, shape=(n, lda.value))[:, :n].T.copy()
+        finally:
+            lib.MatDenseRestoreArrayRead(S, ctypes.byref(data))
+    finally:
+        lib.MatFactorRestoreSchurComplement(F.handle, ctypes.byref(S), status.value)
+    return T
 
 
 def separator(problem, A):
@@ -108,9 +211,12 @@ def _dense_rows(A, rows, cols):
 class RankSchur:
     """The python PC context of the module docstring for the matrices of ``problem``."""
 
-    def __init__(self, problem, ordering="amd"):
+    def __init__(self, problem, ordering="amd", package="petsc"):
+        if package not in PACKAGES:
+            raise ValueError(f"package {package!r}: one of {PACKAGES}")
         self.problem = problem
         self.ordering = ordering
+        self.package = package      # the interiors' LU and the whole matrix's
         self.kept = None            # the condensation of the last matrix (index sets, blocks)
         self.whole = None           # the whole-matrix LU (KSP) where condensation does not pay
         self.mode = None            # "schur" or "whole" for the current matrix
@@ -149,7 +255,7 @@ class RankSchur:
         # are gathered to every rank), the interiors' least size is reduced; a short rod goes
         # to the whole matrix before any of it (the separator of a contact-rich pattern costs
         # 0.7 ms a set-up on the plectoneme)
-        condense = pays(A.getSize()[0] // bs, comm.Get_size())
+        condense = pays(self.problem.mesh.n_nodes, comm.Get_size(), self.package)
         if condense:
             if k is not None and k["A"] == key:             # the same matrix: the same pattern
                 sep, near = k["sep"], k["near"]
@@ -176,14 +282,20 @@ class RankSchur:
         """PETSc's LU of the whole matrix on every rank (PCREDUNDANT; its inner solver set
         through the options of a prefix of its own: petsc4py 3.18 does not reach it)."""
         if self.whole is None:
-            opts = PETSc.Options(WHOLE_PREFIX)
-            for name, value in (("ksp_type", "preonly"), ("pc_type", "redundant"),
-                                ("redundant_ksp_type", "preonly"), ("redundant_pc_type", "lu"),
-                                ("redundant_pc_factor_mat_solver_type", "petsc"),
-                                ("redundant_pc_factor_mat_ordering_type", self.ordering)):
+            prefix = WHOLE_PREFIX + ("mumps_" if self.package == "mumps" else "")
+            opts = PETSc.Options(prefix)
+            if self.package == "mumps":     # MUMPS over the ranks, room for its fill
+                settings = (("ksp_type", "preonly"), ("pc_type", "lu"),
+                            ("pc_factor_mat_solver_type", "mumps"), ("mat_mumps_icntl_14", "100"))
+            else:
+                settings = (("ksp_type", "preonly"), ("pc_type", "redundant"),
+                            ("redundant_ksp_type", "preonly"), ("redundant_pc_type", "lu"),
+                            ("redundant_pc_factor_mat_solver_type", "petsc"),
+                            ("redundant_pc_factor_mat_ordering_type", self.ordering))
+            for name, value in settings:
                 opts[name] = value
             ksp = self.whole = PETSc.KSP().create(comm=A.getComm())
-            ksp.setOptionsPrefix(WHOLE_PREFIX)
+            ksp.setOptionsPrefix(prefix)
             ksp.setFromOptions()
         self.whole.setOperators(A)
         return self.whole
@@ -192,11 +304,11 @@ class RankSchur:
         """Index sets, blocks and the interior's KSP for a new matrix or separator.  ``near``:
         this rank's interior block rows next to the separator (A_IG's and A_GI's entries).
 
-        The interior matrix is the rank's diagonal block itself where the rank owns no
-        separator node (rank 0 of a chain: no copy at all), else a copy of it whose separator
-        rows and columns are those of the identity (``_interior``): the same LU as A_II's
-        (the identity rows are uncoupled) in the rank's own row order, so the right-hand
-        sides and solutions are the rank's local arrays with the separator's entries zero."""
+        The interior matrix is the rank's diagonal block itself, its separator rows and
+        columns made those of the identity while it is factored (``_factor_interior``): the
+        same LU as A_II's (the identity rows are uncoupled) in the rank's own row order, so the
+        right-hand sides and solutions are the rank's local arrays with the separator's entries
+        zero."""
         bs = A.getBlockSize()
         rs, re = A.getOwnershipRange()
         ni, ng = re - rs, len(sep) * bs
@@ -214,14 +326,33 @@ class RankSchur:
                          "colsSN": np.concatenate([unknowns(sep), unknowns(near)]).astype(
                              PETSc.IntType),
                          "nearpos": ng + unknowns(np.searchsorted(near, here))}
-        k["AII"] = self._interior(A, None)
+        D = k["AII"] = A.getDiagonalBlock()
+        if len(k["G"]):     # the rows holding entries in the separator's columns (D's pattern)
+            ai, aj, _ = D.getValuesCSR()
+            hit = np.isin(aj, k["G"])
+            rows = np.repeat(np.arange(ni), np.diff(ai))[hit]
+            k["touch"] = np.setdiff1d(rows, k["G"]).astype(PETSc.IntType)
         ksp = k["ksp"] = PETSc.KSP().create(comm=PETSc.COMM_SELF)
         ksp.setType(PETSc.KSP.Type.PREONLY)
         pc = ksp.getPC()
         pc.setType(PETSc.PC.Type.LU)
+        ksp.setOperators(k["AII"])
+        if self.package == "mumps":
+            # MUMPS forms the Schur complement of the near unknowns N in its factorisation
+            # (a user's -rodsnes_interior_mat_mumps_icntl_* are read at its analysis)
+            ksp.setOptionsPrefix(INTERIOR_PREFIX)
+            pc.setFactorSolverType("mumps")
+            ksp.setFromOptions()
+            pc.setFactorSetUpSolverType()
+            F = pc.getFactorMatrix()
+            mumps_icntl(F, 14, 100)          # room for the fill (linear.mumps_fill_room)
+            if k["nn"]:
+                set_schur_unknowns(F, k["Npos"])
+            k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
+            k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
+            return
         pc.setFactorSolverType("petsc")
         pc.setFactorOrdering(self.ordering)
-        ksp.setOperators(k["AII"])
         k["B"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
         k["B"].setUp()
         k["W"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
@@ -230,29 +361,47 @@ class RankSchur:
         k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
         k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
 
-    def _interior(self, A, kept):
-        """The interior matrix of _condense with A's values: the diagonal block (a reference)
-        where the rank owns no separator node, else ``kept`` (or a new copy) given the block's
-        values and the identity on the separator's rows and columns (a memory copy and one
-        sweep instead of extracting the interior: 0.6 against 2.0 ms at 10^4 elements)."""
-        D = A.getDiagonalBlock()
-        G = self.kept["G"]
-        if not len(G):
-            return D
-        if kept is None:
-            kept = D.duplicate(copy=True)
-            kept.setOption(PETSc.Mat.Option.KEEP_NONZERO_PATTERN, True)
-        else:
-            D.copy(kept, structure=PETSc.Mat.Structure.SAME_NONZERO_PATTERN)
-        kept.zeroRowsColumns(G.astype(PETSc.IntType), diag=1.0)
-        return kept
-
     def _refresh(self, A):
-        """The same matrix with new values: the kept blocks take them (same patterns)."""
+        """The same matrix with new values: its diagonal block has them (same patterns)."""
         k = self.kept
-        if len(k["G"]):                 # else AII is A's diagonal block: it has the values
-            self._interior(A, k["AII"])
+        k["AII"] = A.getDiagonalBlock()
         k["ksp"].setOperators(k["AII"])
+
+    def _factor_interior(self):
+        """The interior's LU (numeric; symbolic too on a new pattern) of A's diagonal block
+        with the identity on the separator's rows and columns while it is factored, then the
+        block given its values back: the separator's rows and the few entries of its columns
+        (``touch`` rows), no copy of the block (a copy and MatZeroRowsColumns's sweep cost
+        1.5 ms an iteration at 10^4 elements on 2 ranks).  The KSP then reuses the factors
+        (the restored block is not factored again at the solves).  Returns False when the
+        factorisation raised."""
+        k = self.kept
+        D, pc = k["AII"], k["ksp"].getPC()
+        saved = []
+        if len(k["G"]):
+            G = k["G"]
+            for r in np.concatenate([G, k["touch"]]).astype(PETSc.IntType):
+                cols, vals = D.getRow(int(r))
+                if r not in G:      # only its entries in the separator's columns
+                    keep = np.isin(cols, G)
+                    cols, vals = cols[keep], vals[keep]
+                saved.append((r, cols, vals.copy()))
+            for r, cols, _ in saved:    # the identity's rows, zero in its columns
+                D.setValues(r, cols, np.where(cols == r, 1.0, 0.0))
+            D.assemble()
+        ok = True
+        try:
+            pc.setReusePreconditioner(False)
+            k["ksp"].setUp()
+        except PETSc.Error:
+            ok = False
+        finally:
+            pc.setReusePreconditioner(True)
+            for r, cols, vals in saved:
+                D.setValues(r, cols, vals)
+            if saved:
+                D.assemble()
+        return ok
 
     def _couplings(self, A, comm):
         """(A_IG, A_GG, A_GI) of this rank, dense: A_IG = the rank's interior rows next to the
@@ -275,6 +424,11 @@ class RankSchur:
         ng = k["ng"]
         ok = True
         ANS, ASS, k["asn"] = self._couplings(A, comm)
+        ok = self._factor_interior()
+        if self.package == "mumps":
+            ok, part = self._factor_mumps(ANS) if ok else (False, None)
+            self._share(ASS, part, ok, comm)
+            return
         B = k["B"].getDenseArray()
         B[k["Npos"]] = ANS                                  # A_IG: rows next to G only
         W = k["W"].getDenseArray()
@@ -291,8 +445,32 @@ class RankSchur:
         except PETSc.Error:
             ok = False
         ok = ok and bool(np.isfinite(W).all())
-        part = -(k["asn"] @ W[k["Npos"]]) if ok else np.zeros((ng, ng))
-        S = ASS + comm.allreduce(part)
+        self._share(ASS, -(k["asn"] @ W[k["Npos"]]) if ok else None, ok, comm)
+
+    def _factor_mumps(self, ANS):
+        """The interior's MUMPS LU with T, the Schur complement of its near unknowns N; then
+        A_{G I_r} A_II^-1 A_{I_r G} = A_GN T^-1 A_NG (the N block of A_II^-1 is T^-1), no
+        column solves.  Returns (ok, -that)."""
+        k = self.kept
+        ksp = k["ksp"]
+        k["ANS"] = ANS
+        if not k["nn"]:
+            return True, np.zeros((k["ng"], k["ng"]))
+        try:
+            T = schur_complement(ksp.getPC().getFactorMatrix(), k["nn"])
+            lu = sla.lu_factor(T, check_finite=False)
+        except (PETSc.Error, ValueError, np.linalg.LinAlgError):
+            return False, None
+        if not (np.isfinite(lu[0]).all() and np.abs(np.diag(lu[0])).min() > 0.0):
+            return False, None
+        return True, -(k["asn"] @ sla.lu_solve(lu, ANS, check_finite=False))
+
+    def _share(self, ASS, part, ok, comm):
+        """S = A_GG + the ranks' parts (-A_{G I_r} A_II^-1 A_{I_r G}), factored on every rank;
+        ``ok``: this rank's part was made (else self.failed on every rank)."""
+        k = self.kept
+        ng = k["ng"]
+        S = ASS + comm.allreduce(part if ok else np.zeros((ng, ng)))
         self.failed = not comm.allreduce(ok, op=MPI.LAND)
         if not self.failed:
             lu, piv = sla.lu_factor(S, check_finite=False)
@@ -319,7 +497,18 @@ class RankSchur:
         g = -(k["asn"] @ yv[k["Npos"]])
         g[k["Gpos"]] += b[k["G"]]
         xg = sla.lu_solve(k["S"], comm.allreduce(g), check_finite=False)
-        out = y.getArray()
-        out[:] = yv
-        out -= k["W"].getDenseArray() @ xg
+        if self.package == "mumps":         # x_I = A_II^-1 (b_I - A_IG x_G): a second solve
+            with bI as a:
+                a[k["Npos"]] -= k["ANS"] @ xg
+            k["ksp"].solve(bI, yI)
+            yv = yI.getArray(readonly=True)
+            if k["ksp"].getConvergedReason() < 0:
+                y.set(np.nan)
+                return
+            out = y.getArray()
+            out[:] = yv
+        else:
+            out = y.getArray()
+            out[:] = yv
+            out -= k["W"].getDenseArray() @ xg
         out[k["G"]] = xg[k["Gpos"]]
