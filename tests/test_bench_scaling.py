@@ -114,7 +114,7 @@ def test_parse_rejects_other_text():
 def test_lu_with_much_fill_hands_over_to_mumps():
     """solve/linear.py: PETSc's LU factors the rod's Jacobian; where contact couples much of
     the rod (the bench coil, fill 2.95 at 200 elements with AMD) the pattern's fill exceeds
-    FILL_MUMPS and MUMPS factors from the first Newton step on; a chain (Mattiasson, fill 1.1)
+    FILL_MUMPS and MUMPS factors from the first Newton step on, ordered by AMD; a chain (Mattiasson, fill 1.1)
     stays with PETSc's LU, ordered by AMD; a package the user chose is never changed."""
     from conftest import run_case
     from petsc4py import PETSc
@@ -123,6 +123,11 @@ def test_lu_with_much_fill_hands_over_to_mumps():
                     rod_error_estimate="off")
     pc = coil.solver.snes.getKSP().getPC()
     assert coil.ok and pc.getFactorSolverType() == "mumps" and not coil.solver.lu.auto
+    # MUMPS ordered by minimum degree, which fills the coil's pattern less than nested
+    # dissection (INFOG(7) = 0: AMD), by rodsnes' default, gone with the run
+    assert pattern_fill(coil.problem, "amd") < pattern_fill(coil.problem, "nd")
+    assert pc.getFactorMatrix().getMumpsInfog(7) == 0
+    assert not PETSc.Options().hasName("mat_mumps_icntl_7")
     chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()

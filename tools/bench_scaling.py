@@ -552,14 +552,14 @@ def markdown(rows, note=""):
                      f"{r.get('status', '')} |")
     lines += ["", "| target | where | measured | limit | verdict |", "|---|---|---:|---|---|"]
     for name, where, v, limit, ok in targets(rows):
-        lines.append(f"| {name} | {where} | {'' if v is None else f'{v:.3g}'} | {limit} | {ok} |")
+        lines.append(f"| {name} | {where} | {'' if v is None else f'{v:.4g}'} | {limit} | {ok} |")
     return "\n".join(lines) + "\n"
 
 
 def print_targets(rows):
     print(f"\n{'target':58s} {'where':46s} {'measured':>9s} {'limit':>7s}  verdict")
     for name, where, v, limit, ok in targets(rows):
-        print(f"{name:58s} {where:46s} {'' if v is None else f'{v:9.3g}':>9s} {limit:>7s}  {ok}")
+        print(f"{name:58s} {where:46s} {'' if v is None else f'{v:9.4g}':>9s} {limit:>7s}  {ok}")
 
 
 PARTS = (("total", "k", "o", "total"), ("residual", "tab:blue", "s", "residual"),

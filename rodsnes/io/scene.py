@@ -383,11 +383,12 @@ PETSC_PREFIXES = (
     "sub_", "fieldsplit_", "mg_", "redundant_")
 """Options with these prefixes belong to PETSc/SLEPc and are left to PETSc."""
 
-SOLVER_PREFIXES = ("planar_stability_", "stability_", "estimate_", "planar_")
+SOLVER_PREFIXES = ("planar_stability_", "stability_", "estimate_", "planar_", "interior_")
 """Options prefixes of rodsnes' own PETSc solvers (stability_: the inertia count's LDL^T,
 estimate_: the error estimate's SNES, planar_: the planar run's in-plane solves,
-planar_stability_: its LDL^T): -stability_mat_mumps_icntl_7 5 is PETSc's option
--mat_mumps_icntl_7 of that solver."""
+planar_stability_: its LDL^T, interior_: on several ranks the MUMPS LU of each rank's stretch,
+solve/schur.py): -stability_mat_mumps_icntl_7 5 is PETSc's option -mat_mumps_icntl_7 of that
+solver."""
 
 
 def is_petsc_option(name):

@@ -81,7 +81,7 @@ def pays(n_nodes, ranks, package="petsc"):
     least = MIN_NODES_PER_RANK_MUMPS if package == "mumps" else MIN_NODES_PER_RANK
     return n_nodes >= least * ranks
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
-INTERIOR_PREFIX = "rodsnes_interior_"   # the options of the interiors' MUMPS LU
+INTERIOR_PREFIX = "interior_"   # the options of the interiors' MUMPS LU (-interior_mat_mumps_*)
 
 
 # -- MUMPS's Schur complement (PETSc's MatFactorSetSchurIS ..., which petsc4py 3.18 lacks) ----
@@ -107,8 +107,7 @@ def _libpetsc():
                        ("MatFactorRestoreSchurComplement", [ptr, ptr, int_]),
                        ("MatDenseGetArrayRead", [ptr, ptr]),
                        ("MatDenseRestoreArrayRead", [ptr, ptr]),
-                       ("MatDenseGetLDA", [ptr, ptr]),
-                       ("MatMumpsSetIcntl", [ptr, int_, int_])):
+                       ("MatDenseGetLDA", [ptr, ptr])):
         fn = getattr(lib, name)
         fn.argtypes, fn.restype = args, int_
     return lib
@@ -117,12 +116,6 @@ def _libpetsc():
 def _checked(code):
     if code:
         raise PETSc.Error(code)
-
-
-def mumps_icntl(F, i, value):
-    """ICNTL(i) = value of the MUMPS factor ``F`` (before its analysis; an option given under
-    its prefix, read at the analysis, wins)."""
-    _checked(_libpetsc().MatMumpsSetIcntl(F.handle, i, value))
 
 
 def set_schur_unknowns(F, rows):
@@ -339,13 +332,13 @@ class RankSchur:
         ksp.setOperators(k["AII"])
         if self.package == "mumps":
             # MUMPS forms the Schur complement of the near unknowns N in its factorisation
-            # (a user's -rodsnes_interior_mat_mumps_icntl_* are read at its analysis)
+            # (a user's -interior_mat_mumps_icntl_* are read at its analysis)
             ksp.setOptionsPrefix(INTERIOR_PREFIX)
             pc.setFactorSolverType("mumps")
             ksp.setFromOptions()
             pc.setFactorSetUpSolverType()
             F = pc.getFactorMatrix()
-            mumps_icntl(F, 14, 100)          # room for the fill (linear.mumps_fill_room)
+            F.setMumpsIcntl(14, 100)        # room for the fill (linear.mumps_fill_room)
             if k["nn"]:
                 set_schur_unknowns(F, k["Npos"])
             k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
