@@ -505,7 +505,8 @@ def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
     complement of its unknowns next to the separator (no column solves): backward stable as
     MUMPS over the ranks, the solution within the LU's error of the smooth x; a second set-up
     takes new values (it solves 2 A y = b as well); above SCHUR_MAX the whole matrix by MUMPS over
-    the ranks; a rank's interior that fails to factor fails the solve on every rank."""
+    the ranks; a rank's interior that fails to factor (singular, NaN) fails the solve on every
+    rank, and the same PC solves the next Jacobian."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
     monkeypatch.setattr(schur, "MIN_NODES_PER_RANK_MUMPS", 0)
@@ -528,13 +529,24 @@ def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
     A.scale(2.0)
     y2 = _solve(A, b, ctx)
     assert ctx.setups["schur"] == 2 and _backward(A, b, y2) <= stable
-    # a NaN in rank 0's block: NaN everywhere, no rank waiting
+    # rank 0's interior singular (a zero row: MUMPS's INFOG(1) < 0, no error raised) or NaN:
+    # NaN everywhere, no rank waiting; the next sane Jacobian is solved by the same PC
+    p = run.problem
     lo, _ = A.getOwnershipRange()
-    if PETSc.COMM_WORLD.getRank() == 0:
-        A.setValue(lo + 12, lo + 12, np.nan, addv=PETSc.InsertMode.INSERT_VALUES)
-    A.assemble()
-    bad = schur.RankSchur(run.problem, package="mumps")
-    yb = _solve(A, b, bad)
-    assert bad.failed
-    with yb as a:
-        assert np.isnan(a).all()
+    bad = schur.RankSchur(p, package="mumps")
+    first = PETSc.COMM_WORLD.getRank() == 0
+    for spoil in ("singular", "nan"):
+        if spoil == "singular":
+            A.zeroRows([lo + 12] if first else [], diag=0.0)
+        else:
+            if first:
+                A.setValue(lo + 12, lo + 12, np.nan, addv=PETSc.InsertMode.INSERT_VALUES)
+            A.assemble()
+        yb = _solve(A, b, bad)
+        assert bad.failed, (spoil, bad.mode)
+        with yb as a:
+            assert np.isnan(a).all()
+        p.jacobian(None, p.state.X, p.J, p.J)
+        b2, _ = _smooth(A)
+        y3 = _solve(A, b2, bad)
+        assert not bad.failed and _backward(A, b2, y3) <= stable

@@ -49,6 +49,7 @@ petsc4py 3.18), which fails the Newton step as the planar solve's failure does (
 import ctypes
 import ctypes.util
 import functools
+import warnings
 
 import numpy as np
 import scipy.linalg as sla
@@ -182,6 +183,17 @@ def separator(problem, A):
     near = np.unique(np.concatenate([rows[np.isin(rows, sep).any(axis=1)].ravel()
                                      for rows in groups]))
     return sep, np.setdiff1d(near, sep).astype(np.int64)
+
+
+def _dense_lu(M):
+    """scipy's LU (lu, piv) of the dense M, or None where it is singular or not finite (no
+    warning: the caller fails the solve)."""
+    if not np.isfinite(M).all():
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", sla.LinAlgWarning)
+        lu, piv = sla.lu_factor(M, check_finite=False)
+    return (lu, piv) if np.abs(np.diag(lu)).min() > 0.0 else None
 
 
 def _dense_rows(A, rows, cols):
@@ -447,14 +459,23 @@ class RankSchur:
         k = self.kept
         ksp = k["ksp"]
         k["ANS"] = ANS
+        F = ksp.getPC().getFactorMatrix()
+        if F.getMumpsInfog(1) < 0 or F.getMumpsInfog(25) > 0:
+            # a failure MUMPS reports in INFOG(1) (no room, ...), or a singular interior: with a
+            # Schur complement MUMPS reports none (INFOG(1) = 0, no null pivot under ICNTL(24))
+            # but replaces the zero pivot by static pivoting (INFOG(25), its count) and solves
+            # to garbage (|A y - b| / |b| = 140, |y| = 1e15, on the coil with a zero row).
+            # After INFOG(1) < 0 PETSc 3.18 would skip every later numeric factorisation of
+            # this PC: the next set-up makes the interior's KSP anew
+            k["A"] = None
+            return False, None
         if not k["nn"]:
             return True, np.zeros((k["ng"], k["ng"]))
         try:
-            T = schur_complement(ksp.getPC().getFactorMatrix(), k["nn"])
-            lu = sla.lu_factor(T, check_finite=False)
-        except (PETSc.Error, ValueError, np.linalg.LinAlgError):
+            lu = _dense_lu(schur_complement(F, k["nn"]))
+        except PETSc.Error:
             return False, None
-        if not (np.isfinite(lu[0]).all() and np.abs(np.diag(lu[0])).min() > 0.0):
+        if lu is None:
             return False, None
         return True, -(k["asn"] @ sla.lu_solve(lu, ANS, check_finite=False))
 
@@ -466,9 +487,8 @@ class RankSchur:
         S = ASS + comm.allreduce(part if ok else np.zeros((ng, ng)))
         self.failed = not comm.allreduce(ok, op=MPI.LAND)
         if not self.failed:
-            lu, piv = sla.lu_factor(S, check_finite=False)
-            self.failed = not (np.isfinite(lu).all() and np.abs(np.diag(lu)).min() > 0.0)
-            k["S"] = (lu, piv)
+            k["S"] = _dense_lu(S)
+            self.failed = k["S"] is None
 
     # -- solve --------------------------------------------------------------------------
     def apply(self, pc, x, y):
