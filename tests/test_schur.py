@@ -390,9 +390,9 @@ def _redistributed(A, ranges):
 @pytest.mark.mpi
 def test_a_middle_rank_owning_separator_nodes_on_both_sides(monkeypatch):
     """3 ranks (or 2) owning the chain's cubic elements so that each cut is 3 + 1 with the
-    lone node on the middle rank: it owns the separator on both sides (its diagonal block has the
-    identity at both ends while factored), rank 0 none (its diagonal block as it is).  The solution is a fresh
-    condensation's and the LU's, for the first values and for new values (2 A, then ADD_VALUES
+    lone node on the middle rank: it owns the separator on both sides (its diagonal block has
+    the identity at both ends while factored), rank 0 none (its diagonal block as it is).  The
+    solution is a fresh condensation's and the LU's, for the first values and for new values (2 A, then ADD_VALUES
     on the separator rows)."""
     comm = PETSc.COMM_WORLD
     size = comm.getSize()

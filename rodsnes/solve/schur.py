@@ -33,16 +33,17 @@ no column solves (as many as G has unknowns: hundreds where the turns of a coil 
 the cut, each costing a whole forward and backward substitution), and x_{I_r} =
 A_{I_r I_r}^-1 (b_{I_r} - A_{I_r G} x_G), a second interior solve.  Against MUMPS over the
 ranks, whose factorisation scales 1.3 x on 2 ranks and whose redistribution of the matrix not
-at all, the bench coil at 10^4 elements: 1.2 against 1.5 s per Newton iteration on 2 ranks
-(2.1 s on one; docs/bench_scaling.md).
+at all, the bench coil at 10^4 elements: 1.03-1.07 against 1.51 s per Newton iteration on 2
+ranks (1.86 s on one; docs/bench_scaling.md).
 
 Where the rod is short (fewer than MIN_NODES_PER_RANK nodes a rank, or
 MIN_NODES_PER_RANK_MUMPS with MUMPS interiors: the condensation's fixed cost outweighs what it
 saves), the separator large (contact coupling much of the rod across ranks: more than
 SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole matrix instead:
-PCREDUNDANT with PETSc's LU on every rank (the previous default), or MUMPS over the ranks.  The sub-matrices, the interior's
-symbolic factorisation and the index sets are kept while the matrix and its separator stay
-(decided on all ranks together: every branch here is collective).  A failed factorisation on
+PCREDUNDANT with PETSc's LU on every rank (the previous default), or MUMPS over the ranks.
+The couplings' rows, the interior's symbolic factorisation and the index sets are kept while
+the matrix and its separator stay (decided on all ranks together: every branch here is
+collective).  A failed factorisation on
 any rank makes the solution NaN on every rank (a python PC cannot set a failed reason in
 petsc4py 3.18), which fails the Newton step as the planar solve's failure does (planar.py).
 """
@@ -81,6 +82,8 @@ def pays(n_nodes, ranks, package="petsc"):
     MIN_NODES_PER_RANK_MUMPS nodes a rank)."""
     least = MIN_NODES_PER_RANK_MUMPS if package == "mumps" else MIN_NODES_PER_RANK
     return n_nodes >= least * ranks
+
+
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
 INTERIOR_PREFIX = "interior_"   # the options of the interiors' MUMPS LU (-interior_mat_mumps_*)
 
