@@ -36,7 +36,11 @@ so where the fill (nz(L+U) / nz(A), PETSc's MatInfo fill_ratio_needed) of the Ja
 pattern exceeds FILL_MUMPS, checked for every new pattern before its first factorisation, the
 rest of the run factors by MUMPS (use_mumps_when_filled), unless the user chose the package:
 on several ranks each rank its own stretch, with the Schur complement where the stretches
-meet (schur.RankSchur, package "mumps"), on a short rod MUMPS over the ranks."""
+meet (schur.RankSchur, package "mumps"), on a short rod MUMPS over the ranks.  MUMPS is then
+ordered by AMD (ICNTL(7) = 0) where that fills the rod's node graph less than nested
+dissection: Debian's MUMPS, built without METIS and SCOTCH, would choose PORD, which on the
+bench coil at 10^4 elements took 7.3e9 flops and 0.89 s a factorisation against AMD's 4.4e9 and
+0.66 s."""
 import numpy as np
 from petsc4py import PETSc
 
