@@ -380,7 +380,9 @@ class RankSchur:
         with the identity on the separator's rows and columns while it is factored, then the
         block given its values back: the separator's rows and the few entries of its columns
         (``touch`` rows), no copy of the block (a copy and MatZeroRowsColumns's sweep cost
-        1.5 ms an iteration at 10^4 elements on 2 ranks).  The KSP then reuses the factors
+        1.5 ms an iteration at 10^4 elements on 2 ranks, these rows 0.7 ms; not as blocks with
+        NEW_NONZERO_LOCATIONS toggled: the block's nonew flag, changed on this rank alone, decides
+        a collective in MatAssemblyEnd_MPIBAIJ - a hang).  The KSP then reuses the factors
         (the restored block is not factored again at the solves).  Returns False when the
         factorisation raised."""
         k = self.kept
@@ -439,19 +441,15 @@ class RankSchur:
             return
         B = k["B"].getDenseArray()
         B[k["Npos"]] = ANS                                  # A_IG: rows next to G only
+        # all columns at once (MatMatSolve: 0.84 against 1.1 ms for three KSP solves on a
+        # planar stretch of 15000 nodes, 7.0 against 8.9 ms for six in 3-D); after a zero
+        # pivot (PETSc defers factor errors) it raises, or leaves W not finite
+        if ok:
+            try:
+                k["ksp"].getPC().getFactorMatrix().matSolve(k["B"], k["W"])
+            except PETSc.Error:
+                ok = False
         W = k["W"].getDenseArray()
-        try:
-            # column by column: PETSc 3.18's MatMatSolve on a BAIJ factor costs about twice;
-            # a zero pivot shows as the KSP's failed reason (PETSc defers factor errors)
-            ksp, b, w = k["ksp"], k["bI"], k["yI"]
-            for j in range(ng):
-                b.placeArray(np.ascontiguousarray(B[:, j]))
-                ksp.solve(b, w)
-                ok = ok and ksp.getConvergedReason() >= 0
-                W[:, j] = w.getArray(readonly=True)
-                b.resetArray()
-        except PETSc.Error:
-            ok = False
         ok = ok and bool(np.isfinite(W).all())
         self._share(ASS, -(k["asn"] @ W[k["Npos"]]) if ok else None, ok, comm)
 
