@@ -145,7 +145,7 @@ def test_lu_with_much_fill_hands_over_to_mumps():
 
 
 @pytest.mark.mpi
-def test_several_ranks_hand_a_filled_pattern_to_mumps():
+def test_several_ranks_hand_a_filled_pattern_to_mumps(monkeypatch):
     """On several ranks the Newton steps of a chain solve by static condensation (every rank
     factors its own stretch by PETSc's LU: solve/schur.py, tests/test_schur.py), whose factors
     petsc4py does not reach: the fill is that of the Jacobian's node graph (linear.pattern_fill,
@@ -176,6 +176,15 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps():
         sl, ss = long.summary(converged=True), ser.summary(converged=True)
         assert sl["newton_iterations"] == ss["newton_iterations"]
         assert sl["energy"] == pytest.approx(ss["energy"], rel=1e-9)
+        # a separator too large to condense: MUMPS over the ranks, ordered by AMD as serially
+        # (INFOG(7) = 0)
+        from rodsnes.solve import schur
+        monkeypatch.setattr(schur, "SCHUR_MAX", 0)
+        over = run_case("bench_coil", **kw)
+        ctx = over.solver.snes.getKSP().getPC().getPythonContext()
+        assert over.ok and ctx.mode == "whole" and ctx.setups["schur"] == 0
+        assert ctx.whole.getPC().getFactorMatrix().getMumpsInfog(7) == 0
+        assert over.summary(converged=True)["energy"] == pytest.approx(ss["energy"], rel=1e-9)
     chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()

@@ -187,11 +187,11 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     _solve(A, b, schur.RankSchur(run.problem))
     A.mult(y, Ay2)
     assert Ay.equal(Ay2)
-    kept = ctx.kept["AII"]
+    kept, ksp_kept = ctx.kept, ctx.kept["ksp"].handle   # the condensation's blocks and KSP
     A.scale(2.0)
     y2 = _solve(A, b, ctx)
     A.scale(0.5)
-    assert ctx.kept["AII"].handle == kept.handle and ctx.setups["schur"] == 2
+    assert ctx.kept is kept and ctx.kept["ksp"].handle == ksp_kept and ctx.setups["schur"] == 2
     d = y2.copy()
     d.axpy(-0.5, y)
     assert d.norm() <= 1e-12 * y.norm()
@@ -296,12 +296,12 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
     # and with separator rows; on the ring every rank owns one (a cut 3 + 1 on each side)
     assert any(owners)
     assert all(owners) if case == "michell" else not all(owners)
-    kept = ctx.kept["AII"]
+    kept, ksp_kept = ctx.kept, ctx.kept["ksp"].handle   # the condensation's blocks and KSP
     # another state: a re-assembled Jacobian (P.zeroEntries, blocks added)
     perturb_state(p, scale=3e-3)
     p.jacobian(None, p.state.X, p.J, p.J)
     _check(ksp, A, p)
-    assert ctx.kept["AII"].handle == kept.handle and ctx.setups["schur"] == 2
+    assert ctx.kept is kept and ctx.kept["ksp"].handle == ksp_kept and ctx.setups["schur"] == 2
     # entries added to an assembled matrix (no zeroEntries): on every rank's first, last and
     # separator rows
     lo, hi = A.getOwnershipRange()
@@ -312,7 +312,7 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
         A.setValue(r, r, 5.0e3 * (1 + r % 7), addv=PETSc.InsertMode.ADD_VALUES)
     A.assemble()
     _check(ksp, A, p)
-    assert ctx.kept["AII"].handle == kept.handle and ctx.setups["schur"] == 3
+    assert ctx.kept is kept and ctx.kept["ksp"].handle == ksp_kept and ctx.setups["schur"] == 3
 
 
 @pytest.mark.mpi
@@ -517,9 +517,21 @@ def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
     assert ctx.kept["sep"].size > 2 and ctx.kept["nn"] > 0     # contact across the cuts
     monkeypatch.setattr(schur, "SCHUR_MAX", 0)
     whole = schur.RankSchur(run.problem, package="mumps")
-    yw = _solve(A, b, whole)
+    opts = PETSc.Options()
+    opts["rodsnes_whole_mumps_mat_mumps_icntl_14"] = "80"        # as a user would
+    wksp = _ksp(A, whole)
+    yw = b.duplicate()
+    wksp.solve(b, yw)
     assert whole.mode == "whole"
     assert whole.whole.getPC().getFactorSolverType() == "mumps"
+    assert whole.whole.getPC().getFactorMatrix().getMumpsIcntl(14) == 80    # the user's
+    # rodsnes' defaults for the whole matrix's prefix leave with the last RankSchur using them;
+    # the user's stays
+    assert opts.hasName("rodsnes_whole_mumps_pc_factor_mat_solver_type")
+    wksp.destroy()
+    assert not opts.hasName("rodsnes_whole_mumps_pc_factor_mat_solver_type")
+    assert opts.getString("rodsnes_whole_mumps_mat_mumps_icntl_14") == "80"
+    opts.delValue("rodsnes_whole_mumps_mat_mumps_icntl_14")
     # backward errors 1e-16 - 1e-15 (a missed coupling: O(1)); forward errors of the smooth x
     # 3.6e-9 against MUMPS's 4.7e-10 (the condensation's, as with PETSc's LU interiors, above)
     stable = max(10.0 * _backward(A, b, yw), 1e-15)

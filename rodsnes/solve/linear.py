@@ -219,7 +219,9 @@ def use_mumps_when_filled(ksp, problem):
     # 3.4 against 4.7; Debian's MUMPS, without METIS and SCOTCH, would choose PORD)
     amd = fill if ordering == "amd" else pattern_fill(problem, "amd")
     if amd <= pattern_fill(problem, "nd"):
-        option_default(prefix + "mat_mumps_icntl_7", "0")
+        # the Newton step's MUMPS, and on several ranks the stretches' and the whole matrix's
+        for pre in (prefix, schur.INTERIOR_PREFIX, schur.WHOLE_PREFIX + "mumps_"):
+            option_default(pre + "mat_mumps_icntl_7", "0")
     size = problem.layout.comm.getSize()
     if size > 1 and schur.pays(problem.mesh.n_nodes, size, "mumps"):
         # every rank factors its own stretch by MUMPS, the ranks share the Schur complement

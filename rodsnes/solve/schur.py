@@ -85,6 +85,7 @@ def pays(n_nodes, ranks, package="petsc"):
 
 
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
+_WHOLE_DEFAULTS = {}    # prefix -> {"users": live RankSchurs, "set": the defaults they put in}
 INTERIOR_PREFIX = "interior_"   # the options of the interiors' MUMPS LU (-interior_mat_mumps_*)
 
 
@@ -247,6 +248,13 @@ class RankSchur:
         if self.whole is not None:
             self.whole.destroy()
             self.whole = None
+            mine = _WHOLE_DEFAULTS[self._whole_prefix]
+            mine["users"] -= 1
+            if not mine["users"]:
+                opts = PETSc.Options(self._whole_prefix)
+                for name in mine["set"]:
+                    opts.delValue(name)
+                mine["set"].clear()
 
     # -- set-up -----------------------------------------------------------------------
     def setUp(self, pc):
@@ -300,8 +308,16 @@ class RankSchur:
                             ("redundant_ksp_type", "preonly"), ("redundant_pc_type", "lu"),
                             ("redundant_pc_factor_mat_solver_type", "petsc"),
                             ("redundant_pc_factor_mat_ordering_type", self.ordering))
+            # rodsnes' defaults for that prefix, unless given (the user's win), kept in the
+            # options database while a RankSchur uses them (MUMPS reads its own at every
+            # analysis) and taken out after the last (destroy)
+            mine = _WHOLE_DEFAULTS.setdefault(prefix, {"users": 0, "set": []})
             for name, value in settings:
-                opts[name] = value
+                if not opts.hasName(name):
+                    opts[name] = value
+                    mine["set"].append(name)
+            mine["users"] += 1
+            self._whole_prefix = prefix
             ksp = self.whole = PETSc.KSP().create(comm=A.getComm())
             ksp.setOptionsPrefix(prefix)
             ksp.setFromOptions()
@@ -436,6 +452,8 @@ class RankSchur:
         ANS, ASS, k["asn"] = self._couplings(A, comm)
         ok = self._factor_interior()
         if self.package == "mumps":
+            if not ok:              # the analysis or factorisation raised: a new KSP next time
+                k["A"] = None
             ok, part = self._factor_mumps(ANS) if ok else (False, None)
             self._share(ASS, part, ok, comm)
             return
