@@ -193,7 +193,7 @@ def law_energy(a, a_s, wall=None):
     else:
         psi = np.where(a < a_s, a * a * a / (6.0 * a_s),
                        a * (0.5 * a - 0.5 * a_s) + a_s * a_s / 6.0)
-    return psi if wall is None else psi + wall_law(a, wall)[0]
+    return psi if wall is None else psi + wall_law(a, wall, 0)
 
 
 def law_force(a, a_s, wall=None):
@@ -203,7 +203,7 @@ def law_force(a, a_s, wall=None):
         f = a
     else:
         f = np.where(a < a_s, a * a / (2.0 * a_s), a - 0.5 * a_s)
-    return f if wall is None else f + wall_law(a, wall)[1]
+    return f if wall is None else f + wall_law(a, wall, 1)
 
 
 def law_stiffness(a, a_s, wall=None):
@@ -213,13 +213,14 @@ def law_stiffness(a, a_s, wall=None):
         s = np.ones_like(a)
     else:
         s = np.minimum(a / a_s, 1.0)
-    return s if wall is None else s + wall_law(a, wall)[2]
+    return s if wall is None else s + wall_law(a, wall, 2)
 
 
-def wall_law(a, wall):
-    """(beta, beta', beta'') of the wall (module docstring, The wall) at depths a, wall =
-    (a_b, a_w): 0 up to a_b, then x^2 B(t), t = (a_w - a) / x, x = a_w - a_b,
-    B(t) = -(t - 1)^2 ln t (IPC's barrier), C^2 at a_b; +inf from a_w on."""
+def wall_law(a, wall, order):
+    """The wall's barrier (module docstring, The wall) at depths a, wall = (a_b, a_w): its
+    ``order``-th derivative in a (0: beta, 1: beta', 2: beta''), only that one computed.
+    0 up to a_b, then x^2 B(t), t = (a_w - a) / x, x = a_w - a_b, B(t) = -(t - 1)^2 ln t (IPC's
+    barrier), C^2 at a_b; +inf from a_w on."""
     a_b, a_w = wall
     x = a_w - a_b
     a = np.asarray(a, dtype=float)
@@ -227,13 +228,15 @@ def wall_law(a, wall):
     on, inside = a > a_b, a < a_w
     ts = np.where(inside, np.where(on, t, 1.0), 1.0)        # safe t for the logarithms
     lt, u = np.log(ts), ts - 1.0
-    beta = -x * x * u * u * lt
-    dbeta = x * (2.0 * u * lt + u * u / ts)
-    ddbeta = -2.0 * lt - 4.0 * u / ts + u * u / (ts * ts)
-    out = []
-    for v in (beta, dbeta, ddbeta):
-        out.append(np.where(inside, np.where(on, v, 0.0), np.inf))
-    return tuple(out)
+    if order == 0:
+        v = -x * x * u * u * lt
+    elif order == 1:
+        v = x * (2.0 * u * lt + u * u / ts)
+    elif order == 2:
+        v = -2.0 * lt - 4.0 * u / ts + u * u / (ts * ts)
+    else:
+        raise ValueError(f"order {order}: 0, 1 or 2")
+    return np.where(inside, np.where(on, v, 0.0), np.inf)
 
 
 def onset_layer(eps, penetration, onset=None):
