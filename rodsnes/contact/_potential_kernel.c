@@ -9,7 +9,7 @@
  *   d2E/dx_A dx_B = sum W k Ntil_A Ntil_B [ (psi'' + psi'/r) nu nu^T - (psi'/r) I ]
  *
  * over the couples in contact: admissible (|s_q - sigma_j| >= delta, periodic on a ring, on the
- * pairs the exclusion cuts) and r < 2 eps.  psi is the onset law of contact_potential.py
+ * pairs the exclusion cuts) and r < 2 eps.  psi is the onset law of contact/potential.py
  * (a_s = 0: the quadratic law) with its wall.  Distances and the exclusion test are evaluated
  * with the same floating-point operations, in the same order, as the numpy path (build with
  * -ffp-contract=off: no fused multiply-adds), so the couples in contact are the same ones;
@@ -40,7 +40,7 @@ typedef struct {
     double k;
 } Setup;
 
-/* The law (contact_potential.py, Onset law and The wall): law = {a_s, a_b, a_w}, a_w = 0 for
+/* The law (contact/potential.py, Onset law and The wall): law = {a_s, a_b, a_w}, a_w = 0 for
  * no wall.  wall() adds the barrier x^2 B(t), t = (a_w - a) / x, x = a_w - a_b,
  * B = -(t - 1)^2 ln t, and its first two derivatives in a (which = 0, 1, 2); +inf from a_w. */
 static double wall(double a, const double *law, int which)

@@ -4,7 +4,7 @@ rodsnes/model/_rotation_kernel.c (plain C99, built by setup.py as the extension
 rodsnes.model._rotation_kernel and loaded here with ctypes) computes what so3.qmul(so3.qexp(theta),
 q) computes (and its normalisation), reading theta in place from the rows of the local dof array.
 The numpy path (so3.rotated without the library) is its reference: equal to round-off
-(tests/test_so3.py).  Measured at 3e5 nodes (Intel Xeon VM): numpy 36 ms (qexp 13, qmul 16,
+(tests/test_so3_compiled.py).  Measured at 3e5 nodes (Intel Xeon VM): numpy 36 ms (qexp 13, qmul 16,
 normalisation 7) against C 8 ms (the sines and cosines).
 
 C entry point:
