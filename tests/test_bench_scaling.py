@@ -173,6 +173,9 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps(monkeypatch):
         ctx = long.solver.snes.getKSP().getPC().getPythonContext()
         assert long.ok and ser.ok
         assert ctx.package == "mumps" and ctx.setups["schur"] > 0 and ctx.setups["whole"] == 0
+        # linear.py's MUMPS defaults reach the stretches' factors: room for the fill, AMD
+        F = ctx.kept["ksp"].getPC().getFactorMatrix()
+        assert F.getMumpsIcntl(14) == 100 and F.getMumpsIcntl(7) == 0
         sl, ss = long.summary(converged=True), ser.summary(converged=True)
         assert sl["newton_iterations"] == ss["newton_iterations"]
         assert sl["energy"] == pytest.approx(ss["energy"], rel=1e-9)

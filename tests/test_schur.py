@@ -103,6 +103,14 @@ def _solve(A, b, ctx):
     return y
 
 
+def _backward(A, b, v):
+    """Normwise backward error |A v - b| / (|A| |v| + |b|)."""
+    r = b.duplicate()
+    A.mult(v, r)
+    r.axpy(-1.0, b)
+    return r.norm() / (A.norm(PETSc.NormType.INFINITY) * v.norm() + b.norm())
+
+
 def _lu(A, b):
     """PETSc's LU of the whole matrix on every rank: the reference solution."""
     ksp = PETSc.KSP().create(comm=A.getComm())
@@ -163,21 +171,14 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
         e.axpy(-1.0, x)
         return e.norm() / x.norm()
 
-    def backward(v):
-        """Normwise backward error |A v - b| / (|A| |v| + |b|)."""
-        r = b.duplicate()
-        A.mult(v, r)
-        r.axpy(-1.0, b)
-        return r.norm() / (A.norm(PETSc.NormType.INFINITY) * v.norm() + b.norm())
-
     def as_accurate(v):
         """As accurate as the LU: backward stable as the LU is (backward errors 4e-17 -
         1.2e-16 for both on 2 to 4 ranks; a missed coupling would be O(1)), and the forward
         error, which the Jacobian's condition number makes 1e-9 - 1e-7 for both, of that
         order (it is not a fixed multiple of the LU's: on 3 ranks the michell ring's two
         separators gave 3.7e-8 against 6.7e-9)."""
-        return backward(v) <= 1e-14 and error(v) < 1e-6
-    assert error(xr) < 1e-6 and as_accurate(y), (backward(y), error(y), error(xr))
+        return _backward(A, b, v) <= 1e-14 and error(v) < 1e-6
+    assert error(xr) < 1e-6 and as_accurate(y), (_backward(A, b, y), error(y), error(xr))
     # a new set-up of the same matrix with new values keeps the blocks and takes the values
     # (2 A: half the solution; stale blocks would give another)
     # the matrix is A as it was: the diagonal block's separator rows and columns, the
@@ -489,14 +490,6 @@ def _coil_system(elements):
     LU to MUMPS, linear.FILL_MUMPS) and b = J x for a smooth x."""
     run = build_run("bench_coil", rod_nelem=elements, rod_length=0.02 * elements)
     return _system(run) + (run,)
-
-
-def _backward(A, b, v):
-    """Normwise backward error |A v - b| / (|A| |v| + |b|)."""
-    r = b.duplicate()
-    A.mult(v, r)
-    r.axpy(-1.0, b)
-    return r.norm() / (A.norm(PETSc.NormType.INFINITY) * v.norm() + b.norm())
 
 
 @pytest.mark.mpi

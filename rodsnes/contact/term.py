@@ -51,6 +51,10 @@ from rodsnes.model.term import Term
 from rodsnes.contact.potential import WALL, PotentialKernel
 from rodsnes.contact.mounts import SupportTerm
 
+# a raise of the penalty (-contact_penalty_adapt) aims this much beyond the depth it must bring
+# back to its mark: mu <- RAISE mu d / d_mark (promised_penalty, ease_wall)
+RAISE = 1.25
+
 
 class ContactTerm(Term):
     """Self-contact (and the clamps' mounts) as a term of the problem (module docstring)."""
@@ -562,7 +566,7 @@ class ContactTerm(Term):
         """(pen, mu1) at the positions r_loc (collective): pen = max <d> / (2 a) over all
         ranks, the deepest penetration into the tube as a fraction of its diameter, and the
         penalty that keeps the promise p* (-contact_penetration): None while pen <= p*, else
-        1.25 mu d_l / d_l*, d_l = d + offset the law's depth, d_l* = p_l 2 eps its promised
+        RAISE mu d_l / d_l*, d_l = d + offset the law's depth, d_l* = p_l 2 eps its promised
         one (equivalently pen <= p*: the law's promise reaches p* into the tube; a line contact
         has d_l ~ 1/mu, so it lands near 0.8 d_l*; a crossing, d_l ~ mu^(-2/3), may need a
         second raise).  The rule of both load paths (-contact_penalty_adapt)."""
@@ -570,13 +574,13 @@ class ContactTerm(Term):
         pen = (depth - self.offset) / (2.0 * self.radius)
         if pen <= self.penetration:
             return pen, None
-        return pen, 1.25 * self.mu * depth / (self.law_penetration * 2.0 * self.eps)
+        return pen, RAISE * self.mu * depth / (self.law_penetration * 2.0 * self.eps)
 
     def ease_wall(self, r_loc, lam):
         """With the wall (-contact_wall) and -contact_penalty_adapt, after a converged load step
         at r_loc whose deepest couple lies inside the wall's barrier (beyond its start a_b): the
         state keeps the promise (the wall), and the penalty is raised for the next step, which
-        then carries its larger forces before the barrier: 1.25 mu d / a_b, as
+        then carries its larger forces before the barrier: RAISE mu d / a_b, as
         promised_penalty's (a line contact has d ~ 1/mu).  No re-solve.  Returns the line that
         says so at load ``lam``, or None when nothing was raised.  Collective."""
         if self.wall is None:
@@ -585,7 +589,7 @@ class ContactTerm(Term):
         if depth <= self.wall[0]:
             return None
         mu0 = self.mu
-        self.set_penalty(1.25 * mu0 * depth / self.wall[0])
+        self.set_penalty(RAISE * mu0 * depth / self.wall[0])
         self.penalty_eased += 1
         return (f"  load {lam:.6f}: the contact presses into the wall: penalty {mu0:.4g} -> "
                 f"{self.mu:.4g} for the next step")

@@ -218,9 +218,12 @@ def use_mumps_when_filled(ksp, problem):
     # MUMPS's ordering: minimum degree where it fills less than nested dissection (on a coil
     # 3.4 against 4.7; Debian's MUMPS, without METIS and SCOTCH, would choose PORD)
     amd = fill if ordering == "amd" else pattern_fill(problem, "amd")
-    if amd <= pattern_fill(problem, "nd"):
-        # the Newton step's MUMPS, and on several ranks the stretches' and the whole matrix's
-        for pre in (prefix, schur.INTERIOR_PREFIX, schur.WHOLE_PREFIX + "mumps_"):
+    by_amd = amd <= pattern_fill(problem, "nd")
+    # MUMPS's defaults for the Newton step's and, on several ranks, for RankSchur's stretches
+    # and whole matrix: room for the fill, and the ordering
+    for pre in (prefix, schur.INTERIOR_PREFIX, schur.WHOLE_MUMPS_PREFIX):
+        mumps_fill_room(problem, pre)
+        if by_amd:
             option_default(pre + "mat_mumps_icntl_7", "0")
     size = problem.layout.comm.getSize()
     if size > 1 and schur.pays(problem.mesh.n_nodes, size, "mumps"):

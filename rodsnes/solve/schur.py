@@ -85,6 +85,7 @@ def pays(n_nodes, ranks, package="petsc"):
 
 
 WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankSchur._whole)
+WHOLE_MUMPS_PREFIX = WHOLE_PREFIX + "mumps_"    # ... by MUMPS over the ranks (package mumps)
 _WHOLE_DEFAULTS = {}    # prefix -> {"users": live RankSchurs, "set": the defaults they put in}
 INTERIOR_PREFIX = "interior_"   # the options of the interiors' MUMPS LU (-interior_mat_mumps_*)
 
@@ -298,11 +299,11 @@ class RankSchur:
         """PETSc's LU of the whole matrix on every rank (PCREDUNDANT; its inner solver set
         through the options of a prefix of its own: petsc4py 3.18 does not reach it)."""
         if self.whole is None:
-            prefix = WHOLE_PREFIX + ("mumps_" if self.package == "mumps" else "")
+            prefix = WHOLE_MUMPS_PREFIX if self.package == "mumps" else WHOLE_PREFIX
             opts = PETSc.Options(prefix)
-            if self.package == "mumps":     # MUMPS over the ranks, room for its fill
+            if self.package == "mumps":     # MUMPS over the ranks (its ICNTLs: linear.py)
                 settings = (("ksp_type", "preonly"), ("pc_type", "lu"),
-                            ("pc_factor_mat_solver_type", "mumps"), ("mat_mumps_icntl_14", "100"))
+                            ("pc_factor_mat_solver_type", "mumps"))
             else:
                 settings = (("ksp_type", "preonly"), ("pc_type", "redundant"),
                             ("redundant_ksp_type", "preonly"), ("redundant_pc_type", "lu"),
@@ -361,19 +362,18 @@ class RankSchur:
         pc = ksp.getPC()
         pc.setType(PETSc.PC.Type.LU)
         ksp.setOperators(k["AII"])
+        k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)   # the apply's interior
+        k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)   # right side and solution
         if self.package == "mumps":
             # MUMPS forms the Schur complement of the near unknowns N in its factorisation
-            # (a user's -interior_mat_mumps_icntl_* are read at its analysis)
+            # (-interior_mat_mumps_icntl_*, rodsnes' defaults from linear.py or the user's,
+            # are read at its analysis)
             ksp.setOptionsPrefix(INTERIOR_PREFIX)
             pc.setFactorSolverType("mumps")
             ksp.setFromOptions()
             pc.setFactorSetUpSolverType()
-            F = pc.getFactorMatrix()
-            F.setMumpsIcntl(14, 100)        # room for the fill (linear.mumps_fill_room)
             if k["nn"]:
-                set_schur_unknowns(F, k["Npos"])
-            k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
-            k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
+                set_schur_unknowns(pc.getFactorMatrix(), k["Npos"])
             return
         pc.setFactorSolverType("petsc")
         pc.setFactorOrdering(self.ordering)
@@ -382,8 +382,6 @@ class RankSchur:
         k["W"] = PETSc.Mat().createDense((ni, ng), comm=PETSc.COMM_SELF)
         k["W"].setUp()
         k["B"].getDenseArray()[:] = 0.0
-        k["yI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
-        k["bI"] = PETSc.Vec().createSeq(ni, comm=PETSc.COMM_SELF)
 
     def _refresh(self, A):
         """The same matrix with new values: its diagonal block has them (same patterns)."""
