@@ -216,7 +216,7 @@ static int64_t couples_pass(
                     memset(work, 0, (size_t)((nqp + nm) * 3) * sizeof(double));
                     active = 1;
                 }
-                double a = two_eps - r, W = wpJ[q] * wmp[j];
+                double a = fmin(two_eps - r, law[3]), W = wpJ[q] * wmp[j];
                 const double term = W * law_energy(a, law), sum = energy + term;
                 lost += fabs(energy) >= fabs(term) ? (energy - sum) + term : (term - sum) + energy;
                 energy = sum;

@@ -331,7 +331,8 @@ class PotentialKernel:
         if wall:
             a_w = self.penetration * 2.0 * self.eps - self.sampling_error()
             self.wall = (a_w - float(wall), a_w)
-        self.law = np.array([self.a_s, *(self.wall if self.wall else (0.0, 0.0))])
+        # the compiled kernel's law: (a_s, a_b, a_w, depth clip: +inf but for the report's pass)
+        self.law = np.array([self.a_s, *(self.wall if self.wall else (0.0, 0.0)), np.inf])
         self.Np = fe.lagrange(self.p, self.xp)[0]
         # master points: the Gauss points and the two element ends (the rod's end caps)
         self.xm = np.concatenate([self.xp, [-1.0, 1.0]])
@@ -405,6 +406,15 @@ class PotentialKernel:
         s = e[:, None] * h + (xa[None, :] + 1.0) * 0.5 * h
         sig = m[:, None] * h + (xb[None, :] + 1.0) * 0.5 * h
         dist = np.abs(s[:, :, None] - sig[:, None, :])
+        if self.closed:
+            dist = np.minimum(dist, self.L - dist)
+        return dist >= self.delta
+
+    def admissible_couples(self, e, xa, m, xb):
+        """``admissible`` couple by couple: True where dist(s, sigma) >= delta for the slave
+        points xa of elements e and the master points xb of elements m (all (n,))."""
+        h = self.h
+        dist = np.abs((e * h + (xa + 1.0) * 0.5 * h) - (m * h + (xb + 1.0) * 0.5 * h))
         if self.closed:
             dist = np.minimum(dist, self.L - dist)
         return dist >= self.delta
@@ -756,6 +766,34 @@ class PotentialKernel:
         out["mat"] = m6.reshape(nact, 6 * n1, 6 * n1)
         return out
 
+    def _report_force(self, c, x_own, no):
+        """The line force density f(s) = k sum_j w_j psi'(a) nu at the nqc report points of
+        the ``no`` own elements (no, nqc, 3), over the master points of the near pairs of
+        ``c``; with the wall the depth a at most the law's deepest (c["depth"]: the report
+        points are not the law's).  Compiled: the residual's pass over the report points
+        (potential_compiled.report_force); numpy: the distances of all couples, the law on
+        those in contact (admissible, closer than 2 eps, master weight > 0), chunk by chunk."""
+        xq_own = self.Nq @ x_own
+        clip = c["depth"] if self.wall is not None else np.inf
+        if self.compiled:
+            return potential_compiled.report_force(self, c, xq_own, clip, self._workspace)
+        nqc, two_eps = self.nqc, 2.0 * self.eps
+        f = np.zeros((no * nqc, 3))
+        for lo, hi in self.pair_chunks(len(c["oi"]), nqc * (self.nqp + 2)):
+            oi, e, m = c["oi"][lo:hi], c["e"][lo:hi], c["m"][lo:hi]
+            D = xq_own[oi][:, :, None, :] - c["xm"][c["mi"][lo:hi]][:, None, :, :]
+            r2 = np.einsum("pqjd,pqjd->pqj", D, D)
+            pi, qi, ji = np.nonzero(r2 < two_eps * two_eps)
+            wm = self._couple_master_weights(m[pi], ji)
+            ok = (wm > 0.0) & self.admissible_couples(e[pi], self.xq[qi], m[pi], self.xm[ji])
+            pi, qi, ji, wm = pi[ok], qi[ok], ji[ok], wm[ok]
+            r = np.sqrt(r2[pi, qi, ji])
+            a = np.minimum(two_eps - r, clip)
+            coef = self.k * wm * law_force(a, self.a_s, self.wall) / np.where(r > 0.0, r, 1.0)
+            # np.add.at(f, (own element, point), ...) (scatter.py: the same sums)
+            add_in_order(f, in_order_rows(oi[pi] * nqc + qi), coef[:, None] * D[pi, qi, ji])
+        return f.reshape(no, nqc, 3)
+
     @_quiet_beyond_the_wall
     def add_report(self, out):
         """The report of an evaluation (in place; nothing to do if it has it): the gap and
@@ -776,19 +814,7 @@ class PotentialKernel:
         _, gap, out["sbar"] = g.report_points(ctx, no)
         out["gap"] = gap
         out["zones"] = int(np.count_nonzero(gap > 0.0))
-        # line force density at the report points, over the near pairs, chunk by chunk
-        f = np.zeros((no, nqc, 3))
-        xq_own = self.Nq @ x_own
-        for lo, hi in self.pair_chunks(len(c["oi"]), nqc * (self.nqp + 2)):
-            oi, e, m = c["oi"][lo:hi], c["e"][lo:hi], c["m"][lo:hi]
-            a, r, nu = self.couples(xq_own[oi], c["xm"][c["mi"][lo:hi]],
-                                     self.admissible(e, m, self.xq, self.xm))
-            if self.wall is not None:       # the report points, not the law's: The wall
-                a = np.minimum(a, c["depth"])
-            fa = self.master_weights(m)[:, None, :] * law_force(a, self.a_s, self.wall)
-            # np.add.at(f, oi, ...) (scatter.py: the same sums)
-            add_in_order(f.reshape(no, -1), in_order_rows(oi),
-                         k * (np.matmul(fa[:, :, None, :], nu)[:, :, 0]))
+        f = self._report_force(c, x_own, no)
         out["force"] = np.linalg.norm(f, axis=2)
         out["complementarity"] = float(np.sum(self.wq * J * np.maximum(gap, 0.0) * out["force"]))
         # total force by the nqp rule over the couples in contact

@@ -11,8 +11,9 @@ per master point and per slave point and master shape function, and contracts th
 blocks.  The numpy path of PotentialKernel stays the reference: equal to round-off
 (tests/test_contact_potential.py).
 
-C entry points (int64 indices, C-contiguous float64 arrays; law = {a_s, a_b, a_w}, the onset
-layer and the wall of PotentialKernel.law, a_w = 0 without the wall):
+C entry points (int64 indices, C-contiguous float64 arrays; law = {a_s, a_b, a_w, a_max}: the
+onset layer and the wall of PotentialKernel.law, a_w = 0 without the wall, and the depth clip
+a_max, +inf but for report_force):
 
     int64 rodsnes_potential_residual(prune, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, nelem,
         h, delta, L, closed, sq, sm, Np, Nm, wpJ, wm, two_eps, law, k, maxc, cp, cq, cj, cr,
@@ -27,6 +28,7 @@ import ctypes
 import numpy as np
 
 from rodsnes import compiled
+from rodsnes.contact.scatter import add_in_order, in_order_rows
 
 
 def library_path():
@@ -100,7 +102,35 @@ def rows_within(kern, c, scratch, reach):
     return act[:int(state[3])].copy()
 
 
-def _chunked_couples(kern, c, args, scratch, prune, two_eps=None, k=None):
+def report_force(kern, c, xq, clip, scratch):
+    """The line force density at the report points xq (own elements, nqc, 3) of
+    PotentialKernel._report_force: the residual's pass with the report points as the slave
+    points (their own arclengths for the exclusion, unit weights, the identity as their shape
+    functions, none for the masters: each row's slave part is then minus the force of its
+    pair at each report point) and the depth at most ``clip``; the rows summed per own
+    element in their order (scatter.py).  (no, nqc, 3)."""
+    no, nqc = xq.shape[0], xq.shape[1]
+    oi, mi, e, m = (_c(c[v], np.int64) for v in ("oi", "mi", "e", "m"))
+    nn, nm = len(oi), kern.nqp + 2
+    f = np.zeros((no, nqc * 3))
+    if not nn:
+        return f.reshape(no, nqc, 3)
+    act = np.empty(nn, dtype=np.int64)
+    vec = np.empty((nn, 2 * nqc, 3))
+    points = {"xs": xq, "nqp": nqc, "n1": nqc, "sq": _c((kern.xq + 1.0) * 0.5 * kern.h),
+              "Np": np.eye(nqc), "Nm": np.zeros((nm, nqc)), "wpJ": np.ones(nqc)}
+    law = kern.law.copy()
+    law[3] = clip
+    wm = c["wm_table"] if "wm_table" in c else _c(kern.master_weights(m))
+    state = _chunked_couples(kern, c, (oi, mi, e, m, wm, act, vec), scratch, prune=1,
+                             points=points, law=law)[4]
+    nrow = int(state[3])
+    if nrow:
+        add_in_order(f, in_order_rows(oi[act[:nrow]]), -vec[:nrow, :nqc].reshape(nrow, -1))
+    return f.reshape(no, nqc, 3)
+
+
+def _chunked_couples(kern, c, args, scratch, prune, two_eps=None, k=None, points=None, law=None):
     """One pass of rodsnes_potential_residual over the near pairs, chunk by chunk: each call
     fills the couple buffers (room for max(chunk_couples, nqp (nqp + 2)) couples) from the
     pair where the last stopped, with the running energy, least distance and rows carried in
@@ -109,9 +139,12 @@ def _chunked_couples(kern, c, args, scratch, prune, two_eps=None, k=None):
     res, _ = _load()
     two_eps = 2.0 * kern.eps if two_eps is None else float(two_eps)
     k = kern.k if k is None else float(k)
+    law = kern.law if law is None else law
     oi, mi, e, m, wm, act, vec = args
-    xs, xm = _c(c["xs"]), _c(c["xm"])
-    nn, nqp, nm, n1 = len(oi), kern.nqp, kern.nqp + 2, kern.p + 1
+    pts = points or {"xs": c["xs"], "nqp": kern.nqp, "n1": kern.p + 1, "sq": kern._sq,
+                     "Np": kern._Npc, "Nm": kern._Nmc, "wpJ": kern._wpJ}
+    xs, xm = _c(pts["xs"]), _c(c["xm"])
+    nn, nqp, nm, n1 = len(oi), pts["nqp"], kern.nqp + 2, pts["n1"]
     maxc = max(int(kern.chunk_couples), nqp * nm)
     maxc = min(maxc, max(nn * nqp * nm, nqp * nm))
     cp, cq, cj = (scratch(v, (maxc,), np.int64) for v in ("cp", "cq", "cj"))
@@ -122,8 +155,8 @@ def _chunked_couples(kern, c, args, scratch, prune, two_eps=None, k=None):
     p0 = 0
     while True:
         nc = res(prune, p0, nn, nqp, nm, n1, xs, xm, oi, mi, e, m, kern.nelem, kern.h,
-                 kern.delta, kern.L, int(bool(kern.closed)), kern._sq, kern._sm, kern._Npc,
-                 kern._Nmc, kern._wpJ, wm, two_eps, kern.law, k, maxc, cp, cq, cj,
+                 kern.delta, kern.L, int(bool(kern.closed)), pts["sq"], kern._sm, pts["Np"],
+                 pts["Nm"], pts["wpJ"], wm, two_eps, law, k, maxc, cp, cq, cj,
                  cr, act, vec, work, state)
         if nc < 0:
             raise RuntimeError("rodsnes_potential_residual: couple buffers below one pair")

@@ -63,24 +63,35 @@ def _coefficient_tensors():
 
 
 _A, _T = _coefficient_tensors()
+# the same tensors as matrices over outer products, so that the numerators are matrix products
+# (a 4-operand einsum has no cheaper contraction path: numpy runs it as one nested loop)
+_T_PP = _T.transpose(1, 2, 0, 3).reshape(16, 9)     # (p p^T) -> d g_k / d r'_l   (k, l)
+_T_PR = _T.transpose(2, 3, 0, 1).reshape(12, 12)    # (p r'^T) -> 1/2 d g_k / d p_i  (k, i)
+_A_PD = _A.transpose(1, 2, 0).reshape(16, 3)        # (p p'^T) -> w_k
+
+
+def _outer(a, b):
+    """a_i b_j flattened over (i, j): (..., len(a) len(b))."""
+    return (a[..., :, None] * b[..., None, :]).reshape(a.shape[:-1] + (a.shape[-1] * b.shape[-1],))
 
 
 def strain_measures(p, dp, dr, derivatives=0):
-    """Reference (einsum) form: e = (v, u) at points with interpolated p (...,4), p' (...,4), r' (...,3).
+    """Reference (numpy) form: e = (v, u) at points with interpolated p (...,4), p' (...,4), r' (...,3).
 
     derivatives=0: e (...,6); 1: (e, De (...,6,11)); 2: (e, De, D2e (...,6,11,11)).
     """
     n2 = np.einsum("...i,...i->...", p, p)
-    g = np.einsum("kijl,...i,...j,...l->...k", _T, p, p, dr, optimize=True)
-    w = np.einsum("kij,...i,...j->...k", _A, p, dp, optimize=True)
+    shp = p.shape[:-1]
+    Rt = (_outer(p, p) @ _T_PP).reshape(shp + (3, 3))            # dg/dr' = Rq(p)^T
+    g = (Rt @ dr[..., :, None])[..., 0]
+    w = _outer(p, dp) @ _A_PD
     Nz = np.concatenate([g, 2.0 * w], axis=-1)
     e = Nz / n2[..., None]
     if derivatives == 0:
         return e
-    shp = p.shape[:-1]
     DN = np.zeros(shp + (6, 11))
-    DN[..., :3, 0:4] = 2.0 * np.einsum("kijl,...j,...l->...ki", _T, p, dr, optimize=True)
-    DN[..., :3, 8:11] = np.einsum("kijl,...i,...j->...kl", _T, p, p, optimize=True)
+    DN[..., :3, 0:4] = 2.0 * (_outer(p, dr) @ _T_PR).reshape(shp + (3, 4))
+    DN[..., :3, 8:11] = Rt
     DN[..., 3:, 0:4] = 2.0 * np.einsum("kij,...j->...ki", _A, dp)
     DN[..., 3:, 4:8] = 2.0 * np.einsum("kij,...i->...kj", _A, p)
     Dn2 = np.zeros(shp + (11,))
@@ -452,7 +463,7 @@ def strains_at_nodes(order, h, qe, xe):
     xi = fe.reference_nodes(order)
     N, dN, _ = fe.lagrange(order, xi)
     qa = align_signs(qe)
-    p = np.einsum("qa,eai->eqi", N, qa)
-    dp = np.einsum("qa,eai->eqi", dN * (2.0 / h), qa)
-    dr = np.einsum("qa,eai->eqi", dN * (2.0 / h), xe)
+    p = N @ qa
+    dp = (dN * (2.0 / h)) @ qa
+    dr = (dN * (2.0 / h)) @ xe
     return strain_measures(p, dp, dr)

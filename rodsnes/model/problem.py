@@ -734,10 +734,11 @@ def nodal_average(layout, lconn, elem_values):
     """Average element-node values (ne, p+1, 6) over the elements sharing each node, across
     ranks; returns (n_owned, 6)."""
     nl = len(layout.local_nodes)
-    acc = np.zeros((nl, NDOF))
-    cnt = np.zeros((nl, NDOF))
-    np.add.at(acc, lconn, elem_values)
-    np.add.at(cnt, lconn, 1.0)
+    idx = np.asarray(lconn).ravel()
+    vals = np.asarray(elem_values).reshape(len(idx), NDOF)
+    # sums per node by bincount (np.add.at is unbuffered: ~10x slower at 10^4 elements)
+    acc = np.stack([np.bincount(idx, weights=vals[:, k], minlength=nl) for k in range(NDOF)], axis=1)
+    cnt = np.repeat(np.bincount(idx, minlength=nl).astype(float)[:, None], NDOF, axis=1)
     A, Cn = layout.create_vec(), layout.create_vec()
     layout.add_to_global(acc, A)
     layout.add_to_global(cnt, Cn)
