@@ -197,6 +197,7 @@ class PlanarSystem:
         self.out_inertia = BlockInertia(problem, plane.outplane)
         self.stats = {"planar_solves": 0, "out_of_plane_counts": 0}
         self.solver = None
+        self._work = {}                   # kept block-3 vectors of the solves (work)
 
     # -- vectors ------------------------------------------------------------------------
     def restrict(self, v, out=None):
@@ -206,19 +207,29 @@ class PlanarSystem:
             lay = self.problem.layout
             out = PETSc.Vec().createMPI((3 * lay.n_owned, 3 * lay.n_global), bsize=3,
                                         comm=lay.comm)
-        out.setArray(np.ascontiguousarray(a).ravel())
+        with out as o:
+            o[:] = a.ravel()
         return out
+
+    def work(self, name):
+        """A block-3 Vec of the in-plane unknowns kept for the solves (``name``: which one)."""
+        w = self._work.get(name)
+        if w is None:
+            w = self._work[name] = self.restrict(self.problem.state.X)
+        return w
 
     def expand(self, vi, v):
         """v <- vi on the in-plane components, 0 on the others."""
-        a = np.zeros((self.problem.layout.n_owned, NDOF))
-        a[:, self.plane.inplane] = vi.getArray(readonly=True).reshape(-1, 3)
-        v.setArray(a.ravel())
+        with v as a:
+            a = a.reshape(-1, NDOF)
+            a[:, self.plane.outplane] = 0.0
+            a[:, self.plane.inplane] = vi.getArray(readonly=True).reshape(-1, 3)
 
     def out_of_plane_share(self, v):
         """(|v_o|, |v|) over all ranks."""
-        a = v.getArray(readonly=True).reshape(-1, NDOF)
-        loc = np.array([float(np.sum(a[:, self.plane.outplane] ** 2)), float(np.sum(a * a))])
+        a = v.getArray(readonly=True)
+        o = a.reshape(-1, NDOF)[:, self.plane.outplane].ravel()
+        loc = np.array([float(o @ o), float(a @ a)])
         tot = np.empty(2)
         self.comm.Allreduce(loc, tot, op=MPI.SUM)
         return tuple(np.sqrt(tot))
@@ -291,8 +302,8 @@ class PlanarSystem:
         ksp = self._inner_ksp()
         ksp.setOperators(self.J)
         self.lu.check(ksp, self.problem)
-        bi = self.restrict(b)
-        xi = bi.duplicate()
+        bi = self.restrict(b, out=self.work("b"))
+        xi = self.work("x")
         self.stats["planar_solves"] += 1
         try:
             ksp.solve(bi, xi)
@@ -302,8 +313,6 @@ class PlanarSystem:
             ok = False
         if ok:
             self.expand(xi, x)
-        bi.destroy()
-        xi.destroy()
         return ok
 
     def tangent_solve(self, b, x):
@@ -387,12 +396,10 @@ class _Operator:
         if not pl.active:
             pl.problem.J.mult(x, y)
             return
-        xi = pl.restrict(x)
-        yi = xi.duplicate()
+        xi = pl.restrict(x, out=pl.work("b"))
+        yi = pl.work("x")
         pl.J.mult(xi, yi)
         pl.expand(yi, y)
-        xi.destroy()
-        yi.destroy()
 
 
 class _PlanarPC:
