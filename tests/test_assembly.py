@@ -213,3 +213,34 @@ def test_split_contact_jacobian_equals_the_node_block_one(monkeypatch, symmetric
     assert stored[0] < 0.8 * stored[1]
     S.destroy()
     B.destroy()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("scene", ["mattiasson", "rollup_contact"])
+def test_own_blocks_go_straight_into_the_diagonal_block(monkeypatch, scene):
+    """On several ranks the groups wholly in a rank's own rows and columns go into the MPI
+    matrix's diagonal block directly (partition.OwnBlocksFirst), the others through the MPI
+    matrix, in runs in their order: bit for bit the matrix of insertion through the MPI matrix
+    alone (the reference of masked_against_reference), with the contact's split matrix too;
+    on one rank the matrix itself is used."""
+    sent = {"diag": 0, "mpi": 0}
+    own = partition.OwnBlocksFirst
+
+    class Counted(own):
+        def setValuesBlockedRCV(self, R, C, V, addv=None):
+            R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
+            inside = (((R2 >= self.lo) & (R2 < self.hi)).all(axis=1)
+                      & ((C2 >= self.lo) & (C2 < self.hi)).all(axis=1))
+            sent["diag"] += int(inside.sum())
+            sent["mpi"] += int((~inside).sum())
+            super().setValuesBlockedRCV(R, C, V, addv=addv)
+
+    monkeypatch.setattr(partition, "OwnBlocksFirst", Counted)
+    run = SCENES[scene]()
+    A = masked_against_reference(run)
+    constrained_rows_are_identity(run, A)
+    if PETSc.COMM_WORLD.getSize() > 1:        # both kinds, on some rank
+        total = PETSc.COMM_WORLD.tompi4py().allreduce(np.array([sent["diag"], sent["mpi"]]))
+        assert total[0] > 0 and total[1] > 0, total
+    else:
+        assert sent == {"diag": 0, "mpi": 0}

@@ -226,7 +226,9 @@ class DirichletRows:
 
     def __init__(self, mat, mask):
         self.split = is_split(mat)
-        self.mat, self.mask = (SplitBlocks(mat) if self.split else mat), mask
+        self.raw = mat
+        local = OwnBlocksFirst.wrap(mat)
+        self.mat, self.mask = (SplitBlocks(local) if self.split else local), mask
         self.touched = np.zeros(len(mask), dtype=bool)       # blocks with a constrained dof
         self.touched[np.flatnonzero(mask.ravel()) // mask.shape[1]] = True
 
@@ -284,7 +286,59 @@ class DirichletRows:
         indices)."""
         if len(rows_global):
             r = np.asarray(rows_global, dtype=PETSc.IntType)[:, None]
-            self.mat.setValuesRCV(r, r, np.ones((len(r), 1, 1)), addv=PETSc.InsertMode.ADD)
+            self.raw.setValuesRCV(r, r, np.ones((len(r), 1, 1)), addv=PETSc.InsertMode.ADD)
+
+    def __getattr__(self, name):
+        return getattr(self.mat, name)
+
+
+class OwnBlocksFirst:
+    """A parallel BAIJ or AIJ matrix whose groups of blocks (setValuesBlockedRCV) that lie
+    wholly in this rank's own rows and columns go straight into its diagonal block (a SeqBAIJ,
+    local indices): MatSetValuesBlocked of the MPI matrix checks every block's row and column
+    for ownership and looks the off-diagonal ones up, 5.4 against 3.7 ms for the 3-D elastic
+    tangent of 5000 cubic elements a rank (10^4 on 2 ranks).  The other groups go through the
+    MPI matrix; runs of both kinds in their order, so every entry gets its additions in the
+    same order as through the MPI matrix alone (an owned row's entries are added in place
+    there too; the other ranks' rows are stashed and added at assembly either way): the
+    same sums bit for bit.  Not for SBAIJ (the lower triangle is dropped by the MPI matrix's
+    option) nor on one rank (wrap returns the matrix itself)."""
+
+    def __init__(self, mat):
+        self.mat = mat
+        self.diag = mat.getDiagonalBlock()
+        bs = mat.getBlockSize()
+        self.lo, self.hi = (r // bs for r in mat.getOwnershipRange())
+
+    @classmethod
+    def wrap(cls, mat):
+        """mat seen through OwnBlocksFirst where that applies (a square MPI BAIJ or AIJ matrix
+        on several ranks, rows and columns owned alike), else mat."""
+        if not isinstance(mat, PETSc.Mat) or mat.getComm().getSize() == 1 or \
+                mat.getType() not in (PETSc.Mat.Type.MPIBAIJ, PETSc.Mat.Type.MPIAIJ) or \
+                mat.getOwnershipRange() != mat.getOwnershipRangeColumn():
+            return mat
+        return cls(mat)
+
+    def setValuesBlockedRCV(self, R, C, V, addv=None):
+        R2, C2 = R.reshape(len(R), -1), C.reshape(len(C), -1)
+        own = ((R2 >= self.lo) & (R2 < self.hi)).all(axis=1)
+        if C is not R:
+            own &= ((C2 >= self.lo) & (C2 < self.hi)).all(axis=1)
+        if own.all():
+            self.diag.setValuesBlockedRCV(R - self.lo, C - self.lo, V, addv=addv)
+            return
+        if not own.any():
+            self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
+            return
+        start = 0
+        for a, b in _runs(own):
+            if a > start:
+                self.mat.setValuesBlockedRCV(R[start:a], C[start:a], V[start:a], addv=addv)
+            self.diag.setValuesBlockedRCV(R[a:b] - self.lo, C[a:b] - self.lo, V[a:b], addv=addv)
+            start = b
+        if start < len(R):
+            self.mat.setValuesBlockedRCV(R[start:], C[start:], V[start:], addv=addv)
 
     def __getattr__(self, name):
         return getattr(self.mat, name)
