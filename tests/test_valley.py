@@ -146,3 +146,31 @@ def test_a_declined_walk_does_not_delay_the_next():
     took.points, took.its = 3, 7
     f.walked(50, took)
     assert (f.after, f.wait) == (50, valley.VALLEY_AFTER)
+
+
+def test_no_walk_along_a_symmetry(monkeypatch):
+    """Michell's isotropic ring at 1.2 turns (node 0 held): turned rigidly about node 0's
+    tangent with its sections spun back about their own, it keeps its energy but for the
+    imperfection's weak pinning (lowest Hessian eigenvalue 3.3e-10), so Newton's directions
+    line up along that mode at the round-off floor.  The follower declines the walk (the
+    model's descent is below the energy's round-off) or takes no point (each one's energy
+    change is round-off): no valley point, and the last load step converges in 10 iterations
+    (29 while points were taken on round-off descents); with the round-off test switched off
+    (any descent a walk, any lower energy a point) it walks."""
+    from conftest import run_case
+    from test_verification import rigid_fit
+
+    def ring(descends=None):
+        if descends is not None:
+            monkeypatch.setattr(minimize.EnergyMinimizer, "descends", descends)
+        run = run_case("michell", load_twist_turns=1.2, load_steps=3, rod_nelem=11)
+        assert run.ok
+        return run, run.solver.results[-1]
+
+    run, last = ring()
+    assert last.valley_points == 0 and last.its <= 12, (last.valley_points, last.its)
+    X = run.layout.allgather_nodes(run.last_fields["positions"])
+    walked, last_walked = ring(lambda self, E0, decrease: decrease > 0.0)
+    assert last_walked.valley_points > 0 and last_walked.its > last.its + 5
+    Y = walked.layout.allgather_nodes(walked.last_fields["positions"])
+    assert rigid_fit(X, Y)[2] < 1e-9           # the same ring, turned along its symmetry

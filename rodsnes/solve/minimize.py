@@ -225,6 +225,11 @@ class EnergyMinimizer:
         round-off: only there may a decision depend on energies, the same on every rank."""
         return change > 1e3 * self.roundoff * (abs(E0) + self.energy_scale)
 
+    def descends(self, E0, decrease):
+        """Whether an energy decrease from E0 lies beyond the energy's round-off (the valley
+        follower's walks and points: along a symmetry the energy changes by round-off alone)."""
+        return decrease > self.roundoff * (abs(E0) + self.energy_scale)
+
     def metric_dot(self, a, b):
         """<M a, b>, the same on every rank.  Collective."""
         w = a.duplicate()

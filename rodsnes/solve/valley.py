@@ -20,7 +20,9 @@ The follower walks the floor instead, as a continuation method traces a path:
    bordered system [K, M v; (M v)^T, 0] (two solves with one factor of K), each step searched
    on the energy by the minimiser's line search, until the gradient's part in the hyperplane
    is a tenth of its part along M v;
-4. a valley point is taken when its energy is lower than the last one's; s doubles after a
+4. a valley point is taken when its energy is lower than the last one's beyond the energy's
+   round-off (EnergyMinimizer.descends: along a symmetry the energy changes by round-off alone,
+   and the walk is declined where the model's descent is below it); s doubles after a
    corrector of at most two iterations and halves after one of CORRECTOR_ITS; a rejected
    point quarters s, and MISSES in a row end the walk;
 5. where the slope along the floor, g . v, turns uphill, one last point where the slope,
@@ -159,6 +161,13 @@ class ValleyFollower:
         # the first length: Newton's along the mode (the quadratic model's valley minimum)
         s = abs(m.metric_dot(d, v))
         E0, depth0 = m.energy_at(X)
+        if not m.descends(E0, -s * m._same(g.dot(v))):
+            # the quadratic model's descent along the mode is below the energy's round-off: a
+            # symmetry (a ring turned about itself), not a valley to walk
+            v.destroy()
+            out.declined = True
+            out.reason = "the valley is flat"
+            return out
         Mv = v.duplicate()
         a, b, dc = v.duplicate(), v.duplicate(), v.duplicate()
         Xt = X.duplicate()
@@ -189,12 +198,13 @@ class ValleyFollower:
                 if bend is not None:
                     X.axpy(0.5 * s * s, bend)
                 ok, its, E1, depth1, gn = self._correct(v, Mv, a, b, dc, Xt, out)
-                if not ok and E1 < E0 and its > 0:
+                lower = m.descends(E0, E0 - E1)
+                if not ok and lower and its > 0:
                     # short of the floor, but lower: the minimiser goes on from here
                     out.points += 1
                     out.reason = "the corrector stopped short of the floor"
                     break
-                if not ok or not E1 < E0:
+                if not ok or not lower:
                     p.state.restore(snap)
                     out.rejected += 1
                     if final:
