@@ -198,3 +198,28 @@ def test_foreign_calls_check_arrays_before_the_call_and_let_signals_through():
     with pytest.raises(Interrupted):
         energy(ne, nn, nq, *args, np.empty(ne).view(Signalled))
     assert not issubclass(Interrupted, ctypes.ArgumentError)
+
+
+@pytest.mark.parametrize("p", [1, 2, 3, 4])
+@pytest.mark.parametrize("comps", [(0, 1, 5), (0, 2, 4), (2, 1, 3), (3,), (5, 4, 3, 2, 1, 0)])
+def test_tangent_cut_to_components_in_the_kernel(p, comps):
+    """comps: the kernel's tangents cut to those components of every node, bit for bit the
+    entries of its full tangents (rows and columns (node, component), in the order given),
+    in fresh and in reused arrays, both tangents; the numpy path's cut the same to round-off."""
+    rng = np.random.default_rng(7 + p)
+    rod, qe, xe = make_rod(p, p, 5, rng, False)
+    idx = (6 * np.arange(p + 1)[:, None] + np.asarray(comps)[None, :]).ravel()
+    for symmetric in (False, True):
+        full = rod.element_terms(qe, xe, symmetric=symmetric)
+        cut = rod.element_terms(qe, xe, symmetric=symmetric, comps=comps)
+        again = rod.element_terms(qe, xe, symmetric=symmetric, comps=comps, reuse=True)
+        ref = full[2][:, idx[:, None], idx[None, :]]
+        for got in (cut, again):
+            assert got[2].shape == (5, len(comps) * (p + 1), len(comps) * (p + 1))
+            assert np.array_equal(got[2], ref)
+            assert np.array_equal(got[0], full[0]) and np.array_equal(got[1], full[1])
+        rod.kernel = "numpy"
+        assert_same(rod.element_terms(qe, xe, symmetric=symmetric, comps=comps), cut, "numpy cut")
+        rod.kernel = "compiled"
+    with pytest.raises(ValueError):
+        elastic_compiled.element_terms(rod, qe, xe, comps=(0, 6))

@@ -455,26 +455,50 @@ static ALWAYS_INLINE void element(
     }
 }
 
+/* The element's tangent cut to the components comps[0..nc-1] of every node:
+ * Hc[(nc a + i)(nc NN) + nc b + j] = H[(6 a + comps[i])(6 NN) + 6 b + comps[j]]. */
+static ALWAYS_INLINE void cut_tangent(const int NN, const double *H, const int *comps, int nc,
+                                      double *Hc)
+{
+    const int ld = 6 * NN, lc = nc * NN;
+    for (int a = 0; a < NN; a++)
+        for (int i = 0; i < nc; i++) {
+            const double *row = H + (6 * a + comps[i]) * ld;
+            double *out = Hc + (nc * a + i) * lc;
+            for (int b = 0; b < NN; b++)
+                for (int j = 0; j < nc; j++)
+                    out[nc * b + j] = row[6 * b + comps[j]];
+        }
+}
+
+/* One element into the outputs; with comps its tangent through a buffer, cut (cut_tangent). */
 #define ELEMENT_LOOP(NN)                                                                   \
-    for (int e = 0; e < ne; e++)                                                           \
+    for (int e = 0; e < ne; e++) {                                                         \
+        double *He = !tangent ? (double *)0 : comps ? Hbuf : H + (long)e * 36 * (NN) * (NN); \
         element(NN, &st, qe + (long)e * 4 * (NN), xe + (long)e * 3 * (NN),                \
-                e0 + (long)e * 6 * nq, symmetric, energy + e, vec + (long)e * 6 * (NN),    \
-                tangent ? H + (long)e * 36 * (NN) * (NN) : (double *)0)
+                e0 + (long)e * 6 * nq, symmetric, energy + e, vec + (long)e * 6 * (NN), He); \
+        if (tangent && comps)                                                              \
+            cut_tangent(NN, Hbuf, comps, ncomp, H + (long)e * ncomp * ncomp * (NN) * (NN)); \
+    }
 
 /* Public entry point (see rodsnes/model/elastic_compiled.py).  Arrays are C-contiguous float64:
  *   N, dN (nq, nn) shape functions and their arclength derivatives at the Gauss points,
  *   wJ (nq) weights times Jacobian, C (6) stiffness (GA1, GA2, EA, EI1, EI2, GJ),
  *   limit != 0: curvature bound kappa_max with stiffness mu_kappa,
  *   qe (ne, nn, 4), xe (ne, nn, 3), e0 (ne, nq, 6),
- *   outputs energy (ne), vec (ne, nn, 6), H (ne, 6nn, 6nn) (ignored unless tangent != 0).
+ *   comps (ncomp) or NULL: the tangent cut to these components (0..5) of every node,
+ *   outputs energy (ne), vec (ne, nn, 6), H (ne, 6nn, 6nn), or (ne, ncomp nn, ncomp nn) with
+ *   comps (ignored unless tangent != 0).
  * Returns 0, or -1 if nn is outside 1..MAXNN or nq < 1. */
 int rodsnes_elastic_terms(int ne, int nn, int nq, const double *N, const double *dN,
                           const double *wJ, const double *C, int limit, double kappa_max,
                           double mu_kappa, const double *qe, const double *xe,
-                          const double *e0, int tangent, int symmetric, double *energy,
-                          double *vec, double *H)
+                          const double *e0, int tangent, int symmetric, const int *comps,
+                          int ncomp, double *energy, double *vec, double *H)
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    if (comps && (ncomp < 1 || ncomp > 6)) return -1;
+    double Hbuf[36 * MAXNN * MAXNN];
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
     switch (nn) {   /* constant node counts let the compiler unroll the node loops */
     case 2: ELEMENT_LOOP(2); break;

@@ -307,7 +307,8 @@ class ElasticRod:
         return self.law(self.strains(qe, xe), e0)[1]
 
     @logged("ElasticKernel")
-    def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False, reuse=False):
+    def element_terms(self, qe, xe, e0=None, tangent=True, symmetric=False, reuse=False,
+                      comps=None):
         """Element residuals (ne, p+1, 6) and tangents (ne, 6(p+1), 6(p+1)) in the
         Newton unknowns (r, theta) per node, plus the energy of each element.
         ``reuse``: the compiled kernel writes into arrays kept on the rod (_workspace: no fresh
@@ -319,24 +320,35 @@ class ElasticRod:
         at theta = 0 is  H - 1/2 g_theta^x  on each node's theta-theta block (symmetric=False,
         the default: the consistent Newton tangent).  symmetric=True returns the Hessian H of
         the energy in the exponential chart (for inertia / stability: equal at equilibrium).
-        Computed by the kernel chosen at construction (class docstring)."""
+        Computed by the kernel chosen at construction (class docstring).  ``comps``: the
+        tangents cut to these components of every node, (ne, c(p+1), c(p+1)) with rows and
+        columns (node, component) (the planar step's in-plane block: planar.ComponentView);
+        the compiled kernel cuts each element's tangent as it is made."""
         if self.kernel == "compiled":
-            out = self._workspace(len(qe), tangent) if reuse else None
-            return elastic_compiled.element_terms(self, qe, xe, e0, tangent, symmetric, out=out)
+            nc = 6 if comps is None else len(comps)
+            out = self._workspace(len(qe), tangent, nc) if reuse else None
+            return elastic_compiled.element_terms(self, qe, xe, e0, tangent, symmetric, out=out,
+                                                  comps=comps)
         if self.kernel == "reference":
-            return self.element_terms_reference(qe, xe, e0, tangent, symmetric)
-        return self.element_terms_numpy(qe, xe, e0, tangent, symmetric)
+            out = self.element_terms_reference(qe, xe, e0, tangent, symmetric)
+        else:
+            out = self.element_terms_numpy(qe, xe, e0, tangent, symmetric)
+        if comps is None or out[2] is None:
+            return out
+        idx = (6 * np.arange(self.p + 1)[:, None] + np.asarray(comps)[None, :]).ravel()
+        return out[0], out[1], out[2][:, idx[:, None], idx[None, :]]
 
-    def _workspace(self, ne, tangent):
+    def _workspace(self, ne, tangent, nc=6):
         """(energy, vec, H or None) arrays kept for ``reuse``: the leading ne elements of arrays
         that only grow (the residual takes all the elements at once, the Jacobian a chunk at a
-        time: RodProblem.jacobian; a leading slice of a C-contiguous array is C-contiguous)."""
+        time: RodProblem.jacobian; a leading slice of a C-contiguous array is C-contiguous); H
+        of nc components a node (``comps``)."""
         nn = self.p + 1
         ws = self._ws
         if ws is None or len(ws[0]) < ne:
             ws = self._ws = [np.empty(ne), np.empty((ne, nn, 6)), None]
-        if tangent and (ws[2] is None or len(ws[2]) < ne):
-            ws[2] = np.empty((ne, 6 * nn, 6 * nn))
+        if tangent and (ws[2] is None or len(ws[2]) < ne or ws[2].shape[1] != nc * nn):
+            ws[2] = np.empty((ne, nc * nn, nc * nn))
         out = [a if len(a) == ne else a[:ne] for a in ws[:2 + bool(tangent)]]
         return out[0], out[1], out[2] if tangent else None
 

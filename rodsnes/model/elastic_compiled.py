@@ -17,7 +17,7 @@ C entry point:
                               const double *N, const double *dN, const double *wJ,
                               const double *C, int limit, double kappa_max, double mu_kappa,
                               const double *qe, const double *xe, const double *e0,
-                              int tangent, int symmetric,
+                              int tangent, int symmetric, const int *comps, int ncomp,
                               double *energy, double *vec, double *H);
     int rodsnes_elastic_energy(int ne, int nn, int nq, ... the same ..., const double *e0,
                                double *energy);          (the energy alone: line searches)
@@ -40,8 +40,8 @@ def _declare(lib):
     """The C functions of the built library, with their signatures (compiled.Foreign)."""
     c_int, c_dbl, f64 = ctypes.c_int, ctypes.c_double, compiled.F64
     common = [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64, f64]
-    fn = compiled.Foreign(lib.rodsnes_elastic_terms, common + [c_int, c_int, f64, f64, f64],
-                          c_int)
+    fn = compiled.Foreign(lib.rodsnes_elastic_terms,
+                          common + [c_int, c_int, ctypes.c_void_p, c_int, f64, f64, f64], c_int)
     en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
     return fn, en
 
@@ -84,22 +84,32 @@ def _inputs(rod, qe, xe, e0):
     return args, (ne, nn, nq)
 
 
-def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None):
+def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None, comps=None):
     """(energy (ne,), vec (ne, p+1, 6), H (ne, 6(p+1), 6(p+1)) or None) of ElasticRod rod:
     the same as rod.element_terms(qe, xe, e0, tangent, symmetric), computed in C; ``out``:
-    (energy, vec, H or None) arrays of those shapes to write into."""
+    (energy, vec, H or None) arrays of those shapes to write into.  ``comps``: the tangent cut
+    in C to these components of every node, H (ne, c(p+1), c(p+1)) with c = len(comps), rows
+    and columns (node, component) (planar.ComponentView's block, without the 6 x 6 tangents
+    written out and gathered)."""
     args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
+    nc = 6 if comps is None else len(comps)
+    cut = None
+    if comps is not None:
+        cut = np.ascontiguousarray(comps, dtype=np.intc)
+        if not 1 <= nc <= 6 or cut.min() < 0 or cut.max() > 5:
+            raise ValueError(f"comps {comps}: 1 to 6 components in 0..5")
     if out is not None:
         energy, vec, H = out
         if energy.shape != (ne,) or vec.shape != (ne, nn, 6) or \
-                (tangent and (H is None or H.shape != (ne, 6 * nn, 6 * nn))):
+                (tangent and (H is None or H.shape != (ne, nc * nn, nc * nn))):
             raise ValueError("out does not match the elements")
         H = H if tangent else None
     else:
         energy = np.empty(ne)
         vec = np.empty((ne, nn, 6))
-        H = np.empty((ne, 6 * nn, 6 * nn)) if tangent else None
-    info = _load()[0](ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)), energy, vec, H)
+        H = np.empty((ne, nc * nn, nc * nn)) if tangent else None
+    info = _load()[0](ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)),
+                      None if cut is None else cut.ctypes.data, nc, energy, vec, H)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_terms failed ({info})")
     return energy, vec, H

@@ -508,10 +508,13 @@ class RodProblem:
         the matrix (partition.DirichletRows: bit for bit the same, without the O(nnz) sweep
         after assembly, and also for SBAIJ, which lacks that operation in parallel).
         ``view``: P seen through it (planar.ComponentView: a block of the components of every
-        node, masked as DirichletRows does)."""
+        node, masked as DirichletRows does; the elastic tangents come cut to its components
+        from the kernel and go in by its add_cut)."""
         r, q = self.state.local_config(X)
         P.zeroEntries()
         T = view if view is not None else DirichletRows(P, self.constraints.block_mask)
+        comps = getattr(view, "comps", None)
+        add = T.setValuesBlockedRCV if comps is None else T.add_cut
         g, lconn, e0 = self._gconn, self.lconn, self.elastic.e0     # e0: (elements, points, 6)
         rc, qc = np.ascontiguousarray(r), np.ascontiguousarray(q)   # np.take copies a strided one
         step = self.TANGENT_CHUNK if self.elastic.kernel == "compiled" else max(len(g), 1)
@@ -522,9 +525,9 @@ class RodProblem:
             la = lconn[a:b]
             _, _, H = self.elastic.element_terms(np.take(qc, la, axis=0), np.take(rc, la, axis=0),
                                                  None if e0 is None else e0[a:b], tangent=True,
-                                                 symmetric=symmetric, reuse=True)
+                                                 symmetric=symmetric, reuse=True, comps=comps)
             ga = g[a:b]
-            T.setValuesBlockedRCV(ga, ga, H, addv=PETSc.InsertMode.ADD)
+            add(ga, ga, H, addv=PETSc.InsertMode.ADD)
         for t in self.terms:
             t.add_jacobian(self.lam, r, q, T, symmetric=symmetric)
         T.finish(self.constraints.rows_global)

@@ -93,6 +93,11 @@ class ComponentView:
         V = V[:, self._cut(kr, kc)].reshape(len(R), 3 * kr, 3 * kc)
         self.dirichlet.setValuesBlockedRCV(R, C, V, addv=addv)
 
+    def add_cut(self, R, C, V, addv=None):
+        """setValuesBlockedRCV of blocks already cut to the components (V (n, 3 kr, 3 kc), rows
+        and columns (node, component): the elastic kernel's with ``comps``)."""
+        self.dirichlet.setValuesBlockedRCV(R, C, V, addv=addv)
+
     def _cut(self, kr, kc):
         """Flat indices of the (comps, comps) entries in a (NDOF kr, NDOF kc) block, row by row
         (kept per block shape)."""
