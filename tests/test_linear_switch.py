@@ -67,3 +67,36 @@ def test_a_second_run_in_the_process_chooses_its_solvers_as_the_first():
     types = [r.solver.minimizer.ksp.getPC().getFactorSolverType() for r in runs]
     assert lu[0].auto == lu[1].auto and types[0] == types[1] == "mumps"
     assert runs[0].solver.total_its == runs[1].solver.total_its
+
+
+@pytest.mark.parametrize("case, extra, natural", [
+    ("mattiasson", {"rod_planar": "off"}, True),            # an open chain: banded in its order
+    ("mattiasson", {}, True),                               # the planar step's KSP too
+    ("michell", {"rod_nelem": 12}, False),                  # a ring: its closing element fills
+    ("plectoneme", {"load_steps": 1}, False),               # contact: the pattern moves
+    ("mattiasson", {"pc_factor_mat_ordering_type": "nd", "rod_planar": "off"}, False),  # the user's
+])
+def test_chains_are_factored_in_their_own_order(case, extra, natural):
+    """linear.chain_ordering: PETSc's LU of a Jacobian whose pattern stays in the natural node
+    order where that fills no more than AMD (an open rod: the LU then goes through the blocks
+    in memory order), AMD for a ring and for a contact pattern, the user's ordering as given;
+    the factorisation then uses that ordering."""
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank: PCLU's own ordering option")
+    from rodsnes.solve import linear
+    from conftest import build_run
+    run = build_run(case, **extra)
+    prefix = "planar_" if run.problem.planar is not None else ""
+    p = run.problem
+    fills = {o: linear.pattern_fill(p, o) for o in ("natural", "amd")}
+    assert linear.chain_ordering(p, prefix) is False       # nothing set yet: not rodsnes' default
+    linear.lu_defaults(p.layout.comm, prefix)
+    chose = linear.chain_ordering(p, prefix)
+    got = PETSc.Options().getString(prefix + "pc_factor_mat_ordering_type")
+    assert chose == natural and got == ("natural" if natural else extra.get(
+        "pc_factor_mat_ordering_type", "amd")), (chose, got, fills)
+    if case == "michell":
+        assert fills["natural"] > fills["amd"]
+    if natural:
+        assert fills["natural"] == fills["amd"] == 1.0
+    linear.take_back_defaults()
