@@ -644,6 +644,28 @@ def test_gradient_and_tangent_with_the_wall():
         assert deep["depth"] > a_w and deep["energy"] == np.inf
 
 
+def test_the_reports_line_force_clips_the_depth_at_the_laws_deepest():
+    """With the wall the report's line force takes the depth at most the law's deepest couple's
+    (c["depth"]: a report point may lie deeper than any of the law's points, where the barrier
+    would be larger or infinite): with a clip that binds (half the deepest) the compiled pass
+    (the C law's a_max) and the numpy path give the same force to round-off, and a force that
+    differs from the unclipped one."""
+    from rodsnes.contact import potential_compiled
+    assert potential_compiled.available(), "the compiled potential kernel is not built"
+    force = {}
+    for kind in ("numpy", "compiled"):
+        rod, X, pairs, depth = wall_state(kind)
+        out = rod.k.evaluate(*evaluation_args(rod, X, pairs), tangent=False, report=False)
+        c = out["_near"]
+        x_own, no = out["_inputs"][1], len(out["_inputs"][0])
+        full = rod.k._report_force(c, x_own, no)
+        c["depth"] = 0.5 * depth
+        force[kind] = rod.k._report_force(c, x_own, no), full
+    (num, num_full), (comp, comp_full) = force["numpy"], force["compiled"]
+    assert same(comp, num) and same(comp_full, num_full)
+    assert np.abs(num - num_full).max() > 1e-3 * np.abs(num_full).max()
+
+
 @pytest.mark.parametrize("p", [2, 3])
 def test_the_couples_see_the_closest_distance_within_the_sampling_error(p):
     """Two straight strands a distance g apart, crossing at angles from parallel to square,

@@ -3,6 +3,7 @@ ranks on that KSP alone): the error estimate's SNES and minimiser share the pref
 and the estimate's stages all still solve after the minimiser's switch; a user's
 -redundant_pc_factor_mat_solver_type stays as given.  (A shared options-database switch to
 PCREDUNDANT over MUMPS, tried and reverted, broke the first.)"""
+import numpy as np
 import pytest
 from petsc4py import PETSc
 
@@ -99,4 +100,25 @@ def test_chains_are_factored_in_their_own_order(case, extra, natural):
         assert fills["natural"] > fills["amd"]
     if natural:
         assert fills["natural"] == fills["amd"] == 1.0
+    linear.take_back_defaults()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("nelem", [12, 100, 400])
+def test_the_natural_order_is_the_matrix_order(nelem):
+    """On several ranks PETSc's natural order is the ranks' stretches in rank order, which a
+    partition need not keep along the rod (METIS may number the pieces from either end): then
+    the rod's ends meet inside the matrix and the natural order fills.  chain_ordering chooses
+    it exactly where the stretches follow the rod (the elements' owners increasing along it),
+    and the fill it measures is that of the matrix's numbering."""
+    from rodsnes.solve import linear
+    from conftest import build_run
+    run = build_run("mattiasson", rod_nelem=nelem, rod_planar="off")
+    p, lay = run.problem, run.layout
+    linear.lu_defaults(lay.comm, "")
+    chose = linear.chain_ordering(p, "")
+    owners = np.asarray(lay.elem_owner)
+    along = bool(np.all(np.diff(owners) >= 0))     # PETSc numbers the ranks' stretches in order
+    assert chose == along, (owners, linear.pattern_fill(p, "natural"))
+    assert (linear.pattern_fill(p, "natural") == 1.0) == along
     linear.take_back_defaults()

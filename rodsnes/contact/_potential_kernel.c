@@ -36,12 +36,13 @@ typedef struct {
     const double *Np, *Nm;          /* (nqp, n1), (nm, n1) */
     const double *wpJ, *wm;         /* (nqp), (nn, nm) */
     double two_eps;
-    const double *law;             /* {a_s, a_b, a_w} */
+    const double *law;             /* {a_s, a_b, a_w, a_max} */
     double k;
 } Setup;
 
-/* The law (contact/potential.py, Onset law and The wall): law = {a_s, a_b, a_w}, a_w = 0 for
- * no wall.  wall() adds the barrier x^2 B(t), t = (a_w - a) / x, x = a_w - a_b,
+/* The law (contact/potential.py, Onset law and The wall): law = {a_s, a_b, a_w, a_max}, a_w = 0
+ * for no wall; a_max clips the depth of a couple (+inf but for the report's pass,
+ * potential_compiled.report_force).  wall() adds the barrier x^2 B(t), t = (a_w - a) / x, x = a_w - a_b,
  * B = -(t - 1)^2 ln t, and its first two derivatives in a (which = 0, 1, 2); +inf from a_w. */
 static double wall(double a, const double *law, int which)
 {

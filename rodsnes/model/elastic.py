@@ -436,9 +436,9 @@ class ElasticRod:
         Ht[:, ar, ar, 3:6, 3:6] = D
 
     def element_terms_reference(self, qe, xe, e0=None, tangent=True, symmetric=False):
-        """element_terms by a direct einsum transcription of the formulas (module docstring),
-        with the (6, 11, 11) second derivatives of the strains: the reference the fast kernels
-        are tested against."""
+        """element_terms by a direct transcription of the formulas (module docstring; einsums and,
+        for the strains, matrix products: strain_measures), with the (6, 11, 11) second
+        derivatives of the strains: the reference the fast kernels are tested against."""
         e0 = self.e0 if e0 is None else e0
         qa, p, dp, dr = self.interpolate(qe, xe)
         ne, nn = qe.shape[0], self.p + 1

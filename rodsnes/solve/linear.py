@@ -183,7 +183,10 @@ def chain_ordering(problem, prefix=""):
     elements 6.1 against 7.7 ms (AMD), 3-D with 5000 elements 17.3 against 19.9 ms.  A ring's
     closing element fills the natural order (AMD stays); a contact pattern changes from step
     to step (AMD stays).  Only where the ordering is rodsnes' default (ordering_default), not
-    the user's.  Returns whether it chose the natural order."""
+    the user's.  The order is the matrix's (PETSc's numbering: on several ranks the stretches
+    in rank order, which a partition may not keep along the rod: then the rod's ends meet
+    inside the matrix and the natural order fills, pattern_fill sees it).  Returns whether it
+    chose the natural order."""
     key = native_lu_ordering_key(prefix)
     if key is None or not is_default(key) or problem.moving_pattern:
         return False
@@ -208,8 +211,11 @@ def pattern_fill(problem, ordering=ORDERING):
 
 
 def _node_graph_fill(problem, ordering):
+    """pattern_fill of the node graph numbered as PETSc numbers the matrix's blocks (the ranks'
+    stretches in rank order: layout.nat2petsc), so that "natural" is PETSc's natural order."""
     n = problem.mesh.n_nodes
     rows, cols = group_pairs(problem.coupled_groups())
+    rows, cols = problem.layout.nat2petsc[rows], problem.layout.nat2petsc[cols]
     key = np.unique(rows * n + cols)
     rows, cols = key // n, key % n
     ai = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))])

@@ -22,7 +22,8 @@ The follower walks the floor instead, as a continuation method traces a path:
    is a tenth of its part along M v;
 4. a valley point is taken when its energy is lower than the last one's beyond the energy's
    round-off (EnergyMinimizer.descends: along a symmetry the energy changes by round-off alone,
-   and the walk is declined where the model's descent is below it); s doubles after a
+   and the walk is declined where the linear model's descent at Newton's length is below it);
+   s doubles after a
    corrector of at most two iterations and halves after one of CORRECTOR_ITS; a rejected
    point quarters s, and MISSES in a row end the walk;
 5. where the slope along the floor, g . v, turns uphill, one last point where the slope,
@@ -62,7 +63,9 @@ class ValleyResult:
 
     def __init__(self):
         self.its = self.points = self.rejected = self.cuts = 0
-        self.declined = False   # turned down before any work: Newton's direction is not the mode
+        # turned down before a predictor: Newton's direction is not the soft mode, or the valley
+        # is flat (its descent below the energy's round-off: a symmetry)
+        self.declined = False
         self.reason = ""
 
 
@@ -83,7 +86,8 @@ class ValleyFollower:
     def walked(self, its, walk):
         """After a walk that ended at iteration its: the next one as soon as Newton's
         directions agree again when it took valley points, or when it was declined before any
-        work (Newton's direction not the soft mode: two back-substitutions spent); else no
+        predictor (Newton's direction not the soft mode, or a flat valley: two
+        back-substitutions spent, again at the next 3 aligned directions); else no
         sooner than twice the last wait on (a fold or a snap is no valley: it is left to the
         minimiser).  Declined walks used to double the wait too: at 8.54 turns of the
         plectoneme, seven of them during a snap had pushed it to 192 iterations, and the
@@ -162,8 +166,8 @@ class ValleyFollower:
         s = abs(m.metric_dot(d, v))
         E0, depth0 = m.energy_at(X)
         if not m.descends(E0, -s * m._same(g.dot(v))):
-            # the quadratic model's descent along the mode is below the energy's round-off: a
-            # symmetry (a ring turned about itself), not a valley to walk
+            # the linear model's descent along the mode at Newton's length is below the energy's
+            # round-off: a symmetry (a ring turned about itself), not a valley to walk
             v.destroy()
             out.declined = True
             out.reason = "the valley is flat"
