@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from petsc4py import PETSc
 
-from conftest import run_case
+from conftest import build_run, run_case
 
 
 @pytest.mark.mpi
@@ -85,7 +85,6 @@ def test_chains_are_factored_in_their_own_order(case, extra, natural):
     if PETSc.COMM_WORLD.getSize() > 1:
         pytest.skip("one rank: PCLU's own ordering option")
     from rodsnes.solve import linear
-    from conftest import build_run
     run = build_run(case, **extra)
     prefix = "planar_" if run.problem.planar is not None else ""
     p = run.problem
@@ -112,7 +111,6 @@ def test_the_natural_order_is_the_matrix_order(nelem):
     it exactly where the stretches follow the rod (the elements' owners increasing along it),
     and the fill it measures is that of the matrix's numbering."""
     from rodsnes.solve import linear
-    from conftest import build_run
     run = build_run("mattiasson", rod_nelem=nelem, rod_planar="off")
     p, lay = run.problem, run.layout
     linear.lu_defaults(lay.comm, "")

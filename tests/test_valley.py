@@ -157,7 +157,7 @@ def test_no_walk_along_a_symmetry(monkeypatch):
     change is round-off): no valley point, and the last load step converges in 10 iterations
     (29 while points were taken on round-off descents); with the round-off test switched off
     (any descent a walk, any lower energy a point) it walks."""
-    from conftest import run_case
+    from conftest import gathered_positions, run_case
     from test_verification import rigid_fit
 
     def ring(descends=None):
@@ -169,8 +169,8 @@ def test_no_walk_along_a_symmetry(monkeypatch):
 
     run, last = ring()
     assert last.valley_points == 0 and last.its <= 12, (last.valley_points, last.its)
-    X = run.layout.allgather_nodes(run.last_fields["positions"])
+    X = gathered_positions(run)
     walked, last_walked = ring(lambda self, E0, decrease: decrease > 0.0)
     assert last_walked.valley_points > 0 and last_walked.its > last.its + 5
-    Y = walked.layout.allgather_nodes(walked.last_fields["positions"])
+    Y = gathered_positions(walked)
     assert rigid_fit(X, Y)[2] < 1e-9           # the same ring, turned along its symmetry

@@ -401,18 +401,14 @@ class PotentialKernel:
 
     def admissible(self, e, m, xa, xb):
         """(npair, na, nb) True where dist(s, sigma) >= delta, s in e at xa, sigma in m at xb
-        (xi of the slave and master points)."""
-        h = self.h
-        s = e[:, None] * h + (xa[None, :] + 1.0) * 0.5 * h
-        sig = m[:, None] * h + (xb[None, :] + 1.0) * 0.5 * h
-        dist = np.abs(s[:, :, None] - sig[:, None, :])
-        if self.closed:
-            dist = np.minimum(dist, self.L - dist)
-        return dist >= self.delta
+        (xi of the slave and master points): admissible_couples over every pair and couple."""
+        e, m = np.asarray(e)[:, None, None], np.asarray(m)[:, None, None]
+        return self.admissible_couples(e, np.asarray(xa)[None, :, None], m,
+                                       np.asarray(xb)[None, None, :])
 
     def admissible_couples(self, e, xa, m, xb):
-        """``admissible`` couple by couple: True where dist(s, sigma) >= delta for the slave
-        points xa of elements e and the master points xb of elements m (all (n,))."""
+        """True where dist(s, sigma) >= delta for slave points xa of elements e and master
+        points xb of elements m, couple by couple (arrays that broadcast together)."""
         h = self.h
         dist = np.abs((e * h + (xa + 1.0) * 0.5 * h) - (m * h + (xb + 1.0) * 0.5 * h))
         if self.closed:

@@ -249,22 +249,15 @@ class DirichletRows:
         hit = self._touching(R2)
         if C is not R:
             hit |= self._touching(C2)
-        if not hit.any():           # the common case (a chunk of elements away from the supports)
-            self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
-            return
-        runs = _runs(hit)
+        runs = _runs(hit)       # none in the common case (a chunk away from the supports)
         if len(runs) > self.MAX_RUNS:
             self.mat.setValuesBlockedRCV(R, C, self._masked(R2, C2, V, hit), addv=addv)
-        else:
-            start = 0
-            for a, b in runs:
-                if a > start:
-                    self.mat.setValuesBlockedRCV(R[start:a], C[start:a], V[start:a], addv=addv)
-                Vh = self._masked(R2[a:b], C2[a:b], V[a:b], None)
-                self.mat.setValuesBlockedRCV(R[a:b], C[a:b], Vh, addv=addv)
-                start = b
-            if start < len(R):
-                self.mat.setValuesBlockedRCV(R[start:], C[start:], V[start:], addv=addv)
+            return
+        put = self.mat.setValuesBlockedRCV
+        _by_runs(runs, len(R),
+                 lambda a, b: put(R[a:b], C[a:b], self._masked(R2[a:b], C2[a:b], V[a:b], None),
+                                  addv=addv),
+                 lambda a, b: put(R[a:b], C[a:b], V[a:b], addv=addv))
 
     def _touching(self, I2):
         """Which groups (rows of the block ids I2) hold a constrained node."""
@@ -325,20 +318,11 @@ class OwnBlocksFirst:
         own = ((R2 >= self.lo) & (R2 < self.hi)).all(axis=1)
         if C is not R:
             own &= ((C2 >= self.lo) & (C2 < self.hi)).all(axis=1)
-        if own.all():
-            self.diag.setValuesBlockedRCV(R - self.lo, C - self.lo, V, addv=addv)
-            return
-        if not own.any():
-            self.mat.setValuesBlockedRCV(R, C, V, addv=addv)
-            return
-        start = 0
-        for a, b in _runs(own):
-            if a > start:
-                self.mat.setValuesBlockedRCV(R[start:a], C[start:a], V[start:a], addv=addv)
-            self.diag.setValuesBlockedRCV(R[a:b] - self.lo, C[a:b] - self.lo, V[a:b], addv=addv)
-            start = b
-        if start < len(R):
-            self.mat.setValuesBlockedRCV(R[start:], C[start:], V[start:], addv=addv)
+        lo = self.lo
+        _by_runs(_runs(own), len(R),
+                 lambda a, b: self.diag.setValuesBlockedRCV(R[a:b] - lo, C[a:b] - lo, V[a:b],
+                                                            addv=addv),
+                 lambda a, b: self.mat.setValuesBlockedRCV(R[a:b], C[a:b], V[a:b], addv=addv))
 
     def __getattr__(self, name):
         return getattr(self.mat, name)
@@ -388,6 +372,19 @@ def split_index(R):
     n = len(R)
     R2 = R.reshape(n, -1)
     return np.stack([2 * R2, 2 * R2 + 1], axis=2).reshape(n, -1).astype(PETSc.IntType)
+
+
+def _by_runs(runs, n, inside, outside):
+    """inside(a, b) on the runs [a, b) of ``runs`` and outside(a, b) on the stretches of
+    [0, n) between them, in their order (the sums of ADD_VALUES are order dependent)."""
+    start = 0
+    for a, b in runs:
+        if a > start:
+            outside(start, a)
+        inside(a, b)
+        start = b
+    if start < n:
+        outside(start, n)
 
 
 def _runs(hit):

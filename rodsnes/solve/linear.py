@@ -255,8 +255,7 @@ def use_mumps_when_filled(ksp, problem):
         return False
     # MUMPS's ordering: minimum degree where it fills less than nested dissection (on a coil
     # 3.4 against 4.7; Debian's MUMPS, without METIS and SCOTCH, would choose PORD)
-    amd = fill if ordering == "amd" else pattern_fill(problem, "amd")
-    by_amd = amd <= pattern_fill(problem, "nd")
+    by_amd = pattern_fill(problem, "amd") <= pattern_fill(problem, "nd")
     # MUMPS's defaults for the Newton step's and, on several ranks, for RankSchur's stretches
     # and whole matrix: room for the fill, and the ordering
     for pre in (prefix, schur.INTERIOR_PREFIX, schur.WHOLE_MUMPS_PREFIX):

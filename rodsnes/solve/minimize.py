@@ -220,15 +220,19 @@ class EnergyMinimizer:
         shift.destroy()
         return np.inf
 
+    def _energy_roundoff(self, E0):
+        """The round-off of an energy near E0 (absolute)."""
+        return self.roundoff * (abs(E0) + self.energy_scale)
+
     def _above_roundoff(self, E0, change):
         """Whether an energy change of this size near E0 lies far (1e3 x) above the energy's
         round-off: only there may a decision depend on energies, the same on every rank."""
-        return change > 1e3 * self.roundoff * (abs(E0) + self.energy_scale)
+        return change > 1e3 * self._energy_roundoff(E0)
 
     def descends(self, E0, decrease):
         """Whether an energy decrease from E0 lies beyond the energy's round-off (the valley
         follower's walks and points: along a symmetry the energy changes by round-off alone)."""
-        return decrease > self.roundoff * (abs(E0) + self.energy_scale)
+        return decrease > self._energy_roundoff(E0)
 
     def metric_dot(self, a, b):
         """<M a, b>, the same on every rank.  Collective."""
@@ -698,7 +702,7 @@ class EnergyMinimizer:
         allow = None
         if depth0 is not None:
             allow = p.depth_allowed(depth0)
-        slack = self.roundoff * (abs(E0) + self.energy_scale)
+        slack = self._energy_roundoff(E0)
         for k in range(LINE_SEARCH_TRIES):
             X.copy(Xt)
             Xt.axpy(alpha, d)

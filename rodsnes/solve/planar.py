@@ -205,23 +205,25 @@ class PlanarSystem:
         self._work = {}                   # kept block-3 vectors of the solves (work)
 
     # -- vectors ------------------------------------------------------------------------
+    def _block_vec(self):
+        """A new block-3 Vec of the in-plane unknowns.  Collective."""
+        lay = self.problem.layout
+        return PETSc.Vec().createMPI((3 * lay.n_owned, 3 * lay.n_global), bsize=3,
+                                     comm=lay.comm)
+
     def restrict(self, v, out=None):
         """The in-plane components of the 6-dof vector v as a new (or ``out``) block-3 Vec."""
         a = v.getArray(readonly=True).reshape(-1, NDOF)[:, self.plane.inplane]
-        if out is None:
-            lay = self.problem.layout
-            out = PETSc.Vec().createMPI((3 * lay.n_owned, 3 * lay.n_global), bsize=3,
-                                        comm=lay.comm)
+        out = self._block_vec() if out is None else out
         with out as o:
             o[:] = a.ravel()
         return out
 
     def work(self, name):
         """A block-3 Vec of the in-plane unknowns kept for the solves (``name``: which one)."""
-        w = self._work.get(name)
-        if w is None:
-            w = self._work[name] = self.restrict(self.problem.state.X)
-        return w
+        if name not in self._work:
+            self._work[name] = self._block_vec()
+        return self._work[name]
 
     def expand(self, vi, v):
         """v <- vi on the in-plane components, 0 on the others."""

@@ -446,8 +446,6 @@ class RankSchur:
     def _factor(self, A, comm):
         """The interior's LU, W_r, S = A_GG - sum_r A_{G I_r} W_r, and S's LU on every rank."""
         k = self.kept
-        ng = k["ng"]
-        ok = True
         ANS, ASS, k["asn"] = self._couplings(A, comm)
         ok = self._factor_interior()
         if self.package == "mumps":
@@ -536,10 +534,8 @@ class RankSchur:
             if k["ksp"].getConvergedReason() < 0:
                 y.set(np.nan)
                 return
-            out = y.getArray()
-            out[:] = yv
-        else:
-            out = y.getArray()
-            out[:] = yv
+        out = y.getArray()
+        out[:] = yv
+        if self.package != "mumps":         # x_I = y_I - W x_G
             out -= k["W"].getDenseArray() @ xg
         out[k["G"]] = xg[k["Gpos"]]

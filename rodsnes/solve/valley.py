@@ -23,9 +23,8 @@ The follower walks the floor instead, as a continuation method traces a path:
 4. a valley point is taken when its energy is lower than the last one's beyond the energy's
    round-off (EnergyMinimizer.descends: along a symmetry the energy changes by round-off alone,
    and the walk is declined where the linear model's descent at Newton's length is below it);
-   s doubles after a
-   corrector of at most two iterations and halves after one of CORRECTOR_ITS; a rejected
-   point quarters s, and MISSES in a row end the walk;
+   s doubles after a corrector of at most two iterations and halves after one of
+   CORRECTOR_ITS; a rejected point quarters s, and MISSES in a row end the walk;
 5. where the slope along the floor, g . v, turns uphill, one last point where the slope,
    linear between the last two points, is zero.
 It also ends where |g| is at tolerance, at a corrector that lowered the energy without
