@@ -71,9 +71,10 @@ def test_the_chunked_jacobian_is_the_one_call_jacobian(case, kw, symmetric):
 
 
 def test_the_planar_view_of_the_chunked_jacobian_is_the_one_call_view():
-    """The planar cantilever's in-plane block (ComponentView, bs 3): chunks of 256 and 7 give
-    the one-call block bit for bit."""
-    run = build_run("mattiasson", rod_nelem=600)
+    """The planar cantilever's in-plane block (PlanarSystem.assemble_tangent: the plane
+    kernel's tangents, chunks of 4 x 256 and 4 x 7 elements, the same bytes as 256 and 7 of
+    the 3-D tangents) gives the one-call block bit for bit."""
+    run = build_run("mattiasson", rod_nelem=1100)
     p = run.problem
     pl = p.planar
     assert pl is not None
@@ -92,10 +93,10 @@ def test_the_planar_view_of_the_chunked_jacobian_is_the_one_call_view():
 
 def test_the_symmetric_planar_block_of_the_chunked_hessian_is_the_one_call_block():
     """The in-plane block of the energy Hessian (symmetric=True through ComponentView into an
-    SBAIJ matrix of block size 3, as planar.BlockInertia assembles it): chunks of 256 and 7
-    give the one-call block bit for bit."""
+    SBAIJ matrix of block size 3, as planar.BlockInertia assembles it, the 3-D tangents cut):
+    chunks of 4 x 256 and 4 x 7 give the one-call block bit for bit."""
     from rodsnes.solve.planar import ComponentView, create_block_matrix
-    run = build_run("mattiasson", rod_nelem=600)
+    run = build_run("mattiasson", rod_nelem=1100)
     p = run.problem
     p.set_load(0.4)
     perturb_state(p)

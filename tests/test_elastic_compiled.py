@@ -31,9 +31,11 @@ def deformed_elements(p, nq, ne, rng, h=0.3):
     return qe, xe, e0
 
 
-def make_rod(p, nq, ne, rng, bound):
+def make_rod(p, nq, ne, rng, bound, elements=deformed_elements):
+    """A rod of ``elements`` (qe, xe, e0 of (p, nq, ne, rng)) with their e0; with ``bound`` a
+    curvature bound that acts at about 60 % of the points."""
     rod = elastic.ElasticRod(p, nq, 0.3, STIFF)
-    qe, xe, e0 = deformed_elements(p, nq, ne, rng)
+    qe, xe, e0 = elements(p, nq, ne, rng)
     rod.set_reference(e0)
     if bound:
         kappa = np.linalg.norm(rod.strains(qe, xe)[..., 3:5], axis=-1)

@@ -551,3 +551,226 @@ int rodsnes_elastic_energy(int ne, int nn, int nq, const double *N, const double
     }
     return 0;
 }
+
+/* ---- The in-plane tangent of a planar state (planar.PlanarSystem's Newton step) ------------
+ *
+ * At a state in the plane normal to n = e_axis (positions in it, every rotation R_a =
+ * exp(phi_a n^x) R_0) the element's quaternions are q_a = z_a (x) q_0 with z_a = (c_a, s_a n),
+ * so p = sum N_a q_a = Z (x) q_0, Z = (c, s n), c = sum N_a c_a, s = sum N_a s_a, and
+ *   v = R_0^T G / n2,  G = (c^2 - s^2) r' - 2 c s n x r',    u = R_0^T n k / n2,
+ *   k = 2 (c s' - c' s),  n2 = c^2 + s^2,
+ * the same strains as the 3-D kernel's, of the six numbers y = (c, s, c', s', r'_P, r'_Q)
+ * (P < Q the in-plane axes).  With the stresses S of the law, f = R_0 S_v, m = n.R_0 S_u and
+ * Phi = f.G + m k (S held fixed):
+ *   W_y  = Phi_y / n2 - Phi Dn2 / n2^2,
+ *   W_yy = D_eps^T W_eps,eps D_eps + Phi_yy / n2 - (Phi_y Dn2^T + Dn2 Phi_y^T) / n2^2
+ *          - Phi D2n2 / n2^2 + 2 Phi Dn2 Dn2^T / n2^3,
+ * eps = (G, k) / n2, W_eps,eps = blockdiag(R_0 Cv R_0^T, a3^T Cu a3) (a3 = R_0^T n; Cu with the
+ * curvature bound's Cb).  The unknowns of node a: r_P, r_Q (y_4, y_5 through N'_a) and the
+ * rotation increment theta about n, dz_a/dtheta = 1/2 (-s_a, c_a), d2z_a/dtheta2 = -z_a / 4:
+ *   K_ab = sum_q w J_a^T W_yy J_b,   K_aa(theta, theta) += sum_q w W_y . d2y/dtheta_a^2.
+ * In the plane the consistent tangent is symmetric (the -1/2 g_theta^x term has no (n, n)
+ * entry), and K equals the 3-D tangent cut to (P, Q, 3 + axis) (tests/test_planar_kernel.py). */
+
+/* z_a = q_a (x) conj(q_0): (scalar, component along e_axis) */
+static ALWAYS_INLINE void plane_angles(const int NN, double q[MAXNN][4], int axis,
+                                       double z[MAXNN][2])
+{
+    const double *r = q[0];
+    for (int a = 0; a < NN; a++) {
+        const double *qa = q[a];
+        double vec[3];
+        /* (qa0, qav) (x) (r0, -rv) = (qa0 r0 + qav.rv, -qa0 rv + r0 qav - qav x rv) */
+        double cx[3];
+        cross3(qa + 1, r + 1, cx);
+        for (int i = 0; i < 3; i++) vec[i] = -qa[0] * r[1 + i] + r[0] * qa[1 + i] - cx[i];
+        z[a][0] = qa[0] * r[0] + qa[1] * r[1] + qa[2] * r[2] + qa[3] * r[3];
+        z[a][1] = vec[axis];
+    }
+}
+
+static ALWAYS_INLINE void plane_element(const int NN, const Setup *st, const double *qin,
+                                        const double *xin, const double *e0, int axis,
+                                        double *H)
+{
+    const int P = (axis == 0) ? 1 : 0, Q = (axis == 2) ? 1 : 2, ld = 3 * NN;
+    double q[MAXNN][4], z[MAXNN][2];
+    align_signs(NN, qin, q);
+    plane_angles(NN, q, axis, z);
+    /* R_0^T (Rt of a unit quaternion) and the element's constants */
+    double R0t[3][3], Nz0[6];
+    {
+        const double zero[4] = {0.0, 0.0, 0.0, 0.0}, zr[3] = {0.0, 0.0, 0.0};
+        numerators(q[0], zero, zr, R0t, Nz0);
+    }
+    double nv[3] = {0.0, 0.0, 0.0}, eP[3] = {0.0, 0.0, 0.0}, eQ[3] = {0.0, 0.0, 0.0};
+    nv[axis] = 1.0; eP[P] = 1.0; eQ[Q] = 1.0;
+    double nxP[3], nxQ[3], a3[3];
+    cross3(nv, eP, nxP);
+    cross3(nv, eQ, nxQ);
+    for (int k = 0; k < 3; k++) a3[k] = R0t[k][axis];
+    double CvG[3][3];            /* R_0 Cv R_0^T */
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            CvG[i][j] = st->C[0] * R0t[0][i] * R0t[0][j] + st->C[1] * R0t[1][i] * R0t[1][j]
+                      + st->C[2] * R0t[2][i] * R0t[2][j];
+    const double Cu0 = st->C[3] * a3[0] * a3[0] + st->C[4] * a3[1] * a3[1]
+                     + st->C[5] * a3[2] * a3[2];
+    for (int i = 0; i < ld * ld; i++) H[i] = 0.0;
+
+    for (int g = 0; g < st->nq; g++) {
+        const double *N = st->N + g * NN, *dN = st->dN + g * NN, w = st->wJ[g];
+        double c = 0.0, s = 0.0, dc = 0.0, ds = 0.0, rP = 0.0, rQ = 0.0;
+        for (int a = 0; a < NN; a++) {
+            c += N[a] * z[a][0];   s += N[a] * z[a][1];
+            dc += dN[a] * z[a][0]; ds += dN[a] * z[a][1];
+            rP += dN[a] * xin[3 * a + P];
+            rQ += dN[a] * xin[3 * a + Q];
+        }
+        double dr[3], m[3], G[3];
+        for (int i = 0; i < 3; i++) dr[i] = rP * eP[i] + rQ * eQ[i];
+        cross3(nv, dr, m);
+        const double cs2 = c * c - s * s, tcs = 2.0 * c * s;
+        for (int i = 0; i < 3; i++) G[i] = cs2 * dr[i] - tcs * m[i];
+        const double n2 = c * c + s * s, inv = 1.0 / n2, inv2 = inv * inv;
+        const double k = 2.0 * (c * ds - dc * s);
+        /* strains, law */
+        double e[6], S[6], Cb[4], W;
+        for (int i = 0; i < 3; i++) {
+            e[i] = (R0t[i][0] * G[0] + R0t[i][1] * G[1] + R0t[i][2] * G[2]) * inv;
+            e[3 + i] = a3[i] * k * inv;
+        }
+        const int bound = constitutive_law(st, e, e0 + 6 * g, S, &W, Cb);
+        double f[3];
+        for (int i = 0; i < 3; i++)
+            f[i] = R0t[0][i] * S[0] + R0t[1][i] * S[1] + R0t[2][i] * S[2];
+        const double mk = a3[0] * S[3] + a3[1] * S[4] + a3[2] * S[5];
+        double Ck = Cu0;
+        if (bound)
+            Ck += Cb[0] * a3[0] * a3[0] + (Cb[1] + Cb[2]) * a3[0] * a3[1] + Cb[3] * a3[1] * a3[1];
+        /* first derivatives in y = (c, s, c', s', r'_P, r'_Q) */
+        double DG[3][6], Dk[6] = {2.0 * ds, -2.0 * dc, -2.0 * s, 2.0 * c, 0.0, 0.0};
+        for (int i = 0; i < 3; i++) {
+            DG[i][0] = 2.0 * c * dr[i] - 2.0 * s * m[i];
+            DG[i][1] = -2.0 * s * dr[i] - 2.0 * c * m[i];
+            DG[i][2] = DG[i][3] = 0.0;
+            DG[i][4] = cs2 * eP[i] - tcs * nxP[i];
+            DG[i][5] = cs2 * eQ[i] - tcs * nxQ[i];
+        }
+        const double Dn2c = 2.0 * c, Dn2s = 2.0 * s;
+        const double Phi = f[0] * G[0] + f[1] * G[1] + f[2] * G[2] + mk * k;
+        double Phy[6], Wy[6], De[4][6];
+        for (int j = 0; j < 6; j++) {
+            Phy[j] = f[0] * DG[0][j] + f[1] * DG[1][j] + f[2] * DG[2][j] + mk * Dk[j];
+            for (int i = 0; i < 3; i++) De[i][j] = DG[i][j] * inv;
+            De[3][j] = Dk[j] * inv;
+        }
+        for (int i = 0; i < 3; i++) {
+            De[i][0] -= G[i] * Dn2c * inv2;
+            De[i][1] -= G[i] * Dn2s * inv2;
+        }
+        De[3][0] -= k * Dn2c * inv2;
+        De[3][1] -= k * Dn2s * inv2;
+        for (int j = 0; j < 6; j++) Wy[j] = Phy[j] * inv;
+        Wy[0] -= Phi * Dn2c * inv2;
+        Wy[1] -= Phi * Dn2s * inv2;
+        /* W_yy: material part D_eps^T W_eps,eps D_eps */
+        double Wyy[6][6], CD[4][6];
+        for (int j = 0; j < 6; j++) {
+            for (int i = 0; i < 3; i++)
+                CD[i][j] = CvG[i][0] * De[0][j] + CvG[i][1] * De[1][j] + CvG[i][2] * De[2][j];
+            CD[3][j] = Ck * De[3][j];
+        }
+        for (int i = 0; i < 6; i++)
+            for (int j = i; j < 6; j++)
+                Wyy[i][j] = De[0][i] * CD[0][j] + De[1][i] * CD[1][j] + De[2][i] * CD[2][j]
+                          + De[3][i] * CD[3][j];
+        /* geometric part: Phi_yy / n2 (upper triangle) */
+        const double fr = dot3(f, dr), fm = dot3(f, m);
+        double fP1 = 0.0, fQ1 = 0.0, fP2 = 0.0, fQ2 = 0.0;
+        for (int i = 0; i < 3; i++) {
+            fP1 += f[i] * (2.0 * c * eP[i] - 2.0 * s * nxP[i]);
+            fQ1 += f[i] * (2.0 * c * eQ[i] - 2.0 * s * nxQ[i]);
+            fP2 += f[i] * (-2.0 * s * eP[i] - 2.0 * c * nxP[i]);
+            fQ2 += f[i] * (-2.0 * s * eQ[i] - 2.0 * c * nxQ[i]);
+        }
+        Wyy[0][0] += 2.0 * fr * inv;
+        Wyy[1][1] -= 2.0 * fr * inv;
+        Wyy[0][1] -= 2.0 * fm * inv;
+        Wyy[0][4] += fP1 * inv;  Wyy[0][5] += fQ1 * inv;
+        Wyy[1][4] += fP2 * inv;  Wyy[1][5] += fQ2 * inv;
+        Wyy[0][3] += 2.0 * mk * inv;
+        Wyy[1][2] -= 2.0 * mk * inv;
+        /* - (Phi_y Dn2^T + Dn2 Phi_y^T) / n2^2 - Phi D2n2 / n2^2 + 2 Phi Dn2 Dn2^T / n2^3 */
+        const double Dn2[2] = {Dn2c, Dn2s};
+        for (int i = 0; i < 2; i++)
+            for (int j = i; j < 6; j++) {
+                double d = -(Phy[j] * Dn2[i]) * inv2;
+                if (j < 2) d += -(Dn2[j] * Phy[i]) * inv2 + 2.0 * Phi * Dn2[i] * Dn2[j] * inv2 * inv;
+                if (j == i) d -= 2.0 * Phi * inv2;
+                Wyy[i][j] += d;
+            }
+        for (int i = 0; i < 6; i++)
+            for (int j = 0; j < i; j++) Wyy[i][j] = Wyy[j][i];
+        /* chain to the nodes: U_b = W_yy J_b (6 x 3), K_ab = w J_a^T U_b (b >= a) */
+        double t[MAXNN][4];
+        for (int a = 0; a < NN; a++) {
+            t[a][0] = -0.5 * N[a] * z[a][1];  t[a][1] = 0.5 * N[a] * z[a][0];
+            t[a][2] = -0.5 * dN[a] * z[a][1]; t[a][3] = 0.5 * dN[a] * z[a][0];
+        }
+        for (int b = 0; b < NN; b++) {
+            double U[6][3];
+            for (int i = 0; i < 6; i++) {
+                U[i][0] = dN[b] * Wyy[i][4];
+                U[i][1] = dN[b] * Wyy[i][5];
+                U[i][2] = Wyy[i][0] * t[b][0] + Wyy[i][1] * t[b][1] + Wyy[i][2] * t[b][2]
+                        + Wyy[i][3] * t[b][3];
+            }
+            for (int a = 0; a <= b; a++) {
+                double *Hab = H + (3 * a) * ld + 3 * b;
+                const double wd = w * dN[a];
+                for (int j = 0; j < 3; j++) {
+                    Hab[j] += wd * U[4][j];
+                    Hab[ld + j] += wd * U[5][j];
+                    Hab[2 * ld + j] += w * (t[a][0] * U[0][j] + t[a][1] * U[1][j]
+                                            + t[a][2] * U[2][j] + t[a][3] * U[3][j]);
+                }
+            }
+        }
+        for (int a = 0; a < NN; a++)
+            H[(3 * a + 2) * ld + 3 * a + 2] -= 0.25 * w * (
+                N[a] * (Wy[0] * z[a][0] + Wy[1] * z[a][1])
+                + dN[a] * (Wy[2] * z[a][0] + Wy[3] * z[a][1]));
+    }
+    /* the lower block triangle */
+    for (int a = 0; a < NN; a++)
+        for (int b = a + 1; b < NN; b++)
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++)
+                    H[(3 * b + j) * ld + 3 * a + i] = H[(3 * a + i) * ld + 3 * b + j];
+}
+
+#define PLANE_LOOP(NN)                                                                     \
+    for (int e = 0; e < ne; e++)                                                           \
+        plane_element(NN, &st, qe + (long)e * 4 * (NN), xe + (long)e * 3 * (NN),           \
+                      e0 + (long)e * 6 * nq, axis, H + (long)e * 9 * (NN) * (NN))
+
+/* The in-plane tangents of a planar state, (ne, 3nn, 3nn), rows and columns (node, (P, Q,
+ * theta_axis)), P < Q the axes other than axis; arguments as rodsnes_elastic_terms.  Returns
+ * 0, or -1. */
+int rodsnes_elastic_plane_tangent(int ne, int nn, int nq, const double *N, const double *dN,
+                                  const double *wJ, const double *C, int limit,
+                                  double kappa_max, double mu_kappa, const double *qe,
+                                  const double *xe, const double *e0, int axis, double *H)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0 || axis < 0 || axis > 2) return -1;
+    const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
+    switch (nn) {
+    case 2: PLANE_LOOP(2); break;
+    case 3: PLANE_LOOP(3); break;
+    case 4: PLANE_LOOP(4); break;
+    case 5: PLANE_LOOP(5); break;
+    default: PLANE_LOOP(nn); break;
+    }
+    return 0;
+}

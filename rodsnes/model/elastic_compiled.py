@@ -21,6 +21,9 @@ C entry point:
                               double *energy, double *vec, double *H);
     int rodsnes_elastic_energy(int ne, int nn, int nq, ... the same ..., const double *e0,
                                double *energy);          (the energy alone: line searches)
+    int rodsnes_elastic_plane_tangent(int ne, int nn, int nq, ... the same ..., const double *e0,
+                                      int axis, double *H);
+                         (the in-plane tangent of a planar state: planar.PlanarSystem)
 """
 import ctypes
 
@@ -43,7 +46,8 @@ def _declare(lib):
     fn = compiled.Foreign(lib.rodsnes_elastic_terms,
                           common + [c_int, c_int, ctypes.c_void_p, c_int, f64, f64, f64], c_int)
     en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
-    return fn, en
+    pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent, common + [c_int, f64], c_int)
+    return fn, en, pl
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -124,3 +128,24 @@ def element_energy(rod, qe, xe, e0=None):
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_energy failed ({info})")
     return energy
+
+
+def plane_tangents(rod, qe, xe, axis, e0=None, out=None):
+    """The in-plane tangents (ne, 3(p+1), 3(p+1)) of ElasticRod rod at a state in the plane
+    normal to e_axis, rows and columns (node, (r_P, r_Q, theta_axis)), P < Q the other axes:
+    element_terms(..., comps=(P, Q, 3 + axis)) at such a state (the consistent tangent and the
+    Hessian are equal there), made from the six in-plane strain variables instead of the 3-D
+    tangent (_elastic_kernel.c, rodsnes_elastic_plane_tangent).  The out-of-plane parts of the
+    state are taken as zero: for planar states only (planar.PlanarSystem, whose guard sees
+    the others).  ``out``: an array of that shape to write into."""
+    args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
+    if axis not in (0, 1, 2):
+        raise ValueError(f"axis {axis}: 0, 1 or 2")
+    if out is None:
+        out = np.empty((ne, 3 * nn, 3 * nn))
+    elif out.shape != (ne, 3 * nn, 3 * nn) or not out.flags.c_contiguous:
+        raise ValueError("out does not match the elements")
+    info = _load()[2](ne, nn, nq, *args, int(axis), out)
+    if info != 0:
+        raise RuntimeError(f"rodsnes_elastic_plane_tangent failed ({info})")
+    return out

@@ -498,7 +498,10 @@ class RodProblem:
 
     # elements per call of the compiled kernel in the Jacobian: their tangents (4.6 kB each,
     # cubic) are inserted while they are in cache, instead of 46 MB for 10^4 elements written
-    # to memory and read back by the insertion (and by planar.ComponentView's cut)
+    # to memory and read back by the insertion (and by planar.ComponentView's cut).  Tangents
+    # of c < 6 components a node (a view's comps) come (6/c)^2 times as many a call, the same
+    # bytes (the planar cantilever's in-plane block at 10^4 elements: 13.2 ms with 256 a
+    # call, 11.2 with 1024, 10.5 in one call)
     TANGENT_CHUNK = 256
 
     def jacobian(self, snes, X, J, P, symmetric=False, view=None):
@@ -509,23 +512,31 @@ class RodProblem:
         after assembly, and also for SBAIJ, which lacks that operation in parallel).
         ``view``: P seen through it (planar.ComponentView: a block of the components of every
         node, masked as DirichletRows does; the elastic tangents come cut to its components
-        from the kernel and go in by its add_cut)."""
+        from the kernel and go in by its add_cut; with the view's ``plane``, the in-plane
+        block of a planar state, made by ElasticRod.plane_tangents)."""
         r, q = self.state.local_config(X)
         P.zeroEntries()
         T = view if view is not None else DirichletRows(P, self.constraints.block_mask)
         comps = getattr(view, "comps", None)
+        plane = getattr(view, "plane", None)
         add = T.setValuesBlockedRCV if comps is None else T.add_cut
         g, lconn, e0 = self._gconn, self.lconn, self.elastic.e0     # e0: (elements, points, 6)
         rc, qc = np.ascontiguousarray(r), np.ascontiguousarray(q)   # np.take copies a strided one
-        step = self.TANGENT_CHUNK if self.elastic.kernel == "compiled" else max(len(g), 1)
+        nc = NDOF if comps is None else len(comps)
+        step = (self.TANGENT_CHUNK * NDOF ** 2 // nc ** 2 if self.elastic.kernel == "compiled"
+                else max(len(g), 1))
         for a in range(0, len(g), step):
             # the tangents of a chunk of elements, inserted while they are in cache (ADD_VALUES
             # in the elements' order: the same sums as one insertion of all of them)
             b = min(a + step, len(g))
             la = lconn[a:b]
-            _, _, H = self.elastic.element_terms(np.take(qc, la, axis=0), np.take(rc, la, axis=0),
-                                                 None if e0 is None else e0[a:b], tangent=True,
-                                                 symmetric=symmetric, reuse=True, comps=comps)
+            qa, xa = np.take(qc, la, axis=0), np.take(rc, la, axis=0)
+            ea = None if e0 is None else e0[a:b]
+            if plane is not None:
+                H = self.elastic.plane_tangents(qa, xa, plane.axis, ea, reuse=True)
+            else:
+                _, _, H = self.elastic.element_terms(qa, xa, ea, tangent=True, symmetric=symmetric,
+                                                     reuse=True, comps=comps)
             ga = g[a:b]
             add(ga, ga, H, addv=PETSc.InsertMode.ADD)
         for t in self.terms:

@@ -74,10 +74,14 @@ class ComponentView:
     is cut to the components ``comps`` of each node and goes in through partition.DirichletRows
     on the cut mask (Dirichlet rows and columns zeroed); finish() puts 1 on their diagonal.
     The result is the (comps, comps) block of the problem's matrix with MatZeroRowsColumns
-    applied."""
+    applied.  With ``plane`` (the in-plane block at a planar state) the problem's Jacobian
+    makes the elastic tangents of that block directly (ElasticRod.plane_tangents)."""
 
-    def __init__(self, mat, comps, constraints):
+    def __init__(self, mat, comps, constraints, plane=None):
         self.mat, self.comps = mat, np.asarray(comps)
+        self.plane = plane                # the Plane whose in-plane block this is, at a planar
+        if plane is not None and list(self.comps) != list(plane.inplane):   # state, or None
+            raise ValueError("a plane's view has its in-plane components")
         self.dirichlet = DirichletRows(mat, constraints.block_mask[:, self.comps])
         where = np.full(NDOF, -1)
         where[self.comps] = np.arange(3)
@@ -122,15 +126,16 @@ class BlockInertia(Inertia):
     patterns stay), LDL^T with ICNTL(13) = 1, the negative pivots counted; factor and solve
     take vectors of the block."""
 
-    def __init__(self, problem, comps, prefix=STABILITY_PREFIX):
+    def __init__(self, problem, comps, prefix=STABILITY_PREFIX, plane=None):
         super().__init__(problem, prefix)
         self.comps = np.asarray(comps)
+        self.plane = plane                # the Plane of an in-plane block (ComponentView)
 
     def _matrix(self, patterns):
         return create_block_matrix(self.problem, patterns, symmetric=True)
 
     def _view(self):
-        return ComponentView(self.H, self.comps, self.problem.constraints)
+        return ComponentView(self.H, self.comps, self.problem.constraints, self.plane)
 
 
 class PlanarInertia:
@@ -140,7 +145,7 @@ class PlanarInertia:
 
     def __init__(self, planar):
         self.planar = planar
-        self.block = BlockInertia(planar.problem, planar.plane.inplane)
+        self.block = BlockInertia(planar.problem, planar.plane.inplane, plane=planar.plane)
         self.planar_factor = True          # the last assemble() was of the in-plane block
         self._b = self._x = None
 
@@ -282,7 +287,7 @@ class PlanarSystem:
             if self.ksp is not None:
                 self.ksp.reset()
         p.jacobian(None, p.state.X if X is None else X, self.J, self.J,
-                   view=ComponentView(self.J, self.plane.inplane, p.constraints))
+                   view=ComponentView(self.J, self.plane.inplane, p.constraints, self.plane))
 
     def _inner_ksp(self):
         if self.ksp is None:

@@ -355,14 +355,21 @@ class RankSchur:
         k["isolate"] = []
         if len(k["G"]):
             # what _factor_interior sets to the identity's: the separator's rows (every entry)
-            # and the rows holding entries in its columns (those entries), from D's pattern
-            ai, aj, _ = D.getValuesCSR()
-            hit = np.isin(aj, k["G"])
-            touch = np.setdiff1d(np.repeat(np.arange(ni), np.diff(ai))[hit], k["G"])
-            for r in np.concatenate([k["G"], touch]):
-                cols = aj[ai[r]:ai[r + 1]]
-                cols = cols if r in k["G"] else cols[np.isin(cols, k["G"])]
-                k["isolate"].append((PETSc.IntType(r), cols.astype(PETSc.IntType)))
+            # and the rows holding entries in its columns (those entries), from D's block
+            # pattern (MatGetRowIJ of the blocks of a BAIJ matrix: 0.1 ms, where the scalar
+            # CSR's copy and its scan took 20 ms a new pattern at 10^4 planar elements on 2
+            # ranks; an AIJ matrix's scalar pattern)
+            pb = bs if D.getType() == PETSc.Mat.Type.SEQBAIJ else 1    # the pattern's unit
+            ai, aj = D.getRowIJ(compressed=pb > 1)
+            scalar = lambda units: (np.asarray(units)[:, None] * pb + np.arange(pb)).ravel()
+            sepb = np.unique(k["G"] // pb)
+            hit = np.isin(aj, sepb)
+            touch = np.setdiff1d(np.repeat(np.arange(len(ai) - 1), np.diff(ai))[hit], sepb)
+            for rb in np.concatenate([sepb, touch]):
+                cols = aj[ai[rb]:ai[rb + 1]]
+                cols = scalar(cols if rb in sepb else cols[np.isin(cols, sepb)])
+                for r in range(rb * pb, (rb + 1) * pb):
+                    k["isolate"].append((PETSc.IntType(r), cols.astype(PETSc.IntType)))
         ksp = k["ksp"] = PETSc.KSP().create(comm=PETSc.COMM_SELF)
         ksp.setType(PETSc.KSP.Type.PREONLY)
         pc = ksp.getPC()
