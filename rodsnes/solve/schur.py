@@ -63,12 +63,15 @@ from rodsnes.model.partition import is_split, split_index
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
 PACKAGES = ("petsc", "mumps")       # the interiors' LU (module docstring)
 # nodes per rank below which the whole matrix is factored instead: the condensation's fixed
-# cost per set-up (sub-matrices, the separator's columns, the gathers; ~3 ms) outweighs what
-# it saves on the factorisation.  Measured per Newton iteration on 2 ranks (cantilever,
-# condensed against whole): 3-D 1000 elements 21.3 / 14.5 ms, 3000 27.3 / 31.0 ms; planar
-# 1000 10.6 / 8.6 ms, 3000 15.7 / 16.1 ms, 10^4 36.7 / 41.5 ms; the plectoneme's 181 nodes
-# 27.8 / 11.7 ms (its pattern changes every few iterations)
-MIN_NODES_PER_RANK = 4000
+# cost per set-up (the separator's columns, the gathers, the isolation) outweighs what it saves
+# on the factorisation.  Measured per Newton iteration on 2 ranks (the cantilever, condensed
+# against whole, fastest of three, -log_view's SNESSolve with the between-step writes, 27 Nov
+# 2026): planar 500 elements (750 nodes a rank) 7.4 / 7.3 ms, 1000 8.0 / 8.7, 2000 9.4 / 12.1,
+# 3000 11.9 / 14.2, 5000 17.6 / 20.5; 3-D 1000 elements 10.3 / 13.3 ms, 2000 16.2 / 24.2, 3000
+# 21.0 / 32.9; the plectoneme's 181 nodes 27.8 / 11.7 ms (its pattern changes every few
+# iterations).  (4000 before the isolation kept its places and read the block pattern: 3-D
+# 1000 elements had been 21.3 / 14.5 ms.)
+MIN_NODES_PER_RANK = 1000
 # the same where the interiors are factored by MUMPS (a contact-filled pattern: its factorisation
 # dwarfs the condensation's fixed cost).  Measured per Newton iteration on 2 ranks, the bench
 # coil (tools/bench_scaling.py), condensed against MUMPS over the ranks: 100 elements (301
