@@ -244,3 +244,23 @@ def test_own_blocks_go_straight_into_the_diagonal_block(monkeypatch, scene):
         assert total[0] > 0 and total[1] > 0, total
     else:
         assert sent == {"diag": 0, "mpi": 0}
+
+
+@pytest.mark.parametrize("bs", [1, 3, 6])
+def test_scalar_csr_expands_every_block(bs):
+    """partition._scalar_csr (the AIJ preallocation of -mat_type aij): every entry of every
+    bs x bs block of a block CSR, rows and columns in order, for block rows given sorted or
+    not, empty ones included; against the entries listed one by one."""
+    rng = np.random.default_rng(bs)
+    for trial in range(12):
+        rows = [rng.choice(40, rng.integers(0, 6), replace=False) for _ in range(rng.integers(1, 25))]
+        if trial % 2:
+            rows = [np.sort(r) for r in rows]
+        ai = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
+        aj = np.concatenate(rows).astype(np.int64) if any(len(r) for r in rows) else \
+            np.zeros(0, dtype=np.int64)
+        I, J = partition._scalar_csr(ai, aj, bs)
+        want = sorted((i * bs + a, j * bs + b) for i, r in enumerate(rows) for j in r
+                      for a in range(bs) for b in range(bs))
+        got = [(r, c) for r in range(len(I) - 1) for c in J[I[r]:I[r + 1]]]
+        assert got == want and len(I) == len(rows) * bs + 1

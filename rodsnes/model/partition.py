@@ -425,18 +425,22 @@ def _split_csr(ai, aj, full):
 
 
 def _scalar_csr(ai, aj, bs):
-    """The scalar CSR (I, J) of a block CSR structure whose blocks are dense bs x bs."""
+    """The scalar CSR (I, J) of a block CSR structure whose blocks are dense bs x bs: scalar
+    row i bs + a holds, for each block (i, j) in the order of the block row (sorted here
+    where it is not), the columns j bs + 0..bs-1.  Gathers, no sort of the scalar entries
+    (the lexsort of 1.35e6 entries took 0.4 s)."""
+    ai, aj = np.asarray(ai, dtype=np.int64), np.asarray(aj, dtype=np.int64)
     counts = np.diff(ai)
-    row_block = np.repeat(np.arange(len(counts)), counts)           # block row of every block
-    # scalar row i*bs + a holds, for each block (i, j), the columns j*bs + 0..bs-1
-    cols = (aj[:, None] * bs + np.arange(bs)[None, :])                       # (nblocks, bs)
-    rr = (row_block[:, None] * bs + np.arange(bs)[None, :])                  # (nblocks, bs) rows
-    r = np.repeat(rr, bs, axis=1).ravel()
-    c = np.tile(cols, (1, bs)).ravel()
-    order = np.lexsort((c, r))
-    r, c = r[order], c[order]
-    ai_s = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=len(counts) * bs))])
-    return ai_s.astype(PETSc.IntType), c.astype(PETSc.IntType)
+    row_block = np.repeat(np.arange(len(counts)), counts)
+    if len(aj) > 1 and np.any((np.diff(aj) < 0) & (row_block[1:] == row_block[:-1])):
+        order = np.lexsort((aj, row_block))
+        aj = aj[order]
+    cols = (aj[:, None] * bs + np.arange(bs)[None, :]).ravel()      # each block row's columns
+    lens = np.repeat(counts * bs, bs)                                 # per scalar row
+    starts = np.repeat(ai[:-1] * bs, bs)                              # its block row's first
+    ai_s = np.concatenate([[0], np.cumsum(lens)])
+    idx = np.arange(ai_s[-1]) - np.repeat(ai_s[:-1] - starts, lens)
+    return ai_s.astype(PETSc.IntType), cols[idx].astype(PETSc.IntType)
 
 
 # the Jacobian of a problem whose extra couplings are positions only (contact) is split
