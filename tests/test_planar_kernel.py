@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from rodsnes.model import elastic_compiled, so3
+from rodsnes.model.plane import Plane
 import test_elastic_compiled as compiled_test
 
 TOL = 1e-12
@@ -41,13 +42,15 @@ def make_rod(p, nq, ne, axis, rng, bound, frame=None):
 
 
 def inplane(axis):
-    return [c for c in range(3) if c != axis] + [3 + axis]
+    """The in-plane unknowns of the plane normal to e_axis, as the planar step takes them."""
+    return list(Plane(axis, 1).inplane)
 
 
 @pytest.mark.parametrize("bound", [False, True], ids=["free", "curvature_bound"])
 @pytest.mark.parametrize("axis", [0, 1, 2])
-@pytest.mark.parametrize("p,nq", [(1, 1), (2, 2), (3, 3), (3, 4), (4, 4)])
+@pytest.mark.parametrize("p,nq", [(1, 1), (2, 2), (3, 3), (3, 4), (4, 4), (5, 4), (7, 6)])
 def test_plane_tangent_equals_cut_3d_tangent(p, nq, axis, bound):
+    """Orders 1-7 (the kernel's node counts unrolled, 2-5, and the general loop, 6 and 8)."""
     rng = np.random.default_rng(100 * p + 10 * nq + 3 * axis + bound)
     rod, qe, xe = make_rod(p, nq, 30, axis, rng, bound)
     got = elastic_compiled.plane_tangents(rod, qe, xe, axis)
@@ -57,19 +60,36 @@ def test_plane_tangent_equals_cut_3d_tangent(p, nq, axis, bound):
                                              comps=inplane(axis))[2]
         err = np.abs(got - cut).max() / ref
         assert err < TOL, f"p={p} nq={nq} axis={axis} symmetric={symmetric}: {err:.2e}"
+    if p > 4:
+        return
     # and the numpy kernel's cut
     cut = rod.element_terms_numpy(qe, xe)[2]
     idx = (6 * np.arange(p + 1)[:, None] + np.array(inplane(axis))[None, :]).ravel()
     assert np.abs(got - cut[:, idx[:, None], idx[None, :]]).max() < TOL * ref
 
 
-def test_plane_tangent_any_frame():
+@pytest.mark.parametrize("bound", [False, True], ids=["free", "curvature_bound"])
+def test_plane_tangent_any_frame(bound):
     """A reference frame with no director along the normal (the in-plane variations of a 3-D
-    energy are what the kernel differentiates, whatever the frame)."""
-    rng = np.random.default_rng(7)
+    energy are what the kernel differentiates, whatever the frame), the curvature bound
+    acting on the in-plane curvature's share of (u1, u2)."""
+    rng = np.random.default_rng(7 + bound)
     frame = so3.rot(so3.qexp(np.array([[0.3, -0.7, 1.1]])))[0]
     for axis in (0, 2):
-        rod, qe, xe = make_rod(3, 3, 20, axis, rng, False, frame=frame)
+        rod, qe, xe = make_rod(3, 3, 20, axis, rng, bound, frame=frame)
+        got = elastic_compiled.plane_tangents(rod, qe, xe, axis)
+        cut = elastic_compiled.element_terms(rod, qe, xe, comps=inplane(axis))[2]
+        assert np.abs(got - cut).max() < TOL * np.abs(got).max()
+
+
+def test_plane_tangent_quaternions_of_any_norm():
+    """The 3-D kernel's strains are Nz(p) / |p|^2 of p = sum N_a q_a, whatever the norms of
+    the q_a; the plane kernel takes them alike (the element's q_0 normalised): nodal
+    quaternions scaled by 0.5-2 give the cut 3-D tangent of the same scaled input."""
+    rng = np.random.default_rng(17)
+    for axis in (0, 1, 2):
+        rod, qe, xe = make_rod(3, 3, 25, axis, rng, True)
+        qe = qe * rng.uniform(0.5, 2.0, size=qe.shape[:2])[..., None]
         got = elastic_compiled.plane_tangents(rod, qe, xe, axis)
         cut = elastic_compiled.element_terms(rod, qe, xe, comps=inplane(axis))[2]
         assert np.abs(got - cut).max() < TOL * np.abs(got).max()
@@ -115,10 +135,12 @@ def test_plane_tangent_arguments():
         elastic_compiled.plane_tangents(rod, qe, xe, 2, out=np.empty((4, 6, 6)))
 
 
-def test_planar_jacobian_through_the_plane_kernel():
-    """The planar Newton step's Jacobian (PlanarSystem.assemble_tangent: the plane kernel)
-    and the in-plane Hessian block (BlockInertia) equal the 3-D tangents cut to the in-plane
-    block (ComponentView without a plane) on a perturbed planar state of a run."""
+def test_planar_jacobian_through_the_plane_kernel(monkeypatch):
+    """The planar Newton step's Jacobian (PlanarSystem.assemble_tangent) and the in-plane
+    Hessian block (BlockInertia) are made by the plane kernel (ElasticRod.plane_tangents
+    called for every element of theirs, and for no element of a view without a plane) and
+    equal the 3-D tangents cut to the in-plane block (ComponentView without a plane) on a
+    perturbed planar state of a run."""
     from petsc4py import PETSc
     from conftest import build_run
     from rodsnes.solve.planar import ComponentView, create_block_matrix
@@ -137,6 +159,14 @@ def test_planar_jacobian_through_the_plane_kernel():
     def dense(M):
         return M.convert(PETSc.Mat.Type.AIJ, PETSc.Mat()).getValuesCSR()[2]
 
+    calls = []
+    spied = type(p.elastic).plane_tangents
+
+    def spy(rod, *args, **kw):
+        calls.append(len(args[0]))
+        return spied(rod, *args, **kw)
+
+    monkeypatch.setattr(type(p.elastic), "plane_tangents", spy)
     cut = {}
     for symmetric in (False, True):
         mats = []
@@ -147,8 +177,12 @@ def test_planar_jacobian_through_the_plane_kernel():
             mats.append(dense(M))
         assert np.abs(mats[0] - mats[1]).max() < 1e-12 * np.abs(mats[1]).max()
         cut[symmetric] = mats[1]
+    ne = len(p.lconn)
+    assert sum(calls) == 2 * ne               # the plane views' elements, not the others'
     pl.assemble_tangent(X)                    # the Newton step's, through the plane kernel
+    assert sum(calls) == 3 * ne
     assert np.abs(dense(pl.J) - cut[False]).max() < 1e-12 * np.abs(cut[False]).max()
     pl.inertia.assemble()                     # the minimiser's in-plane Hessian
+    assert sum(calls) == 4 * ne
     H = dense(pl.inertia.block.H)
     assert np.abs(H - cut[True]).max() < 1e-12 * np.abs(cut[True]).max()

@@ -572,11 +572,14 @@ int rodsnes_elastic_energy(int ne, int nn, int nq, const double *N, const double
  * In the plane the consistent tangent is symmetric (the -1/2 g_theta^x term has no (n, n)
  * entry), and K equals the 3-D tangent cut to (P, Q, 3 + axis) (tests/test_planar_kernel.py). */
 
-/* z_a = q_a (x) conj(q_0): (scalar, component along e_axis) */
+/* z_a = q_a (x) conj(q_0) / |q_0|: (scalar, component along e_axis).  With the unit q_0 / |q_0|
+ * p = sum N_a q_a = Z (x) q_0 / |q_0| for quaternions of any norm, as the 3-D kernel takes them
+ * (its strains are Nz(p) / |p|^2). */
 static ALWAYS_INLINE void plane_angles(const int NN, double q[MAXNN][4], int axis,
                                        double z[MAXNN][2])
 {
     const double *r = q[0];
+    const double inv = 1.0 / sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]);
     for (int a = 0; a < NN; a++) {
         const double *qa = q[a];
         double vec[3];
@@ -584,8 +587,8 @@ static ALWAYS_INLINE void plane_angles(const int NN, double q[MAXNN][4], int axi
         double cx[3];
         cross3(qa + 1, r + 1, cx);
         for (int i = 0; i < 3; i++) vec[i] = -qa[0] * r[1 + i] + r[0] * qa[1 + i] - cx[i];
-        z[a][0] = qa[0] * r[0] + qa[1] * r[1] + qa[2] * r[2] + qa[3] * r[3];
-        z[a][1] = vec[axis];
+        z[a][0] = (qa[0] * r[0] + qa[1] * r[1] + qa[2] * r[2] + qa[3] * r[3]) * inv;
+        z[a][1] = vec[axis] * inv;
     }
 }
 
@@ -597,11 +600,14 @@ static ALWAYS_INLINE void plane_element(const int NN, const Setup *st, const dou
     double q[MAXNN][4], z[MAXNN][2];
     align_signs(NN, qin, q);
     plane_angles(NN, q, axis, z);
-    /* R_0^T (Rt of a unit quaternion) and the element's constants */
+    /* R_0^T of the unit q_0 / |q_0| (numerators' Rt is |q_0|^2 R_0^T) and the element's
+     * constants */
     double R0t[3][3], Nz0[6];
     {
         const double zero[4] = {0.0, 0.0, 0.0, 0.0}, zr[3] = {0.0, 0.0, 0.0};
-        numerators(q[0], zero, zr, R0t, Nz0);
+        const double inv = 1.0 / numerators(q[0], zero, zr, R0t, Nz0);
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++) R0t[i][j] *= inv;
     }
     double nv[3] = {0.0, 0.0, 0.0}, eP[3] = {0.0, 0.0, 0.0}, eQ[3] = {0.0, 0.0, 0.0};
     nv[axis] = 1.0; eP[P] = 1.0; eQ[Q] = 1.0;

@@ -339,20 +339,19 @@ class ElasticRod:
         return out[0], out[1], out[2][:, idx[:, None], idx[None, :]]
 
     @logged("ElasticKernel")
-    def plane_tangents(self, qe, xe, axis, e0=None, reuse=False):
-        """The in-plane tangents (ne, 3(p+1), 3(p+1)) at a state in the plane normal to e_axis,
-        rows and columns (node, (r_P, r_Q, theta_axis)), P < Q the other axes: the tangents
-        of element_terms cut to those components (at a planar state the consistent tangent
-        and the Hessian are equal there), which the compiled kernel makes from the in-plane
-        strain variables alone, a third of the time of the 3-D tangent
+    def plane_tangents(self, qe, xe, plane, e0=None, reuse=False):
+        """The in-plane tangents (ne, 3(p+1), 3(p+1)) at a state in ``plane`` (model.plane.Plane:
+        normal e_axis), rows and columns (node, plane.inplane = (r_P, r_Q, theta_axis), P < Q):
+        the tangents of element_terms cut to those components (at a planar state the
+        consistent tangent and the Hessian are equal there), which the compiled kernel makes
+        from the in-plane strain variables alone, a third of the time of the 3-D tangent
         (elastic_compiled.plane_tangents); the other kernels cut their 3-D tangents.  For
         planar states only: the out-of-plane parts of the state are not seen (the planar
         step's guard watches them, planar.PlanarSystem)."""
-        comps = [c for c in range(3) if c != axis] + [3 + axis]
         if self.kernel != "compiled":
-            return self.element_terms(qe, xe, e0, tangent=True, comps=comps)[2]
+            return self.element_terms(qe, xe, e0, tangent=True, comps=plane.inplane)[2]
         out = self._workspace(len(qe), True, 3)[2] if reuse else None
-        return elastic_compiled.plane_tangents(self, qe, xe, axis, e0, out=out)
+        return elastic_compiled.plane_tangents(self, qe, xe, plane.axis, e0, out=out)
 
     def _workspace(self, ne, tangent, nc=6):
         """(energy, vec, H or None) arrays kept for ``reuse``: the leading ne elements of arrays

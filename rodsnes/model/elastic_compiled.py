@@ -135,9 +135,10 @@ def plane_tangents(rod, qe, xe, axis, e0=None, out=None):
     normal to e_axis, rows and columns (node, (r_P, r_Q, theta_axis)), P < Q the other axes:
     element_terms(..., comps=(P, Q, 3 + axis)) at such a state (the consistent tangent and the
     Hessian are equal there), made from the six in-plane strain variables instead of the 3-D
-    tangent (_elastic_kernel.c, rodsnes_elastic_plane_tangent).  The out-of-plane parts of the
-    state are taken as zero: for planar states only (planar.PlanarSystem, whose guard sees
-    the others).  ``out``: an array of that shape to write into."""
+    tangent (_elastic_kernel.c, rodsnes_elastic_plane_tangent; quaternions of any norm, as
+    element_terms).  The out-of-plane parts of the state are taken as zero: for planar states
+    only (planar.PlanarSystem, whose guard sees the others).  ``out``: an array of that shape
+    to write into."""
     args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
     if axis not in (0, 1, 2):
         raise ValueError(f"axis {axis}: 0, 1 or 2")

@@ -533,7 +533,7 @@ class RodProblem:
             qa, xa = np.take(qc, la, axis=0), np.take(rc, la, axis=0)
             ea = None if e0 is None else e0[a:b]
             if plane is not None:
-                H = self.elastic.plane_tangents(qa, xa, plane.axis, ea, reuse=True)
+                H = self.elastic.plane_tangents(qa, xa, plane, ea, reuse=True)
             else:
                 _, _, H = self.elastic.element_terms(qa, xa, ea, tangent=True, symmetric=symmetric,
                                                      reuse=True, comps=comps)

@@ -193,6 +193,11 @@ def separator(problem, A):
     return sep, np.setdiff1d(near, sep).astype(np.int64)
 
 
+def _unknowns(blocks, size):
+    """The unknowns (scalar indices) of the blocks of ``size`` unknowns, block by block."""
+    return (np.asarray(blocks)[:, None] * size + np.arange(size)).ravel()
+
+
 def _dense_lu(M):
     """scipy's LU (lu, piv) of the dense M, or None where it is singular or not finite (no
     warning: the caller fails the solve)."""
@@ -341,7 +346,7 @@ class RankSchur:
         rs, re = A.getOwnershipRange()
         ni, ng = re - rs, len(sep) * bs
         here = near[(near >= rs // bs) & (near < re // bs)]
-        unknowns = lambda blocks: (np.asarray(blocks)[:, None] * bs + np.arange(bs)).ravel()
+        unknowns = functools.partial(_unknowns, size=bs)
         k = self.kept = {"A": key, "sep": sep, "near": near, "ni": ni, "ng": ng,
                          "G": unknowns(mine - rs // bs),
                          # the separator's unknowns this rank owns, in S's order
@@ -364,13 +369,12 @@ class RankSchur:
             # ranks; an AIJ matrix's scalar pattern)
             pb = bs if D.getType() == PETSc.Mat.Type.SEQBAIJ else 1    # the pattern's unit
             ai, aj = D.getRowIJ(compressed=pb > 1)
-            scalar = lambda units: (np.asarray(units)[:, None] * pb + np.arange(pb)).ravel()
             sepb = np.unique(k["G"] // pb)
             hit = np.isin(aj, sepb)
             touch = np.setdiff1d(np.repeat(np.arange(len(ai) - 1), np.diff(ai))[hit], sepb)
             for rb in np.concatenate([sepb, touch]):
                 cols = aj[ai[rb]:ai[rb + 1]]
-                cols = scalar(cols if rb in sepb else cols[np.isin(cols, sepb)])
+                cols = _unknowns(cols if rb in sepb else cols[np.isin(cols, sepb)], pb)
                 for r in range(rb * pb, (rb + 1) * pb):
                     k["isolate"].append((PETSc.IntType(r), cols.astype(PETSc.IntType)))
         ksp = k["ksp"] = PETSc.KSP().create(comm=PETSc.COMM_SELF)
