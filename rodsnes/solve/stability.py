@@ -15,7 +15,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.model.term import same_patterns
-from rodsnes.solve.linear import mumps_fill_room, option_default
+from rodsnes.solve.linear import mumps_fill_room, mumps_ordering, option_default
 
 
 def zero_shift(A):
@@ -29,7 +29,7 @@ def zero_shift(A):
 class Inertia:
     """The negative eigenvalues of the energy Hessian, counted by MUMPS LDL^T (INFOG(12), the
     negative pivots; -stability_mat_mumps_icntl_13 1 makes the count right on any number of
-    ranks).  The Hessian goes into an SBAIJ matrix of the problem's layout (the upper block
+    ranks; ordered as the Newton step's MUMPS, linear.mumps_ordering).  The Hessian goes into an SBAIJ matrix of the problem's layout (the upper block
     triangle, half the entries; Dirichlet rows masked as it is assembled) that is kept, with
     its factorisation's symbolic analysis, while the block pattern stays the same: a count is
     one Hessian assembly and one numeric LDL^T (half the flops of Newton's LU).  The diagonal
@@ -83,6 +83,7 @@ class Inertia:
         pc.setFactorSolverType("mumps")
         option_default(self.prefix + "mat_mumps_icntl_13", "1")
         mumps_fill_room(p, self.prefix)
+        mumps_ordering(p, self.prefix)
         pc.setFromOptions()
         self.pc, self.patterns = pc, patterns
         self.builds += 1
