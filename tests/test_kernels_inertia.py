@@ -149,3 +149,24 @@ def test_a_small_hessian_is_factored_whole_on_every_rank():
         obj.destroy()
     whole.destroy()
     spread.destroy()
+
+
+@pytest.mark.parametrize("user", [None, "4"])
+def test_the_stability_ldlt_is_ordered_as_the_newton_steps_mumps(user):
+    """The stability count's MUMPS LDL^T takes the Newton step's ordering rule
+    (linear.mumps_ordering): minimum degree (ICNTL(7) = 0) where it fills the node graph no
+    more than nested dissection (a rod's chain), PORD only when asked (-stability_mat_mumps_
+    icntl_7 4: the user's choice stays)."""
+    from petsc4py import PETSc
+    from conftest import build_run
+    from rodsnes.solve.stability import Inertia
+    kw = {} if user is None else {"stability_mat_mumps_icntl_7": user}
+    p = build_run("mattiasson", rod_nelem=40, rod_planar="off", **kw).problem
+    p.set_load(0.5)
+    inertia = Inertia(p)
+    inertia.assemble()
+    assert inertia.factor() == 0
+    want = 0 if user is None else int(user)
+    assert inertia.pc.getFactorMatrix().getMumpsIcntl(7) == want
+    inertia.destroy()
+    PETSc.Options().delValue("stability_mat_mumps_icntl_7")
