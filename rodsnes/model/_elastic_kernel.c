@@ -83,11 +83,10 @@ typedef struct {
 /* The strain numerators alone: Rt = Rq(p)^T = s I + 2 pv pv^T - 2 p0 pv^x (s = p0^2 - |pv|^2),
  * Nz = (Rt r', 2 w) with 2 w = 2 (p0 pv' - p0' pv - pv x pv'); returns |p|^2.  The energy pass
  * (element_energy) needs no more; strain_numerators adds their derivatives. */
-static ALWAYS_INLINE double numerators(const double *p, const double *dp, const double *dr,
-                                       double Rt[3][3], double *Nz)
+/* Rt = Rq(p)^T |p|^2 = s I + 2 pv pv^T - 2 p0 pv^x (s = p0^2 - |pv|^2); returns |p|^2. */
+static ALWAYS_INLINE double rotation_numerator(const double *p, double Rt[3][3])
 {
     const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
-    const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
     const double pvpv = dot3(pv, pv);
     const double s = p0 * p0 - pvpv;
     for (int i = 0; i < 3; i++)
@@ -97,13 +96,22 @@ static ALWAYS_INLINE double numerators(const double *p, const double *dp, const 
     Rt[0][1] += 2.0 * p0 * pv[2];  Rt[0][2] -= 2.0 * p0 * pv[1];
     Rt[1][0] -= 2.0 * p0 * pv[2];  Rt[1][2] += 2.0 * p0 * pv[0];
     Rt[2][0] += 2.0 * p0 * pv[1];  Rt[2][1] -= 2.0 * p0 * pv[0];
+    return p0 * p0 + pvpv;
+}
+
+static ALWAYS_INLINE double numerators(const double *p, const double *dp, const double *dr,
+                                       double Rt[3][3], double *Nz)
+{
+    const double p0 = p[0], pv[3] = {p[1], p[2], p[3]};
+    const double dp0 = dp[0], dpv[3] = {dp[1], dp[2], dp[3]};
+    const double n2 = rotation_numerator(p, Rt);
     for (int k = 0; k < 3; k++)
         Nz[k] = dot3(Rt[k], dr);
     double pxdp[3];
     cross3(pv, dpv, pxdp);
     for (int k = 0; k < 3; k++)
         Nz[3 + k] = 2.0 * (p0 * dpv[k] - dp0 * pv[k] - pxdp[k]);
-    return p0 * p0 + pvpv;
+    return n2;
 }
 
 static ALWAYS_INLINE void strain_numerators(const double *p, const double *dp, const double *dr,
@@ -471,6 +479,17 @@ static ALWAYS_INLINE void cut_tangent(const int NN, const double *H, const int *
         }
 }
 
+/* LOOP(NN) for the element's node count nn: a constant for 2-5 nodes, so that the compiler
+ * unrolls the node loops, nn itself beyond. */
+#define BY_NODE_COUNT(LOOP)                                                                \
+    switch (nn) {                                                                          \
+    case 2: LOOP(2); break;                                                                \
+    case 3: LOOP(3); break;                                                                \
+    case 4: LOOP(4); break;                                                                \
+    case 5: LOOP(5); break;                                                                \
+    default: LOOP(nn); break;                                                              \
+    }
+
 /* One element into the outputs; with comps its tangent through a buffer, cut (cut_tangent). */
 #define ELEMENT_LOOP(NN)                                                                   \
     for (int e = 0; e < ne; e++) {                                                         \
@@ -500,13 +519,7 @@ int rodsnes_elastic_terms(int ne, int nn, int nq, const double *N, const double 
     if (comps && (ncomp < 1 || ncomp > 6)) return -1;
     double Hbuf[36 * MAXNN * MAXNN];
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
-    switch (nn) {   /* constant node counts let the compiler unroll the node loops */
-    case 2: ELEMENT_LOOP(2); break;
-    case 3: ELEMENT_LOOP(3); break;
-    case 4: ELEMENT_LOOP(4); break;
-    case 5: ELEMENT_LOOP(5); break;
-    default: ELEMENT_LOOP(nn); break;
-    }
+    BY_NODE_COUNT(ELEMENT_LOOP)
     return 0;
 }
 
@@ -542,13 +555,7 @@ int rodsnes_elastic_energy(int ne, int nn, int nq, const double *N, const double
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
-    switch (nn) {
-    case 2: ENERGY_LOOP(2); break;
-    case 3: ENERGY_LOOP(3); break;
-    case 4: ENERGY_LOOP(4); break;
-    case 5: ENERGY_LOOP(5); break;
-    default: ENERGY_LOOP(nn); break;
-    }
+    BY_NODE_COUNT(ENERGY_LOOP)
     return 0;
 }
 
@@ -580,15 +587,14 @@ static ALWAYS_INLINE void plane_angles(const int NN, double q[MAXNN][4], int axi
 {
     const double *r = q[0];
     const double inv = 1.0 / sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3]);
+    const int i = axis, j = (axis + 1) % 3, k = (axis + 2) % 3;
     for (int a = 0; a < NN; a++) {
         const double *qa = q[a];
-        double vec[3];
-        /* (qa0, qav) (x) (r0, -rv) = (qa0 r0 + qav.rv, -qa0 rv + r0 qav - qav x rv) */
-        double cx[3];
-        cross3(qa + 1, r + 1, cx);
-        for (int i = 0; i < 3; i++) vec[i] = -qa[0] * r[1 + i] + r[0] * qa[1 + i] - cx[i];
+        /* (qa0, qav) (x) (r0, -rv) = (qa0 r0 + qav.rv, -qa0 rv + r0 qav - qav x rv): the scalar
+         * and the axis component of the vector */
+        const double cross_i = qa[1 + j] * r[1 + k] - qa[1 + k] * r[1 + j];
         z[a][0] = (qa[0] * r[0] + qa[1] * r[1] + qa[2] * r[2] + qa[3] * r[3]) * inv;
-        z[a][1] = vec[axis] * inv;
+        z[a][1] = (-qa[0] * r[1 + i] + r[0] * qa[1 + i] - cross_i) * inv;
     }
 }
 
@@ -600,12 +606,10 @@ static ALWAYS_INLINE void plane_element(const int NN, const Setup *st, const dou
     double q[MAXNN][4], z[MAXNN][2];
     align_signs(NN, qin, q);
     plane_angles(NN, q, axis, z);
-    /* R_0^T of the unit q_0 / |q_0| (numerators' Rt is |q_0|^2 R_0^T) and the element's
-     * constants */
-    double R0t[3][3], Nz0[6];
+    /* R_0^T of the unit q_0 / |q_0| and the element's constants */
+    double R0t[3][3];
     {
-        const double zero[4] = {0.0, 0.0, 0.0, 0.0}, zr[3] = {0.0, 0.0, 0.0};
-        const double inv = 1.0 / numerators(q[0], zero, zr, R0t, Nz0);
+        const double inv = 1.0 / rotation_numerator(q[0], R0t);
         for (int i = 0; i < 3; i++)
             for (int j = 0; j < 3; j++) R0t[i][j] *= inv;
     }
@@ -771,12 +775,6 @@ int rodsnes_elastic_plane_tangent(int ne, int nn, int nq, const double *N, const
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0 || axis < 0 || axis > 2) return -1;
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
-    switch (nn) {
-    case 2: PLANE_LOOP(2); break;
-    case 3: PLANE_LOOP(3); break;
-    case 4: PLANE_LOOP(4); break;
-    case 5: PLANE_LOOP(5); break;
-    default: PLANE_LOOP(nn); break;
-    }
+    BY_NODE_COUNT(PLANE_LOOP)
     return 0;
 }
