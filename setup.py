@@ -36,6 +36,14 @@ rotation_kernel = Extension(
     libraries=["m"],
 )
 
+# Element tangents added straight into a block matrix's values (rodsnes/model/assembly.py),
+# the same way: the places of the blocks found once per pattern, no search per insertion.
+assembly_kernel = Extension(
+    "rodsnes.model._assembly_kernel",
+    sources=["rodsnes/model/_assembly_kernel.c"],
+    extra_compile_args=["-O3", "-std=c99"],
+)
+
 setup(
     name="rodsnes",
     version="0.1.0",
@@ -46,5 +54,6 @@ setup(
     # (see tools/install_system.sh); only what Debian lacks is pulled from PyPI.
     install_requires=["numpy", "pymetis", "typing_extensions"],
     entry_points={"console_scripts": ["rodsnes = rodsnes.cli:main"]},
-    ext_modules=[elastic_kernel, potential_kernel, topology_kernel, rotation_kernel],
+    ext_modules=[elastic_kernel, potential_kernel, topology_kernel, rotation_kernel,
+                 assembly_kernel],
 )

@@ -329,8 +329,9 @@ def options_left():
     import ctypes
     import numpy as np
     from petsc4py import PETSc
-    lib = _petsc_library()
-    if lib is None:
+    from rodsnes import petsc_lib
+    lib = petsc_lib.library()
+    if lib is None or not hasattr(lib, "PetscOptionsLeftGet"):
         return None
     pint = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
     n = pint(0)
@@ -341,24 +342,6 @@ def options_left():
     out = [(names[i].decode(), values[i].decode() if values[i] else None) for i in range(n.value)]
     lib.PetscOptionsLeftRestore(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values))
     return out
-
-
-def _petsc_library():
-    """The PETSc shared library this process runs (from /proc/self/maps), through ctypes."""
-    import ctypes
-    try:
-        with open("/proc/self/maps") as fh:
-            paths = {line.split()[-1] for line in fh if "libpetsc" in line}
-    except OSError:
-        return None
-    for path in sorted(paths):
-        try:
-            lib = ctypes.CDLL(path)
-            lib.PetscOptionsLeftGet  # noqa: B018 - probes the symbol
-            return lib
-        except (OSError, AttributeError):
-            continue
-    return None
 
 
 def unused_petsc_warnings(given, late):

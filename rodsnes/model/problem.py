@@ -14,7 +14,7 @@ changing the equilibrium (the resultant of the internal forces of a free ring va
 import numpy as np
 from petsc4py import PETSc
 
-from rodsnes.model import elastic, fe, so3
+from rodsnes.model import assembly, elastic, fe, so3
 from rodsnes.model.partition import NDOF, DirichletRows
 from rodsnes.errors import SceneError
 from rodsnes.model import topology
@@ -523,6 +523,8 @@ class RodProblem:
         g, lconn, e0 = self._gconn, self.lconn, self.elastic.e0     # e0: (elements, points, 6)
         rc, qc = np.ascontiguousarray(r), np.ascontiguousarray(q)   # np.take copies a strided one
         nc = NDOF if comps is None else len(comps)
+        # the elements' blocks straight into the matrix's values where that applies
+        blocks = assembly.element_blocks(P, T if view is None else view.dirichlet, g, nc)
         step = (self.TANGENT_CHUNK * NDOF ** 2 // nc ** 2 if self.elastic.kernel == "compiled"
                 else max(len(g), 1))
         for a in range(0, len(g), step):
@@ -538,7 +540,10 @@ class RodProblem:
                 _, _, H = self.elastic.element_terms(qa, xa, ea, tangent=True, symmetric=symmetric,
                                                      reuse=True, comps=comps)
             ga = g[a:b]
-            add(ga, ga, H, addv=PETSc.InsertMode.ADD)
+            if blocks is None:
+                add(ga, ga, H, addv=PETSc.InsertMode.ADD)
+            else:
+                blocks.add(a, b, H, lambda i: add(ga[i], ga[i], H[i], addv=PETSc.InsertMode.ADD))
         for t in self.terms:
             t.add_jacobian(self.lam, r, q, T, symmetric=symmetric)
         T.finish(self.constraints.rows_global)

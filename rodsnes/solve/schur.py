@@ -48,7 +48,6 @@ any rank makes the solution NaN on every rank (a python PC cannot set a failed r
 petsc4py 3.18), which fails the Newton step as the planar solve's failure does (planar.py).
 """
 import ctypes
-import ctypes.util
 import functools
 import warnings
 
@@ -57,6 +56,7 @@ import scipy.linalg as sla
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from rodsnes import petsc_lib
 from rodsnes.solve import petsc_exit
 from rodsnes.model.partition import is_split, split_index
 
@@ -94,37 +94,21 @@ INTERIOR_PREFIX = "interior_"   # the options of the interiors' MUMPS LU (-inter
 
 
 # -- MUMPS's Schur complement (PETSc's MatFactorSetSchurIS ..., which petsc4py 3.18 lacks) ----
-@functools.lru_cache(maxsize=None)
-def _libpetsc():
-    """The PETSc library petsc4py runs on (already loaded: found in the process's maps), with
-    the signatures of the few functions called here."""
-    path = None
-    try:
-        with open("/proc/self/maps") as maps:
-            for line in maps:
-                name = line.split()[-1]
-                if "/libpetsc" in name and ".so" in name:
-                    path = name
-                    break
-    except OSError:
-        pass
-    lib = ctypes.CDLL(path or ctypes.util.find_library("petsc_real")
-                      or ctypes.util.find_library("petsc"))
-    ptr, int_ = ctypes.c_void_p, ctypes.c_int
-    for name, args in (("MatFactorSetSchurIS", [ptr, ptr]),
-                       ("MatFactorGetSchurComplement", [ptr, ptr, ptr]),
-                       ("MatFactorRestoreSchurComplement", [ptr, ptr, int_]),
-                       ("MatDenseGetArrayRead", [ptr, ptr]),
-                       ("MatDenseRestoreArrayRead", [ptr, ptr]),
-                       ("MatDenseGetLDA", [ptr, ptr])):
-        fn = getattr(lib, name)
-        fn.argtypes, fn.restype = args, int_
-    return lib
+_P, _I = ctypes.c_void_p, ctypes.c_int
+_SIGNATURES = {"MatFactorSetSchurIS": (_P, _P), "MatFactorGetSchurComplement": (_P, _P, _P),
+               "MatFactorRestoreSchurComplement": (_P, _P, _I),
+               "MatDenseGetArrayRead": (_P, _P), "MatDenseRestoreArrayRead": (_P, _P),
+               "MatDenseGetLDA": (_P, _P)}
 
 
-def _checked(code):
-    if code:
-        raise PETSc.Error(code)
+def _checked(name, *args):
+    """PETSc's ``name`` (petsc_lib) called with ``args``, PETSc.Error on an error code."""
+    petsc_lib.call(name, *args, argtypes=_SIGNATURES[name])
+
+
+def _unchecked(name, *args):
+    """The same, its error code ignored (a restore in a finally clause)."""
+    petsc_lib.function(name, *_SIGNATURES[name])(*args)
 
 
 def set_schur_unknowns(F, rows):
@@ -132,7 +116,7 @@ def set_schur_unknowns(F, rows):
     complement is to be that of the unknowns ``rows`` (local indices), eliminated last."""
     is_ = PETSc.IS().createGeneral(np.asarray(rows, dtype=PETSc.IntType), comm=PETSc.COMM_SELF)
     try:
-        _checked(_libpetsc().MatFactorSetSchurIS(F.handle, is_.handle))
+        _checked("MatFactorSetSchurIS", F.handle, is_.handle)
     finally:
         is_.destroy()
 
@@ -141,22 +125,21 @@ def schur_complement(F, n):
     """A copy (n x n) of the Schur complement T = A_NN - A_NF A_FF^-1 A_FN that MUMPS formed in
     the numeric factorisation of ``F`` (set_schur_unknowns), read before any solve (which
     factors it in place)."""
-    lib = _libpetsc()
     S, status = ctypes.c_void_p(), ctypes.c_int()
-    _checked(lib.MatFactorGetSchurComplement(F.handle, ctypes.byref(S), ctypes.byref(status)))
+    _checked("MatFactorGetSchurComplement", F.handle, ctypes.byref(S), ctypes.byref(status))
     try:
         if status.value != 0:           # MAT_FACTOR_SCHUR_UNFACTORED
             raise PETSc.Error(73)
         lda = (ctypes.c_int64 if PETSc.IntType().itemsize == 8 else ctypes.c_int32)()
-        _checked(lib.MatDenseGetLDA(S, ctypes.byref(lda)))
+        _checked("MatDenseGetLDA", S, ctypes.byref(lda))
         data = ctypes.POINTER(ctypes.c_double)()
-        _checked(lib.MatDenseGetArrayRead(S, ctypes.byref(data)))
+        _checked("MatDenseGetArrayRead", S, ctypes.byref(data))
         try:                            # column-major, leading dimension lda
             T = np.ctypeslib.as_array(data, shape=(n, lda.value))[:, :n].T.copy()
         finally:
-            lib.MatDenseRestoreArrayRead(S, ctypes.byref(data))
+            _unchecked("MatDenseRestoreArrayRead", S, ctypes.byref(data))
     finally:
-        lib.MatFactorRestoreSchurComplement(F.handle, ctypes.byref(S), status.value)
+        _unchecked("MatFactorRestoreSchurComplement", F.handle, ctypes.byref(S), status.value)
     return T
 
 

@@ -1,0 +1,90 @@
+"""The PETSc library petsc4py runs on, reached through ctypes for the few functions petsc4py
+3.18 does not wrap: the options nobody read (cli.options_left), MUMPS's Schur complement
+(solve/schur.py), a block matrix's value array and nonzero state (model/assembly.py).
+"""
+import contextlib
+import ctypes
+import ctypes.util
+import functools
+
+_INT = ctypes.c_int
+
+
+@functools.lru_cache(maxsize=None)
+def library():
+    """ctypes.CDLL of the PETSc shared library loaded in this process (found in
+    /proc/self/maps; else the one the linker finds), or None."""
+    paths = []
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = sorted({line.split()[-1] for line in maps
+                            if "/libpetsc" in line and ".so" in line})
+    except OSError:
+        pass
+    for name in ("petsc_real", "petsc"):
+        found = ctypes.util.find_library(name)
+        if found:
+            paths.append(found)
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+            lib.PetscInitialized        # noqa: B018 - probes that it is PETSc
+            return lib
+        except (OSError, AttributeError):
+            continue
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def function(name, *argtypes):
+    """PETSc's C function ``name`` with those argument types (returning its error code), or
+    None where the library or the function cannot be reached."""
+    lib = library()
+    fn = getattr(lib, name, None) if lib is not None else None
+    if fn is not None:
+        fn.argtypes, fn.restype = list(argtypes), _INT
+    return fn
+
+
+def call(name, *args, argtypes=None):
+    """function(name, argtypes...)(args), raising PETSc.Error on a nonzero error code and
+    RuntimeError where the function cannot be reached."""
+    from petsc4py import PETSc
+    fn = function(name, *(argtypes or [ctypes.c_void_p] * len(args)))
+    if fn is None:
+        raise RuntimeError(f"PETSc's {name} cannot be reached through ctypes")
+    code = fn(*args)
+    if code:
+        raise PETSc.Error(code)
+
+
+_ARRAY = {"seqbaij": ("MatSeqBAIJGetArray", "MatSeqBAIJRestoreArray"),
+          "seqsbaij": ("MatSeqSBAIJGetArray", "MatSeqSBAIJRestoreArray")}
+
+
+def has_value_array(mat):
+    """Whether values_of works on ``mat`` (a sequential BAIJ or SBAIJ matrix) here."""
+    names = _ARRAY.get(mat.getType())
+    return bool(names) and all(function(n, ctypes.c_void_p, ctypes.c_void_p) for n in names)
+
+
+@contextlib.contextmanager
+def values_of(mat):
+    """The address of the value array of the sequential BAIJ or SBAIJ matrix ``mat`` (its
+    blocks in the order of its block CSR, each bs x bs column by column), for the with
+    block (MatSeqBAIJGetArray ... RestoreArray).  The caller assembles the matrix after."""
+    get, restore = _ARRAY[mat.getType()]
+    ptr = ctypes.c_void_p()
+    call(get, mat.handle, ctypes.byref(ptr))
+    try:
+        yield ptr.value
+    finally:
+        call(restore, mat.handle, ctypes.byref(ptr))
+
+
+def nonzero_state(mat):
+    """PETSc's nonzero state of ``mat`` (MatGetNonzeroState): it changes when the matrix's
+    pattern does."""
+    state = ctypes.c_int64()
+    call("MatGetNonzeroState", mat.handle, ctypes.byref(state))
+    return state.value

@@ -1,0 +1,214 @@
+"""Element tangents added straight into the value array of a block matrix (model/assembly.py):
+the same matrix as MatSetValuesBlocked gives, for BAIJ and SBAIJ, block sizes 3 and 6, split
+matrices, the planar step's component block, on 1 and 2 ranks (mpi); the groups that touch a
+constrained node or another rank's node go the matrix's way; the places follow a new pattern;
+AIJ and a missing kernel keep the old insertion."""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from conftest import build_run, coiled_rollup
+from rodsnes.model import assembly, partition
+from rodsnes.model.partition import NDOF
+from rodsnes.solve.planar import ComponentView, create_block_matrix
+from test_assembly import owned_dense, perturbed
+
+ADD = PETSc.InsertMode.ADD
+
+
+def counted(monkeypatch):
+    """Spy on ElementBlocks.add: the groups it wrote straight (direct) and handed back (rest)."""
+    seen = {"direct": 0, "rest": 0}
+    add = assembly.ElementBlocks.add
+
+    def spy(self, a, b, V, insert):
+        handed = []
+        add(self, a, b, V, lambda i: (handed.append(len(i)), insert(i)))
+        seen["rest"] += sum(handed)
+        seen["direct"] += b - a - sum(handed)
+    monkeypatch.setattr(assembly.ElementBlocks, "add", spy)
+    return seen
+
+
+def both_ways(monkeypatch, make, fill):
+    """The matrix fill(M) makes in make() straight (A) and by MatSetValuesBlocked (B)."""
+    A = make()
+    fill(A)
+    with monkeypatch.context() as m:
+        m.setattr(assembly, "element_blocks", lambda *a, **k: None)
+        B = make()
+        fill(B)
+    return A, B
+
+
+def assert_same(A, B):
+    a, b = owned_dense(A), owned_dense(B)
+    assert np.count_nonzero(b) > 3 * b.shape[0]         # something is compared
+    # the groups handed back are added after the direct ones of their chunk: a sum of more
+    # than two parts may round differently
+    assert np.abs(a - b).max() <= 1e-15 * np.abs(b).max()
+
+
+def _ranks_sum(n):
+    return PETSc.COMM_WORLD.tompi4py().allreduce(n)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_3d_jacobian_and_hessian_straight_into_the_values(monkeypatch, symmetric):
+    """The 3-D Jacobian (MPIBAIJ, block size 6) and Hessian (SBAIJ, upper blocks) of an open
+    clamped rod: every element but those at a constrained node (and, on 2 ranks, the one cut
+    by the partition) written straight; the same matrix as the insertion gives."""
+    seen = counted(monkeypatch)
+    run = perturbed(build_run("mattiasson", rod_nelem=40))
+    p = run.problem
+
+    def make():
+        return p.layout.create_matrix(p.node_groups(p.patterns), symmetric=symmetric)
+
+    A, B = both_ways(monkeypatch, make, lambda M: p.jacobian(None, p.state.X, M, M,
+                                                            symmetric=symmetric))
+    assert A.getBlockSize() == NDOF and B.getType() == A.getType()
+    assert_same(A, B)
+    size = PETSc.COMM_WORLD.getSize()
+    direct, rest = _ranks_sum(seen["direct"]), _ranks_sum(seen["rest"])
+    assert direct + rest == 40
+    assert 1 <= rest <= 1 + (size - 1), (direct, rest)       # the clamped end, the cuts
+    A.destroy()
+    B.destroy()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_planar_block_straight_into_the_values(monkeypatch, symmetric):
+    """The planar step's in-plane block (block size 3, through ComponentView and the plane
+    kernel) and the in-plane Hessian (SBAIJ): the same matrices."""
+    seen = counted(monkeypatch)
+    run = build_run("mattiasson", rod_nelem=30)
+    p = run.problem
+    pl = p.planar
+    p.set_load(0.6)
+    X = p.state.X
+    lo = X.getOwnershipRange()[0]
+    d = np.random.default_rng(5).normal(size=(X.getSize() // NDOF, 3)) * 1e-2
+    with X as a:                # a planar state off equilibrium
+        a = a.reshape(-1, NDOF)
+        mine = slice(lo // NDOF, lo // NDOF + len(a))
+        free = ~p.constraints.block_mask[mine][:, pl.plane.inplane]
+        a[:, pl.plane.inplane] += np.where(free, d[mine], 0.0)
+
+    def fill(M):
+        p.jacobian(None, p.state.X, M, M, symmetric=symmetric,
+                   view=ComponentView(M, pl.plane.inplane, p.constraints, pl.plane))
+
+    A, B = both_ways(monkeypatch, lambda: create_block_matrix(p, p.patterns, symmetric),
+                     fill)
+    assert A.getBlockSize() == 3
+    assert_same(A, B)
+    assert _ranks_sum(seen["direct"]) >= 30 - PETSc.COMM_WORLD.getSize()
+    A.destroy()
+    B.destroy()
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_split_contact_matrix_straight_into_the_values(monkeypatch, symmetric):
+    """With contact the matrix is split (block size 3, two blocks a node): an element's
+    tangent is 2k x 2k blocks of 3, written straight as well; the contact blocks go the
+    matrix's way."""
+    seen = counted(monkeypatch)
+    run = coiled_rollup()
+    p = run.problem
+    p.ensure_pattern()
+
+    def make():
+        return p.layout.create_matrix(p.node_groups(p.patterns), symmetric=symmetric,
+                                      positions_only=p.positions_only())
+
+    A, B = both_ways(monkeypatch, make, lambda M: p.jacobian(None, p.state.X, M, M,
+                                                            symmetric=symmetric))
+    assert partition.is_split(A) and A.getBlockSize() == 3
+    assert_same(A, B)
+    assert _ranks_sum(seen["direct"]) >= 12 - 1 - PETSc.COMM_WORLD.getSize()
+    A.destroy()
+    B.destroy()
+
+
+def small_baij(bs, symmetric, nodes=7):
+    """A sequential (S)BAIJ matrix of a chain of 2-node groups (i, i + 1), preallocated."""
+    n = nodes
+    ai = [0]
+    aj = []
+    for i in range(n):
+        cols = [j for j in (i - 1, i, i + 1) if 0 <= j < n and (not symmetric or j >= i)]
+        aj += cols
+        ai.append(len(aj))
+    M = PETSc.Mat().create(comm=PETSc.COMM_SELF)
+    M.setSizes((n * bs, n * bs), bsize=bs)
+    M.setType(PETSc.Mat.Type.SEQSBAIJ if symmetric else PETSc.Mat.Type.SEQBAIJ)
+    M.setPreallocationCSR((np.array(ai, dtype=PETSc.IntType), np.array(aj, dtype=PETSc.IntType)))
+    if symmetric:
+        M.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
+    M.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    return M
+
+
+class Touched:
+    def __init__(self, n, hit=()):
+        self.touched = np.zeros(n, dtype=bool)
+        self.touched[list(hit)] = True
+
+
+@pytest.mark.parametrize("bs", [3, 6])
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_kernel_adds_blocks_as_mat_set_values_blocked(bs, symmetric):
+    """Random group tangents (symmetric ones for SBAIJ) added straight equal MatSetValuesBlocked
+    of them, the touched groups handed back; after an entry outside the pattern (a new
+    nonzero state) the places are found again."""
+    rng = np.random.default_rng(bs)
+    n = 7
+    G = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1).astype(PETSc.IntType)
+    V = rng.normal(size=(n - 1, 2 * bs, 2 * bs))
+    if symmetric:
+        V = V + V.transpose(0, 2, 1)
+    touch = Touched(n, hit=[0])
+    A, B = small_baij(bs, symmetric), small_baij(bs, symmetric)
+    for M in (A, B):
+        M.zeroEntries()
+    blocks = assembly.element_blocks(A, touch, G, bs)
+    assert blocks is not None and list(blocks.rest) == [0]
+    for a, b in ((0, 2), (2, n - 1)):
+        blocks.add(a, b, V[a:b], lambda i, a=a: A.setValuesBlockedRCV(
+            G[a:b][i], G[a:b][i], V[a:b][i], addv=ADD))
+    B.setValuesBlockedRCV(G, G, V, addv=ADD)
+    for M in (A, B):
+        M.assemble()
+    assert np.array_equal(A[:, :], B[:, :])
+    assert assembly.element_blocks(A, touch, G, bs) is blocks        # kept with the pattern
+    # a new nonzero (0, n - 1) moves the places in row 0: found again
+    for M in (A, B):
+        M.setValuesBlocked([0], [n - 1], np.ones(bs * bs), addv=ADD)
+        M.assemble()
+    again = assembly.element_blocks(A, touch, G, bs)
+    assert again is not blocks
+    for M in (A, B):
+        M.zeroEntries()
+    again.add(0, n - 1, V, lambda i: A.setValuesBlockedRCV(G[i], G[i], V[i], addv=ADD))
+    B.setValuesBlockedRCV(G, G, V, addv=ADD)
+    for M in (A, B):
+        M.assemble()
+    assert np.array_equal(A[:, :], B[:, :])
+
+
+def test_not_for_aij_nor_without_the_kernel(monkeypatch):
+    """An AIJ matrix (-mat_type aij), a block size other than the tangents' and a missing
+    kernel keep MatSetValuesBlocked (element_blocks returns None)."""
+    G = np.array([[0, 1], [1, 2]], dtype=PETSc.IntType)
+    touch = Touched(3)
+    aij = PETSc.Mat().createAIJ((9, 9), nnz=9, comm=PETSc.COMM_SELF)
+    aij.setUp()
+    assert assembly.element_blocks(aij, touch, G, 3) is None
+    baij = small_baij(3, False, nodes=3)
+    assert assembly.element_blocks(baij, touch, G, 6) is None
+    monkeypatch.setattr(assembly, "available", lambda: False)
+    assert assembly.element_blocks(baij, touch, G, 3) is None
