@@ -1,7 +1,7 @@
 /* Element blocks added straight into the value array of a PETSc BAIJ or SBAIJ matrix
  * (rodsnes/model/assembly.py, loaded with ctypes; plain C99, no Python API).
  *
- *   int rodsnes_add_blocks(double *a, const int64_t *pos, const double *V,
+ *   int rodsnes_add_element_blocks(double *a, const int32_t *pos, const double *V,
  *                          int64_t ne, int k, int bs);
  *
  * V (ne, k bs, k bs), row-major: the tangents of ne groups of k nodes, bs unknowns a node.
@@ -15,7 +15,7 @@
     for (int64_t e = 0; e < ne; e++) {                                                     \
         const int64_t ld = (int64_t)k * BS;                     /* V's row length */       \
         const double *Ve = V + e * ld * ld;                                                \
-        const int64_t *pe = pos + e * (int64_t)k * k;                                      \
+        const int32_t *pe = pos + e * (int64_t)k * k;                                      \
         for (int i = 0; i < k; i++)                                                        \
             for (int j = 0; j < k; j++) {                                                  \
                 const int64_t p = pe[i * k + j];                                           \
@@ -29,7 +29,7 @@
             }                                                                              \
     }
 
-int rodsnes_add_blocks(double *a, const int64_t *pos, const double *V, int64_t ne, int k,
+int rodsnes_add_element_blocks(double *a, const int32_t *pos, const double *V, int64_t ne, int k,
                        int bs)
 {
     switch (bs) {

@@ -26,14 +26,15 @@ from petsc4py import PETSc
 from rodsnes import compiled, petsc_lib
 from rodsnes.model.partition import is_split, split_index
 
+I32 = np.dtype(np.int32)    # the places: block indices of one rank's block CSR
 ATTR = "rodsnes_element_blocks"     # the ElementBlocks kept on their matrix (PetscObjectCompose)
 _TYPES = {PETSc.Mat.Type.SEQBAIJ: False, PETSc.Mat.Type.MPIBAIJ: False,
           PETSc.Mat.Type.SEQSBAIJ: True, PETSc.Mat.Type.MPISBAIJ: True}   # type -> upper only
 
 
 def _declare(lib):
-    return compiled.Foreign(lib.rodsnes_add_blocks,
-                            [ctypes.c_void_p, compiled.I64, compiled.F64, ctypes.c_int64,
+    return compiled.Foreign(lib.rodsnes_add_element_blocks,
+                            [ctypes.c_void_p, I32, compiled.F64, ctypes.c_int64,
                              ctypes.c_int, ctypes.c_int], ctypes.c_int)
 
 
@@ -61,9 +62,12 @@ def element_blocks(mat, dirichlet, groups, size):
     seq = mat.getDiagonalBlock() if comm.getSize() > 1 else mat
     if not petsc_lib.has_value_array(seq):
         return None
+    info = seq.getInfo(PETSc.Mat.InfoType.LOCAL)
+    if info["nz_allocated"] >= 2 ** 31:         # beyond the places' int32
+        return None
     # the pattern's key: PETSc's nonzero state, and the stored entries (in PETSc 3.18 a new
     # nonzero of a BAIJ matrix leaves the state as it was)
-    state = (petsc_lib.nonzero_state(seq), seq.getInfo(PETSc.Mat.InfoType.LOCAL)["nz_used"])
+    state = (petsc_lib.nonzero_state(seq), info["nz_used"])
     kept = mat.getAttr(ATTR)
     if kept is not None and kept.fits(groups, dirichlet.touched, state):
         return kept
@@ -100,7 +104,7 @@ class ElementBlocks:
             found |= rows > cols
             pos = np.where(rows > cols, -1, pos)
         direct &= found.all(axis=(1, 2))        # a block outside the pattern: the matrix's way
-        self.pos = np.where(direct[:, None, None], pos, -1).astype(np.int64)
+        self.pos = np.where(direct[:, None, None], pos, -1).astype(I32)
         self.rest = np.flatnonzero(~direct)
         self.bs, self.k = bs, k
 
