@@ -119,13 +119,20 @@ def test_contact_state_has_contact_blocks_in_the_compared_matrix():
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("max_runs", [0, DirichletRows.MAX_RUNS])
-def test_many_constrained_nodes_in_runs_and_in_one_copy(monkeypatch, max_runs):
+@pytest.mark.parametrize("scene", ["mattiasson", "rollup_contact"])
+def test_many_constrained_nodes_in_runs_and_in_one_copy(monkeypatch, max_runs, scene):
     """Constrained dofs on interior nodes (several runs of touched elements, split across the
-    ranks): in runs (views between masked copies) and beyond MAX_RUNS (one masked copy)."""
+    ranks): in runs (views between masked copies) and beyond MAX_RUNS (one masked copy); with
+    contact also the contact's position blocks (DirichletRows.add_positions)."""
     monkeypatch.setattr(DirichletRows, "MAX_RUNS", max_runs)
-    run = perturbed(build_run("mattiasson", rod_nelem=16, rod_error_estimate="off"))
+    if scene == "mattiasson":
+        run = perturbed(build_run("mattiasson", rod_nelem=16, rod_error_estimate="off"))
+        held = ((7, 1), (8, 2), (20, 0), (33, 1), (34, 0))
+    else:           # 12 cubic elements coiled onto their clamped start: contact at both ends
+        run = coiled_rollup()
+        held = ((5, 1), (6, 2), (18, 0), (33, 1))
     c = run.problem.constraints
-    for node, comp in ((7, 1), (8, 2), (20, 0), (33, 1), (34, 0)):
+    for node, comp in held:
         c.hold(node, comp, 0.0)
     A = masked_against_reference(run)
     constrained_rows_are_identity(run, A)
