@@ -242,3 +242,31 @@ def test_fastest_edge_cases():
     # not converged and capped runs are timed like ok ones
     seq = iter([{"status": "not converged", "total": 0.03}, {"status": "capped", "total": 0.02}])
     assert bs.fastest(lambda: next(seq), 2)["status"] == "capped"
+
+
+def test_interleaved_rounds_and_a_failure_stops_more_ranks():
+    """interleaved: the rounds alternate between the rank counts (1, 2, 1, 2, ...), each keeps
+    its fastest run with its spread; a failed first run stops its key and those after it (no
+    row: what did not fit on fewer ranks), a failed later run is the key's row."""
+    order = []
+
+    def runner(key, totals):
+        it = iter(totals)
+
+        def run():
+            order.append(key)
+            t = next(it)
+            return {"status": "ok", "total": t} if isinstance(t, float) else {"status": t}
+        return run
+
+    out = bs.interleaved({1: runner(1, [0.03, 0.02, 0.04]), 2: runner(2, [0.02, 0.03, 0.01])}, 3)
+    assert order == [1, 2, 1, 2, 1, 2]
+    assert out[1]["total"] == 0.02 and out[1]["repeats"] == "30,20,40"
+    assert out[2]["total"] == 0.01
+    order.clear()
+    out = bs.interleaved({1: runner(1, ["timeout"]), 2: runner(2, [0.01])}, 3)
+    assert order == [1] and out == {1: {"status": "timeout"}}
+    order.clear()
+    out = bs.interleaved({1: runner(1, [0.03, 0.02, 0.02]), 2: runner(2, [0.02, "failed (exit 1)"])}, 3)
+    assert order == [1, 2, 1, 2, 1]
+    assert out[2]["status"] == "failed (exit 1)" and out[1]["repeats"] == "30,20,20"

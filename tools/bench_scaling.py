@@ -29,7 +29,9 @@ Every case runs --repeat times (3 by default) and the fastest run is kept, with 
 times per iteration in the CSV's repeats column: on the shared 2-core VM the same case varies by
 10-40 % from run to run (the planar cantilever at N = 1e4 took 47-69 ms per iteration serially
 and 31-51 ms on 2 ranks over five single runs of 26 Nov 2026), and the least time is the one
-least disturbed.  With --reuse the files of the last run of each case are read.
+least disturbed.  The rank counts of one case take turns (1, 2, 1, 2, ... ranks: interleaved),
+so that the speed-up compares runs made in the same minutes.  With --reuse the files of the
+last run of each case are read.
 
 Each run writes PETSc's -log_view (ASCII) and rodsnes' summary.json; the parts of an iteration
 are the events of -log_view divided by the Newton iterations (SNESJacobianEval's count: every
@@ -64,6 +66,7 @@ issue are reported, never asserted (PASS / MISS / n/a).  Timings on a shared mac
 """
 import argparse
 import csv
+import functools
 import json
 import math
 import os
@@ -354,13 +357,51 @@ def fastest(run, repeat):
     rows = []
     for _ in range(max(1, repeat)):
         row = run()
-        if not str(row.get("status", "")).startswith(("ok", "capped", "not converged")) \
-                or not math.isfinite(row.get("total", math.nan)):
+        if not timed(row):
             return row
         rows.append(row)
+    return best_of(rows)
+
+
+def timed(row):
+    """Whether a run's row has a time per iteration (it ended ok, capped or not converged)."""
+    return str(row.get("status", "")).startswith(("ok", "capped", "not converged")) \
+        and math.isfinite(row.get("total", math.nan))
+
+
+def best_of(rows):
+    """The fastest of the timed rows of one case, with all their totals (``repeats``)."""
     best = dict(min(rows, key=lambda r: r["total"]))
     best["repeats"] = ",".join(f"{1e3 * r['total']:.4g}" for r in rows)
     return best
+
+
+def interleaved(runs, repeat):
+    """fastest() of each of ``runs`` (a dict key -> run, in order: the rank counts of one
+    case) with the rounds interleaved: the second run of every key after the first of all of
+    them, and so on, so that the cases compared (1 and 2 ranks) see the same phases of a shared
+    machine (a 2-core VM's speed drifts by 10-30 % within minutes; run one after the other the
+    2-rank runs of the cantilever at 10^4 could fall into a slow phase the 1-rank ones had
+    missed).  A key whose run is not timed stops there, with that row, and the keys after it
+    are not run (what did not fit on fewer ranks: no row).  Returns key -> row."""
+    got = {key: [] for key in runs}
+    out, stop = {}, False
+    for _ in range(max(1, repeat)):
+        for key, run in runs.items():
+            if stop:
+                break
+            if key in out:
+                continue
+            row = run()
+            if not timed(row):
+                out[key] = row
+                stop = not got[key]         # its first run: the keys after it do not run
+                continue
+            got[key].append(row)
+    for key in runs:
+        if key not in out and got[key]:
+            out[key] = best_of(got[key])
+    return out
 
 
 def contact_elements(rundir, n):
@@ -664,32 +705,39 @@ def main(argv=None):
         rows, last, memory = [], {}, available_memory_gb()
         for n in sorted(sizes):
             for scene, law in cases(args.scenes.split(","), args.laws.split(",")):
+                runs, skipped = {}, {}
                 for np_ in ranks:
                     why = too_big(last.get((scene, law, np_)), n, args.timeout, memory)
-                    fewer = [r for r in rows if (r["scene"], r["law"], r["N"]) == (scene, law, n)
-                             and r["ranks"] < np_ and not r["status"].startswith("ok")
-                             and not r["status"].startswith(("capped", "not converged"))]
-                    if fewer and not why:       # what did not fit on fewer ranks
-                        why = f"{fewer[0]['ranks']} rank(s): {fewer[0]['status'].split(' (')[0]}"
+                    if skipped and not why:         # what did not fit on fewer ranks
+                        first = skipped[min(skipped)]
+                        why = f"{first['ranks']} rank(s): {first['status'].split(' (')[0]}"
                     if why:
-                        rows.append({"scene": scene, "law": law, "N": n, "ranks": np_,
-                                     "status": f"skipped ({why})"})
-                        print(f"{run_name(scene, law, n, np_):40s} skipped ({why})", flush=True)
+                        skipped[np_] = {"scene": scene, "law": law, "N": n, "ranks": np_,
+                                        "status": f"skipped ({why})"}
                         continue
-                    print(f"{run_name(scene, law, n, np_):40s}", end=" ", flush=True)
-                    row = fastest(lambda: run_one(scene, law, n, np_, args.out, args.timeout,
-                                                  extra=extra, reuse=args.reuse,
-                                                  topology=not args.skip_topology),
-                                  1 if args.reuse else args.repeat)
+                    runs[np_] = functools.partial(run_one, scene, law, n, np_, args.out,
+                                                  args.timeout, extra=extra, reuse=args.reuse,
+                                                  topology=not args.skip_topology)
+                done = {**skipped, **interleaved(runs, 1 if args.reuse else args.repeat)}
+                failed = None               # the first rank count whose run did not end ok
+                for np_ in ranks:
+                    row = done.get(np_)
+                    if row is None:         # what did not fit on fewer ranks
+                        row = {"scene": scene, "law": law, "N": n, "ranks": np_,
+                               "status": f"skipped ({failed['ranks']} rank(s): "
+                                         f"{failed['status'].split(' (')[0]})"}
+                    elif failed is None and not timed(row) and np_ not in skipped:
+                        failed = row
                     if args.max_its and row["status"] == "not converged":
                         row["status"] = "capped"
                     rows.append(row)
                     last[(scene, law, np_)] = row
-                    print(f"{row['status']:14s} its {row.get('iterations', '-')!s:>4s}  "
+                    print(f"{run_name(scene, law, n, np_):40s} {row['status']:14s} its "
+                          f"{row.get('iterations', '-')!s:>4s}  "
                           f"{1e3 * row.get('total', math.nan):10.4g} ms/it  "
                           f"factor {1e3 * row.get('factor', math.nan):9.4g} ms  "
                           f"wall {row.get('wall_s', math.nan):7.1f} s", flush=True)
-                    write_csv(rows, csv_path)
+                write_csv(rows, csv_path)
     write_csv(rows, csv_path)
     md = markdown(rows, args.note)
     with open(os.path.join(args.out, "bench_scaling.md"), "w") as fh:
