@@ -158,6 +158,36 @@ def test_the_estimate_keeps_its_own_solver_options():
     check_ratios(run, rollup_exact)
 
 
+@pytest.mark.parametrize("case, order, nelem", [("mattiasson", 3, 4), ("mattiasson", 2, 16)])
+def test_a_planar_run_estimates_in_its_plane(monkeypatch, case, order, nelem):
+    """A planar run that minimises: its enriched problem's whole stage (the same minimisation)
+    solves on the in-plane block too (Newton steps and stability count: planar.PlanarSystem,
+    still active at the end), and its estimate
+    is the 3-D enriched problem's (the same order p+1 minimum) to 1e-9 of the estimate."""
+    from rodsnes.solve import estimate, planar
+    counts = []                 # the planar systems whose in-plane Hessian was factored
+    factor = planar.PlanarInertia.factor
+    monkeypatch.setattr(planar.PlanarInertia, "factor", lambda self, shift=None: (
+        counts.append(self.planar if self.planar.active else None) or factor(self, shift)))
+    run = run_case(case, rod_order=order, rod_nelem=nelem)
+    assert run.ok and run.problem.planar is not None
+    enriched = run.estimator.enriched
+    pl = enriched.problem.planar
+    assert pl is not None and pl.active and pl is not run.problem.planar
+    assert any(c is pl for c in counts)     # its stability count was the in-plane block's
+    planar_est = run.last_estimate
+    x, q = gathered_state(run.problem)
+    flat = estimate.EnrichedProblem(run.scene, run.comm, order + 1, nelem, minimize=True)
+    assert flat.problem.planar is None
+    xe, qe, _, _, ok = flat.solve_from(run.problem.mesh, x, q, run.problem.lam,
+                                       terms=run.problem.terms)
+    tip, line = estimate.differences(run.problem.mesh, x, q, flat.mesh, xe, qe)
+    assert ok and planar_est["converged"]
+    assert abs(planar_est["centreline"] - line) <= 1e-9 * line
+    assert abs(planar_est["tip"] - tip) <= 1e-9 * tip
+    flat.destroy()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("order, nelem", [(3, 16), (2, 32)])
 def test_contact_estimate_within_a_factor_3(order, nelem):

@@ -43,6 +43,7 @@ from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
 from rodsnes.model.scales import force_scale
 from rodsnes.solve.minimize import EnergyMinimizer
+from rodsnes.solve.planar import PlanarSystem
 from rodsnes.terms import scene_terms
 from rodsnes.solve.linear import direct_solver_defaults, option_default
 
@@ -78,12 +79,17 @@ class EnrichedProblem:
     MAX_IT = 200
     INTERIOR_SHARE = 1e-2       # the interior stage ends when its |F| < this x the whole |F|
 
-    def __init__(self, scene, comm, order, nelem, minimize=False):
+    def __init__(self, scene, comm, order, nelem, minimize=False, plane=None):
         self.scene = replace(scene, rod=refine.enriched_rod(scene.rod, order, nelem))
         self.mesh = rodmesh.build_mesh(self.scene.rod, scene.bc)
         self.layout = partition.Layout(comm, self.mesh)
         terms = scene_terms(self.scene, self.mesh, self.layout)
         self.problem = RodProblem(self.scene, self.mesh, self.layout, terms)
+        if plane is not None:
+            # the run solves in this plane: the whole stage's Newton steps and stability count
+            # on the in-plane block as the run's (planar.py; its guard goes on in 3-D, silently,
+            # when the carried state is not planar)
+            self.problem.planar = PlanarSystem(self.problem, plane)
         self.comm = comm.tompi4py()
         self.floor = 1e-13 * self.mesh.length
         self.stage = "whole"
@@ -302,8 +308,10 @@ class ErrorEstimator:
         t0 = time.perf_counter()
         rod = self.scene.rod
         if self.enriched is None:
+            pl = problem.planar
+            plane = pl.plane if pl is not None and pl.active else None
             self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem,
-                                            minimize=self.minimize)
+                                            minimize=self.minimize, plane=plane)
         x, q = gathered_state(problem)
         e = self.enriched
         xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, terms=problem.terms,
