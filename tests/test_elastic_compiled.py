@@ -225,3 +225,22 @@ def test_tangent_cut_to_components_in_the_kernel(p, comps):
         rod.kernel = "compiled"
     with pytest.raises(ValueError):
         elastic_compiled.element_terms(rod, qe, xe, comps=(0, 6))
+
+
+@pytest.mark.parametrize("p,nq", [(1, 2), (2, 3), (3, 3), (3, 4), (4, 5), (7, 8)])
+def test_strains_in_c_equal_numpy(p, nq):
+    """The strains at the quadrature points (ElasticRod.strains) and at the element's nodes
+    (strains_at_nodes, the output's) in C equal their numpy forms to 1e-13 relative, on
+    deformed elements with quaternions of either sign and of norms 0.5-2 (e = Nz / |p|^2)."""
+    rng = np.random.default_rng(p)
+    rod = elastic.ElasticRod(p, nq, 0.3, STIFF)
+    assert rod.kernel == "compiled"
+    qe, xe, _ = deformed_elements(p, nq, 9, rng)
+    qe = qe * rng.uniform(0.5, 2.0, size=qe.shape[:2])[..., None]
+    for got, ref in ((rod.strains(qe, xe), rod.strains_numpy(qe, xe)),
+                     (elastic.strains_at_nodes(p, 0.3, qe, xe, compiled=True),
+                      elastic.strains_at_nodes(p, 0.3, qe, xe, compiled=False))):
+        assert got.shape == ref.shape and got.shape[2] == 6
+        assert np.abs(got - ref).max() <= 1e-13 * np.abs(ref).max()
+        assert np.abs(ref[..., 3:]).max() > 0.1          # bent and twisted: something compared
+    assert rod.strains(qe[:0], xe[:0]).shape == (0, nq, 6)

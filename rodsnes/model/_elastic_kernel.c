@@ -523,6 +523,36 @@ int rodsnes_elastic_terms(int ne, int nn, int nq, const double *N, const double 
     return 0;
 }
 
+/* The strains e = Nz / |p|^2 (v, u) of one element at its nq points (N, dN: (nq, NN)). */
+static ALWAYS_INLINE void element_strains(const int NN, int nq, const double *N, const double *dN,
+                                          const double *qin, const double *xin, double *e)
+{
+    double q[MAXNN][4];
+    align_signs(NN, qin, q);
+    for (int g = 0; g < nq; g++) {
+        double p[4], dp[4], dr[3], Rt[3][3], Nz[6];
+        interpolate(NN, N + g * NN, dN + g * NN, q, xin, p, dp, dr);
+        const double inv = 1.0 / numerators(p, dp, dr, Rt, Nz);
+        for (int k = 0; k < 6; k++) e[6 * g + k] = Nz[k] * inv;
+    }
+}
+
+#define STRAIN_LOOP(NN)                                                                    \
+    for (int e = 0; e < ne; e++)                                                           \
+        element_strains(NN, nq, N, dN, qe + (long)e * 4 * (NN), xe + (long)e * 3 * (NN),   \
+                        strain + (long)e * 6 * nq)
+
+/* The material strains (ne, nq, 6) at the points of the shape functions N, dN (nq, nn) (their
+ * arclength derivatives): the quadrature points, or an element's nodes (the output's nodal
+ * strains).  qe (ne, nn, 4), xe (ne, nn, 3).  Returns 0, or -1. */
+int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const double *dN,
+                            const double *qe, const double *xe, double *strain)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    BY_NODE_COUNT(STRAIN_LOOP)
+    return 0;
+}
+
 /* Energy alone (the line searches' trials): e = Nz / |p|^2 and W at every point, without the
  * derivatives of the strains (numerators, as the full pass computes them). */
 static ALWAYS_INLINE double element_energy(const int NN, const Setup *st, const double *qin,

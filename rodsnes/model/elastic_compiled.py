@@ -24,6 +24,10 @@ C entry point:
     int rodsnes_elastic_plane_tangent(int ne, int nn, int nq, ... the same ..., const double *e0,
                                       int axis, double *H);
                          (the in-plane tangent of a planar state: planar.PlanarSystem)
+    int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const double *dN,
+                                const double *qe, const double *xe, double *strain);
+                         (the strains at the points of N, dN: ElasticRod.strains,
+                          strains_at_nodes)
 """
 import ctypes
 
@@ -47,7 +51,9 @@ def _declare(lib):
                           common + [c_int, c_int, ctypes.c_void_p, c_int, f64, f64, f64], c_int)
     en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
     pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent, common + [c_int, f64], c_int)
-    return fn, en, pl
+    st = compiled.Foreign(lib.rodsnes_elastic_strains,
+                          [c_int, c_int, c_int, f64, f64, f64, f64, f64], c_int)
+    return fn, en, pl, st
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -149,4 +155,27 @@ def plane_tangents(rod, qe, xe, axis, e0=None, out=None):
     info = _load()[2](ne, nn, nq, *args, int(axis), out)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_plane_tangent failed ({info})")
+    return out
+
+
+def strains(N, dN, qe, xe):
+    """The material strains e = (v, u) (ne, nq, 6) of the elements' nodal quaternions qe
+    (ne, nn, 4) and positions xe (ne, nn, 3) at the points of the shape functions N (nq, nn)
+    and their arclength derivatives dN: ElasticRod.strains (the quadrature points) and
+    elastic.strains_at_nodes (an element's nodes) in C, equal to their numpy forms to
+    round-off."""
+    if not _load():
+        raise RuntimeError("the compiled elastic kernel is not built (run pip install -e .)")
+    N, dN = np.ascontiguousarray(N, dtype=np.float64), np.ascontiguousarray(dN, dtype=np.float64)
+    nq, nn = N.shape
+    if dN.shape != (nq, nn) or nn > _MAX_NODES:
+        raise ValueError(f"shape functions {N.shape}, {dN.shape}: (points, at most "
+                         f"{_MAX_NODES} nodes) both")
+    qe = np.asarray(qe)
+    ne = qe.shape[0]
+    out = np.empty((ne, nq, 6))
+    info = _load()[3](ne, nn, nq, N, dN, _f64(qe, (ne, nn, 4), "qe"), _f64(xe, (ne, nn, 3), "xe"),
+                      out)
+    if info != 0:
+        raise RuntimeError(f"rodsnes_elastic_strains failed ({info})")
     return out

@@ -736,10 +736,12 @@ class RodProblem:
         r, q = self.state.local_config()
         no = self.layout.n_owned
         R = so3.rot(q[:no])
+        compiled = self.elastic.kernel == "compiled"       # -rod_kernel numpy: numpy here too
         e = nodal_average(self.layout, self.lconn, elastic.strains_at_nodes(
-            self.mesh.order, self.mesh.h, q[self.lconn], r[self.lconn]))
+            self.mesh.order, self.mesh.h, q[self.lconn], r[self.lconn], compiled))
         if self._e0_nodes is None:
-            at_nodes = lambda q, x: elastic.strains_at_nodes(self.mesh.order, self.mesh.h, q, x)  # noqa: E731
+            at_nodes = lambda q, x: elastic.strains_at_nodes(  # noqa: E731
+                self.mesh.order, self.mesh.h, q, x, compiled)
             e0 = reference_strains(self.scene.rod, self.mesh, self.mesh.conn[self.layout.owned_elems], at_nodes)
             self._e0_nodes = nodal_average(self.layout, self.lconn, e0)
         S = self.elastic.law(e, self.twisted_reference(self._e0_nodes))[1]
