@@ -175,6 +175,8 @@ def test_a_planar_run_estimates_in_its_plane(monkeypatch, case, order, nelem):
     pl = enriched.problem.planar
     assert pl is not None and pl.active and pl is not run.problem.planar
     assert any(c is pl for c in counts)     # its stability count was the in-plane block's
+    # its in-plane Newton steps under the estimate's own options (-estimate_*)
+    assert pl.ksp is not None and pl.ksp.getOptionsPrefix() == "estimate_"
     planar_est = run.last_estimate
     x, q = gathered_state(run.problem)
     flat = estimate.EnrichedProblem(run.scene, run.comm, order + 1, nelem, minimize=True)

@@ -409,11 +409,18 @@ def test_options_that_act_are_not_reported(capsys, tmp_path):
     assert rc == 0 and "warning" not in err, err
     rc, _, err = rodsnes(capsys, *MICHELL, "-load_stop", "0.04", out=tmp_path / "ring")
     assert rc == 0 and "warning" not in err, err          # -bc_start free on a ring is what it is
-    # rodsnes' own solvers read their options during the run (the stability count's LDL^T and
-    # the planar step at the first load step, the error estimate after the last)
+    # rodsnes' own solvers read their options during the run (the planar stability count's
+    # LDL^T and the planar step at the first load step, the error estimate after the last)
     rc, _, err = rodsnes(capsys, *MATT, "-estimate_pc_factor_mat_solver_type", "mumps",
-                         "-stability_mat_mumps_icntl_14", "80", "-planar_ksp_type", "preonly",
-                         "-load_stop", "0.2", out=tmp_path / "estimate")
+                         "-planar_stability_mat_mumps_icntl_14", "80", "-planar_ksp_type",
+                         "preonly", "-load_stop", "0.2", out=tmp_path / "estimate")
+    assert rc == 0 and "warning" not in err, err
+    # the 3-D stability count's are read where it runs, not by a planar run that stays planar
+    rc, _, err = rodsnes(capsys, *MATT, "-stability_mat_mumps_icntl_14", "80",
+                         "-load_stop", "0.2", out=tmp_path / "planar")
+    assert rc == 0 and "-stability_mat_mumps_icntl_14 80 was not used" in err, err
+    rc, _, err = rodsnes(capsys, *MATT, "-stability_mat_mumps_icntl_14", "80", "-rod_planar",
+                         "off", "-load_stop", "0.2", out=tmp_path / "3d")
     assert rc == 0 and "warning" not in err, err
 
 

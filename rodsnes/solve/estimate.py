@@ -86,10 +86,11 @@ class EnrichedProblem:
         terms = scene_terms(self.scene, self.mesh, self.layout)
         self.problem = RodProblem(self.scene, self.mesh, self.layout, terms)
         if plane is not None:
-            # the run solves in this plane: the whole stage's Newton steps and stability count
-            # on the in-plane block as the run's (planar.py; its guard goes on in 3-D, silently,
-            # when the carried state is not planar)
-            self.problem.planar = PlanarSystem(self.problem, plane)
+            # the run solves in this plane: the whole stage's Newton steps (its KSP under
+            # -estimate_, as in 3-D) and stability count (-planar_stability_, as the run's) on
+            # the in-plane block (planar.py; its guard goes on in 3-D, silently, when the
+            # carried state is not planar)
+            self.problem.planar = PlanarSystem(self.problem, plane, prefix=PREFIX)
         self.comm = comm.tompi4py()
         self.floor = 1e-13 * self.mesh.length
         self.stage = "whole"

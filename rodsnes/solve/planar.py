@@ -192,8 +192,9 @@ class PlanarSystem:
     run is planar; leave() ends it (the guard, or an out-of-plane instability) for the rest of
     the run."""
 
-    def __init__(self, problem, plane, say=None):
+    def __init__(self, problem, plane, say=None, prefix=PREFIX):
         self.problem, self.plane = problem, plane
+        self.prefix = prefix              # of the in-plane step's KSP (the error estimate's own)
         self.comm = problem.layout.comm.tompi4py()
         self.active = True
         self.left = None                  # (load, why) where the run left the plane
@@ -292,18 +293,21 @@ class PlanarSystem:
     def _inner_ksp(self):
         if self.ksp is None:
             opts = PETSc.Options()
+            pre = self.prefix
             for key in ("ksp_type", "pc_type", "pc_factor_mat_solver_type",
                         "pc_factor_mat_ordering_type", "redundant_pc_type",
                         "redundant_pc_factor_mat_solver_type",
                         "redundant_pc_factor_mat_ordering_type"):
+                if pre != PREFIX:                # a solver of its own (-estimate_*)
+                    break
                 if opts.hasName(key):            # the 3-D step's choice, the user's or its default
                     if is_default(key):
-                        option_default(PREFIX + key, opts.getString(key))
-                    elif not opts.hasName(PREFIX + key):
-                        opts.setValue(PREFIX + key, opts.getString(key))
-            self.lu = LUChoice(direct_solver_defaults(self.problem, PREFIX))
+                        option_default(pre + key, opts.getString(key))
+                    elif not opts.hasName(pre + key):
+                        opts.setValue(pre + key, opts.getString(key))
+            self.lu = LUChoice(direct_solver_defaults(self.problem, pre))
             ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
-            ksp.setOptionsPrefix(PREFIX)
+            ksp.setOptionsPrefix(pre)
             ksp.setFromOptions()
             self.ksp = ksp
         return self.ksp
