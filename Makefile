@@ -24,7 +24,8 @@ install: $(VENV)/.installed
 
 $(VENV)/.installed: setup.py tools/install_system.sh rodsnes/model/_elastic_kernel.c \
 		rodsnes/contact/_potential_kernel.c rodsnes/model/_topology_kernel.c \
-		rodsnes/model/_rotation_kernel.c rodsnes/model/_assembly_kernel.c
+		rodsnes/model/_rotation_kernel.c rodsnes/model/_assembly_kernel.c \
+		rodsnes/contact/_search_kernel.c
 	tools/install_system.sh
 	test -x $(PY) || $(SYS_PYTHON) -m venv --system-site-packages $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e .

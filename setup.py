@@ -44,6 +44,15 @@ assembly_kernel = Extension(
     extra_compile_args=["-O3", "-std=c99"],
 )
 
+# The contact search's element bounds and segment distances (rodsnes/contact/search_compiled.py),
+# the same way, without fused multiply-adds, as numpy computes them.
+search_kernel = Extension(
+    "rodsnes.contact._search_kernel",
+    sources=["rodsnes/contact/_search_kernel.c"],
+    extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"],
+    libraries=["m"],
+)
+
 setup(
     name="rodsnes",
     version="0.1.0",
@@ -55,5 +64,5 @@ setup(
     install_requires=["numpy", "pymetis", "typing_extensions"],
     entry_points={"console_scripts": ["rodsnes = rodsnes.cli:main"]},
     ext_modules=[elastic_kernel, potential_kernel, topology_kernel, rotation_kernel,
-                 assembly_kernel],
+                 assembly_kernel, search_kernel],
 )

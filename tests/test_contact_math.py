@@ -660,6 +660,38 @@ def test_segment_distance_against_sampling():
     assert np.all(got[90:120] < 1e-12)
 
 
+@pytest.mark.parametrize("p", [1, 2, 3, 4, 7])
+def test_search_kernel_equals_numpy(p):
+    """The compiled search geometry (search_compiled, used by search.element_bounds and
+    segment_distance wherever it is built) equals the numpy forms to round-off: the bounds of
+    wiggly elements (the padding of p >= 2 included), the segment distances of random,
+    parallel, degenerate (point) and crossing segments; a node not finite gives NaN bounds."""
+    from rodsnes.contact import search_compiled
+    assert search_compiled.available(), "rodsnes.contact._search_kernel is not built: make install"
+    rng = np.random.default_rng(20 + p)
+    x = rng.standard_normal((300, p + 1, 3))
+    x[:, :, 0] += 3 * np.linspace(-1, 1, p + 1)
+    c, r = search.element_bounds(x)
+    dxi = 2.0 / (search._NSAMP_BOUNDS - 1)
+    c0, r0 = search._element_bounds_numpy(x, (dxi ** 2 / 8.0) * 1.05 * search._lambda2(p)
+                                           if p >= 2 else 0.0)
+    assert np.abs(c - c0).max() <= 1e-14 * np.abs(c0).max()
+    assert np.abs(r - r0).max() <= 1e-14 * r0.max()
+    x[7, 1, 2] = np.nan
+    c, r = search.element_bounds(x)
+    assert np.isnan(r[7]) and np.isnan(c[7]).all() and np.isfinite(r[8:]).all()
+    p1, q1, p2, q2 = (rng.standard_normal((500, 3)) for _ in range(4))
+    q2[:50] = p2[:50] + 0.7 * (q1[:50] - p1[:50])           # parallel
+    q1[50:60] = p1[50:60]                                      # a point
+    q2[55:65] = p2[55:65]                                      # a point (and two points)
+    mid = 0.5 * (p1[70:90] + q1[70:90])                        # crossing
+    p2[70:90], q2[70:90] = mid - 0.3, mid + 0.3
+    got, ref = search.segment_distance(p1, q1, p2, q2), search._segment_distance_numpy(p1, q1, p2, q2)
+    assert np.abs(got - ref).max() <= 1e-14 * ref.max()
+    assert np.all(got[70:90] < 1e-12)
+    assert search.segment_distance(*(np.zeros((0, 3)),) * 4).shape == (0,)
+
+
 @pytest.mark.parametrize("closed", [False, True])
 def test_capsule_test_keeps_every_pair_within_reach(closed):
     """capsules_within: on a dense random coil, every candidate pair with a couple of sampled

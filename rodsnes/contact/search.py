@@ -1,4 +1,5 @@
-"""Candidate search of self-contact: which element pairs can touch (pure numpy and scipy; no MPI).
+"""Candidate search of self-contact: which element pairs can touch (numpy and scipy, the bounds
+and the segment distances in C where search_compiled's kernel is built; no MPI).
 
 A contact at distance below 2 eps needs two centreline points within ``reach`` (2 eps plus a
 margin).  Each element is enclosed in a proven bound, and only the pairs whose bounds come
@@ -27,6 +28,7 @@ rows of element ids in an array of ids.
 import numpy as np
 from scipy.spatial import cKDTree
 
+from rodsnes.contact import search_compiled
 from rodsnes.model import fe
 
 __all__ = ["element_bounds", "element_capsules", "segment_distance", "spheres_within",
@@ -64,6 +66,17 @@ def element_bounds(x_elem):
     if p not in _NS_BOUNDS:
         Ns = fe.lagrange(p, np.linspace(-1.0, 1.0, _NSAMP_BOUNDS))[0]
         _NS_BOUNDS[p] = np.ascontiguousarray(Ns.T)                  # (p+1, samples)
+    dxi = 2.0 / (_NSAMP_BOUNDS - 1)
+    padc = (dxi ** 2 / 8.0) * 1.05 * _lambda2(p) if p >= 2 else 0.0
+    if search_compiled.available():
+        return search_compiled.element_bounds(x, _NS_BOUNDS[p], padc)
+    return _element_bounds_numpy(x, padc)
+
+
+def _element_bounds_numpy(x, padc):
+    """element_bounds in numpy (the compiled kernel's reference)."""
+    ne, n1, _ = x.shape
+    p = n1 - 1
     c, rs = np.zeros((ne, 3)), np.zeros(ne)
     xt = np.ascontiguousarray(x.transpose(0, 2, 1))                 # (ne, 3, p+1)
     for b in range(0, ne, _BOUNDS_BATCH):
@@ -75,9 +88,7 @@ def element_bounds(x_elem):
         rs[b:b + _BOUNDS_BATCH] = np.sqrt(np.einsum("edm,edm->em", pts, pts).max(axis=1))
     dx = x - c[:, None, :]
     spread = np.sqrt(np.einsum("ead,ead->ea", dx, dx).max(axis=1, initial=0.0))
-    dxi = 2.0 / (_NSAMP_BOUNDS - 1)
-    pad = (dxi ** 2 / 8.0) * 1.05 * _lambda2(p) * spread if p >= 2 else 0.0
-    R = rs + pad + 1e-12 * (spread + np.abs(c).max(axis=1, initial=0.0))
+    R = rs + padc * spread + 1e-12 * (spread + np.abs(c).max(axis=1, initial=0.0))
     return c, R
 
 
@@ -117,7 +128,15 @@ def element_capsules(x_elem):
 def segment_distance(p1, q1, p2, q2):
     """Distance between the segments [p1, q1] and [p2, q2] row by row (the closest points by
     the clamped solution of the two lines' normal equations, Ericson, Real-Time Collision
-    Detection 5.1.9; parallel segments through s = 0).  Segments of zero length are points."""
+    Detection 5.1.9; parallel segments through s = 0).  Segments of zero length are points.
+    In C where the search kernel is built (the same operations, equal to round-off)."""
+    if search_compiled.available():
+        return search_compiled.segment_distance(p1, q1, p2, q2)
+    return _segment_distance_numpy(p1, q1, p2, q2)
+
+
+def _segment_distance_numpy(p1, q1, p2, q2):
+    """segment_distance in numpy (the compiled kernel's reference)."""
     d1, d2, r = q1 - p1, q2 - p2, p1 - p2
     a = np.einsum("nd,nd->n", d1, d1)
     e = np.einsum("nd,nd->n", d2, d2)
