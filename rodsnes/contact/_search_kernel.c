@@ -34,32 +34,37 @@ int rodsnes_element_bounds(int64_t ne, int n1, int ns, const double *NsT, const 
 {
     if (ns < 1 || ns > MAX_SAMPLES || n1 < 1 || n1 > MAX_NODES || ne < 0)
         return -1;
-    double pts[3][MAX_SAMPLES];
+    double pts[MAX_SAMPLES][3];
     for (int64_t e = 0; e < ne; e++) {
         const double *xe = x + e * 3 * n1;
-        double cb[3];
-        for (int d = 0; d < 3; d++) {
-            double lo = INFINITY, hi = -INFINITY;
-            for (int j = 0; j < ns; j++) {
-                double v = 0.0;
-                for (int a = 0; a < n1; a++)
-                    v += xe[3 * a + d] * NsT[a * ns + j];
-                pts[d][j] = v;
-                lo = fmin(lo, v);
-                hi = fmax(hi, v);
+        double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+        for (int j = 0; j < ns; j++) {
+            double v[3] = {0.0, 0.0, 0.0};
+            for (int a = 0; a < n1; a++) {
+                const double w = NsT[a * ns + j];
+                v[0] += xe[3 * a] * w;
+                v[1] += xe[3 * a + 1] * w;
+                v[2] += xe[3 * a + 2] * w;
             }
-            cb[d] = 0.5 * (lo + hi);
+            for (int d = 0; d < 3; d++) {
+                pts[j][d] = v[d];
+                lo[d] = v[d] < lo[d] ? v[d] : lo[d];
+                hi[d] = v[d] > hi[d] ? v[d] : hi[d];
+            }
         }
+        const double cb[3] = {0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])};
         double r2 = 0.0;
         for (int j = 0; j < ns; j++) {
-            const double u = pts[0][j] - cb[0], v = pts[1][j] - cb[1], w = pts[2][j] - cb[2];
-            r2 = fmax(r2, u * u + v * v + w * w);
+            const double u = pts[j][0] - cb[0], v = pts[j][1] - cb[1], w = pts[j][2] - cb[2];
+            const double q = u * u + v * v + w * w;
+            r2 = q > r2 ? q : r2;
         }
         double s2 = 0.0;
         for (int a = 0; a < n1; a++) {
             const double u = xe[3 * a] - cb[0], v = xe[3 * a + 1] - cb[1],
                          w = xe[3 * a + 2] - cb[2];
-            s2 = fmax(s2, u * u + v * v + w * w);
+            const double q = u * u + v * v + w * w;
+            s2 = q > s2 ? q : s2;
         }
         const double spread = sqrt(s2);
         const double cmax = fmax(0.0, fmax(fabs(cb[0]), fmax(fabs(cb[1]), fabs(cb[2]))));
