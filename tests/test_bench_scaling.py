@@ -246,8 +246,8 @@ def test_fastest_edge_cases():
 
 def test_interleaved_rounds_and_a_failure_stops_more_ranks():
     """interleaved: the rounds alternate between the rank counts (1, 2, 1, 2, ...), each keeps
-    its fastest run with its spread; a failed first run stops its key and those after it (no
-    row: what did not fit on fewer ranks), a failed later run is the key's row."""
+    its fastest run with its spread; a failed run is its key's row and stops the keys after it
+    (no row: what did not fit on fewer ranks), not those before it."""
     order = []
 
     def runner(key, totals):
@@ -266,7 +266,19 @@ def test_interleaved_rounds_and_a_failure_stops_more_ranks():
     order.clear()
     out = bs.interleaved({1: runner(1, ["timeout"]), 2: runner(2, [0.01])}, 3)
     assert order == [1] and out == {1: {"status": "timeout"}}
+    # a larger rank count failing does not cut the smaller one's repeats short
+    order.clear()
+    out = bs.interleaved({1: runner(1, [0.03, 0.02, 0.02]), 2: runner(2, ["timeout"])}, 3)
+    assert order == [1, 2, 1, 1]
+    assert out[2] == {"status": "timeout"} and out[1]["repeats"] == "30,20,20"
     order.clear()
     out = bs.interleaved({1: runner(1, [0.03, 0.02, 0.02]), 2: runner(2, [0.02, "failed (exit 1)"])}, 3)
     assert order == [1, 2, 1, 2, 1]
     assert out[2]["status"] == "failed (exit 1)" and out[1]["repeats"] == "30,20,20"
+    # the smaller failing in a later round: the larger ones stop, with no row (as when it
+    # failed at once: skipped by the caller)
+    order.clear()
+    out = bs.interleaved({1: runner(1, [0.03, "failed (exit 1)"]), 2: runner(2, [0.02, 0.01]),
+                          4: runner(4, [0.01, 0.01])}, 3)
+    assert order == [1, 2, 4, 1]
+    assert out == {1: {"status": "failed (exit 1)"}}

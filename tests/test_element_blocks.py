@@ -201,8 +201,9 @@ def test_kernel_adds_blocks_as_mat_set_values_blocked(bs, symmetric):
 
 
 def test_not_for_aij_nor_without_the_kernel(monkeypatch):
-    """An AIJ matrix (-mat_type aij), a block size other than the tangents' and a missing
-    kernel keep MatSetValuesBlocked (element_blocks returns None)."""
+    """An AIJ matrix (-mat_type aij), a block size other than the tangents', a group with a
+    block outside the pattern and a missing kernel keep MatSetValuesBlocked (element_blocks
+    returns None); tangents of the wrong shape are refused before the C call."""
     G = np.array([[0, 1], [1, 2]], dtype=PETSc.IntType)
     touch = Touched(3)
     aij = PETSc.Mat().createAIJ((9, 9), nnz=9, comm=PETSc.COMM_SELF)
@@ -210,5 +211,15 @@ def test_not_for_aij_nor_without_the_kernel(monkeypatch):
     assert assembly.element_blocks(aij, touch, G, 3) is None
     baij = small_baij(3, False, nodes=3)
     assert assembly.element_blocks(baij, touch, G, 6) is None
+    blocks = assembly.element_blocks(baij, touch, G, 3)
+    with pytest.raises(ValueError):
+        blocks.add(0, 2, np.zeros((2, 6, 3)), lambda i: None)
+    # a group whose block is outside the pattern: its insertion would allocate and move the
+    # places of the chunks after it (stale places wrote 3.1 where entries were 3.5): all of them
+    # the matrix's way
+    chain = small_baij(3, False, nodes=4)
+    assert assembly.element_blocks(chain, Touched(4), G, 3) is not None
+    assert assembly.element_blocks(chain, Touched(4), np.array([[0, 1], [0, 2]],
+                                                               dtype=PETSc.IntType), 3) is None
     monkeypatch.setattr(assembly, "available", lambda: False)
     assert assembly.element_blocks(baij, touch, G, 3) is None

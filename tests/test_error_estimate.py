@@ -190,6 +190,19 @@ def test_a_planar_run_estimates_in_its_plane(monkeypatch, case, order, nelem):
     flat.destroy()
 
 
+def test_the_estimate_leaves_the_plane_with_the_run():
+    """ltb (lateral-torsional buckling, 3 load steps to 1.1 P_cr), estimated at every step: the
+    first estimates in the plane, and once the run has gone on in 3-D so does its enriched
+    problem (its planar system inactive), whose estimate converges."""
+    run = run_case("ltb", rod_error_estimate="every")
+    assert run.ok and run.problem.planar is not None
+    assert not run.problem.planar.active                       # the run left the plane
+    mine = run.estimator.enriched.problem.planar
+    assert mine is not None and not mine.active                # ... and so did the estimate
+    assert run.last_estimate["converged"]
+    assert run.estimator.count == len(run.history) >= 3
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("order, nelem", [(3, 16), (2, 32)])
 def test_contact_estimate_within_a_factor_3(order, nelem):

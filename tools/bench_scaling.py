@@ -383,23 +383,25 @@ def interleaved(runs, repeat):
     machine (a 2-core VM's speed drifts by 10-30 % within minutes; run one after the other the
     2-rank runs of the cantilever at 10^4 could fall into a slow phase the 1-rank ones had
     missed).  A key whose run is not timed stops there, with that row, and the keys after it
-    are not run (what did not fit on fewer ranks: no row).  Returns key -> row."""
-    got = {key: [] for key in runs}
-    out, stop = {}, False
+    stop too, with no row (what did not fit on fewer ranks); the keys before it go on.  Returns
+    key -> row."""
+    keys = list(runs)
+    got = {key: [] for key in keys}
+    out, dropped = {}, set()
     for _ in range(max(1, repeat)):
-        for key, run in runs.items():
-            if stop:
-                break
-            if key in out:
+        for i, key in enumerate(keys):
+            if key in out or key in dropped:
                 continue
-            row = run()
-            if not timed(row):
-                out[key] = row
-                stop = not got[key]         # its first run: the keys after it do not run
+            row = runs[key]()
+            if timed(row):
+                got[key].append(row)
                 continue
-            got[key].append(row)
-    for key in runs:
-        if key not in out and got[key]:
+            out[key] = row
+            for later in keys[i + 1:]:
+                dropped.add(later)
+                out.pop(later, None)
+    for key in keys:
+        if key not in out and key not in dropped and got[key]:
             out[key] = best_of(got[key])
     return out
 

@@ -31,7 +31,9 @@ def element_bounds(x, NsT, padc):
     """(centres (ne, 3), radii (ne,)) of search.element_bounds for the elements x (ne, p+1, 3),
     the shape functions at the samples NsT (p+1, samples) and the pad coefficient padc."""
     x = np.ascontiguousarray(x, dtype=np.float64)
-    ne, n1, _ = x.shape
+    ne, n1, dim = x.shape
+    if dim != 3 or NsT.ndim != 2 or NsT.shape[0] != n1:
+        raise ValueError(f"elements {x.shape} and shape functions {NsT.shape} do not match")
     c, R = np.empty((ne, 3)), np.empty(ne)
     if _load()[0](ne, n1, NsT.shape[1], np.ascontiguousarray(NsT), x, float(padc), c, R):
         raise ValueError(f"element bounds: {n1} nodes, {NsT.shape[1]} samples exceed the kernel's")
@@ -41,6 +43,8 @@ def element_bounds(x, NsT, padc):
 def segment_distance(p1, q1, p2, q2):
     """search.segment_distance in C."""
     p1, q1, p2, q2 = (np.ascontiguousarray(v, dtype=np.float64) for v in (p1, q1, p2, q2))
+    if not p1.shape == q1.shape == p2.shape == q2.shape or p1.shape[1:] != (3,):
+        raise ValueError(f"segments {p1.shape} {q1.shape} {p2.shape} {q2.shape}: (n, 3) each")
     out = np.empty(len(p1))
     _load()[1](len(p1), p1, q1, p2, q2, out)
     return out

@@ -72,6 +72,11 @@ def element_blocks(mat, dirichlet, groups, size):
     if kept is not None and kept.fits(groups, dirichlet.touched, state):
         return kept
     out = ElementBlocks(mat, seq, groups, dirichlet.touched, split, _TYPES[kind], state)
+    if not out.complete:
+        # a group's block outside the pattern: its insertion would allocate, move the value
+        # array's blocks and leave the places of the chunks after it stale - the matrix's way
+        # for all (never so for the preallocated element couplings of create_matrix)
+        return None
     mat.setAttr(ATTR, out)
     return out
 
@@ -103,7 +108,7 @@ class ElementBlocks:
         if upper:       # SBAIJ: the upper blocks alone
             found |= rows > cols
             pos = np.where(rows > cols, -1, pos)
-        direct &= found.all(axis=(1, 2))        # a block outside the pattern: the matrix's way
+        self.complete = bool(found.all(axis=(1, 2))[direct].all())    # every block in place
         self.pos = np.where(direct[:, None, None], pos, -1).astype(I32)
         self.rest = np.flatnonzero(~direct)
         self.bs, self.k = bs, k
@@ -117,6 +122,9 @@ class ElementBlocks:
         """Add the tangents V (b - a, k bs, k bs) of groups a..b - 1: the direct ones into the
         value array, then insert(i) for the others (i: their indices in a..b - 1, minus a)."""
         V = np.ascontiguousarray(V, dtype=np.float64)
+        if V.shape != (b - a, self.k * self.bs, self.k * self.bs) or not 0 <= a <= b <= len(self.pos):
+            raise ValueError(f"tangents {V.shape} for groups {a}..{b}: "
+                             f"({b - a}, {self.k * self.bs}, {self.k * self.bs}) expected")
         with petsc_lib.values_of(self.seq) as ptr:
             if _load()(ptr, self.pos[a:b], V, b - a, self.k, self.bs):
                 raise ValueError(f"block size {self.bs}: the assembly kernel has 3 and 6")

@@ -85,11 +85,12 @@ class EnrichedProblem:
         self.layout = partition.Layout(comm, self.mesh)
         terms = scene_terms(self.scene, self.mesh, self.layout)
         self.problem = RodProblem(self.scene, self.mesh, self.layout, terms)
-        if plane is not None:
-            # the run solves in this plane: the whole stage's Newton steps (its KSP under
-            # -estimate_, as in 3-D) and stability count (-planar_stability_, as the run's) on
-            # the in-plane block (planar.py; its guard goes on in 3-D, silently, when the
-            # carried state is not planar)
+        if plane is not None and minimize:
+            # the run solves in this plane: the whole stage's minimisation takes its Newton
+            # steps (its KSP under -estimate_, as in 3-D) and stability count
+            # (-planar_stability_, as the run's) on the in-plane block (planar.py; its guard,
+            # asked before every whole stage, goes on in 3-D, silently, when the carried state
+            # is not planar)
             self.problem.planar = PlanarSystem(self.problem, plane, prefix=PREFIX)
         self.comm = comm.tompi4py()
         self.floor = 1e-13 * self.mesh.length
@@ -257,6 +258,11 @@ class EnrichedProblem:
         its, ok = self.solve_stage("interior")
         if not ok:
             self.place(mesh, x_nodes, q_nodes)
+        if p.planar is not None and p.planar.active:
+            # the guard on the state the whole stage starts from: the minimiser asks it before
+            # a Newton step, not before a stability count at a state already converged
+            p.residual(None, p.state.X, p.F)
+            p.planar.holds(p.F)
         more, converged = self.solve_stage("whole")
         x, q = gathered_state(p)
         return x, q, its + more, self.factorisations, converged
@@ -308,11 +314,15 @@ class ErrorEstimator:
         problem's current (converged) state.  Collective."""
         t0 = time.perf_counter()
         rod = self.scene.rod
+        pl = problem.planar
+        planar = pl is not None and pl.active
         if self.enriched is None:
-            pl = problem.planar
-            plane = pl.plane if pl is not None and pl.active else None
             self.enriched = EnrichedProblem(self.scene, self.comm, rod.order + 1, rod.nelem,
-                                            minimize=self.minimize, plane=plane)
+                                            minimize=self.minimize,
+                                            plane=pl.plane if planar else None)
+        mine = self.enriched.problem.planar
+        if mine is not None and mine.active and not planar:     # the run has left the plane
+            mine.leave("the run left the plane", "the run left the plane")
         x, q = gathered_state(problem)
         e = self.enriched
         xe, qe, its, nf, ok = e.solve_from(problem.mesh, x, q, problem.lam, terms=problem.terms,
