@@ -244,3 +244,35 @@ def test_strains_in_c_equal_numpy(p, nq):
         assert np.abs(got - ref).max() <= 1e-13 * np.abs(ref).max()
         assert np.abs(ref[..., 3:]).max() > 0.1          # bent and twisted: something compared
     assert rod.strains(qe[:0], xe[:0]).shape == (0, nq, 6)
+
+
+@pytest.mark.parametrize("p", [1, 2, 3, 4])
+@pytest.mark.parametrize("closed", [False, True])
+def test_node_residual_equals_the_summed_element_rows(p, closed):
+    """ElasticRod.node_residual (the kernel gathering the elements' nodes and summing their
+    rows per node) equals element_terms of the gathered elements with the rows summed per node
+    in the elements' order (np.add.at), bit for bit, on a chain of elements sharing end nodes
+    (a ring: the last element ends at node 0), nodes held in shuffled rows; the numpy kernel's
+    form the same to round-off."""
+    rng = np.random.default_rng(30 + p + 10 * closed)
+    ne, nq = 7, p + 1
+    qe, xe, e0 = deformed_elements(p, nq, ne, rng)
+    n = ne * p + (0 if closed else 1)
+    conn = (np.arange(ne)[:, None] * p + np.arange(p + 1)[None, :]) % n
+    rows = rng.permutation(n + 3)[:n]                   # node k in row rows[k] of n + 3
+    qn, xn = np.zeros((n + 3, 4)), np.zeros((n + 3, 3))
+    qn[rows[conn]], xn[rows[conn]] = qe, xe             # shared nodes: the later element's
+    conn = rows[conn]
+    rod = elastic.ElasticRod(p, nq, 0.3, STIFF)
+    rod.set_reference(e0)
+    energy, F = rod.node_residual(qn, xn, conn)
+    e_ref, vec, _ = rod.element_terms(qn[conn], xn[conn], tangent=False)
+    ref = np.zeros_like(F)
+    np.add.at(ref, conn.ravel(), vec.reshape(-1, 6))
+    assert np.array_equal(F, ref) and np.array_equal(energy, e_ref)
+    assert np.abs(F).max() > 0.1 and not F[np.setdiff1d(np.arange(n + 3), rows)].any()
+    rod_np = elastic.ElasticRod(p, nq, 0.3, STIFF, kernel="numpy")
+    rod_np.set_reference(e0)
+    e_np, F_np = rod_np.node_residual(qn, xn, conn)
+    assert np.abs(F_np - F).max() <= 1e-12 * np.abs(F).max()
+    assert np.abs(e_np - energy).max() <= 1e-12 * np.abs(energy).max()

@@ -26,6 +26,7 @@
  * B(q) = 1/2 [-qv^T; q0 I - qv^x].
  */
 #include <math.h>
+#include <stdint.h>
 #include <string.h>
 
 #define MAXNN 8     /* nodes per element supported (orders 1..7) */
@@ -550,6 +551,37 @@ int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const doubl
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
     BY_NODE_COUNT(STRAIN_LOOP)
+    return 0;
+}
+
+/* The residual summed per node: element e's nodes conn[e nn + a] (rows of the node arrays qn
+ * (nodes, 4), xn (nodes, 3)) gathered here, its residual rows added to node_vec (nodes, 6, zero
+ * on entry) in the order of the elements (the sparse row sum's order), its energy into
+ * energy[e]; no element arrays in memory. */
+#define NODE_LOOP(NN)                                                                      \
+    for (int e = 0; e < ne; e++) {                                                         \
+        double qb[4 * MAXNN], xb[3 * MAXNN], vb[6 * MAXNN];                                \
+        const int64_t *ce = conn + (long)e * (NN);                                         \
+        for (int a = 0; a < (NN); a++) {                                                   \
+            for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];                 \
+            for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];                 \
+        }                                                                                  \
+        element(NN, &st, qb, xb, e0 + (long)e * 6 * nq, 0, energy + e, vb, (double *)0);   \
+        for (int a = 0; a < (NN); a++)                                                     \
+            for (int k = 0; k < 6; k++) node_vec[6 * ce[a] + k] += vb[6 * a + k];          \
+    }
+
+/* Arguments as rodsnes_elastic_terms but the nodes' qn, xn and the elements' conn (ne, nn) of
+ * rows in them; outputs energy (ne) and node_vec (nodes, 6), added to.  Returns 0, or -1. */
+int rodsnes_elastic_node_residual(int ne, int nn, int nq, const double *N, const double *dN,
+                                  const double *wJ, const double *C, int limit,
+                                  double kappa_max, double mu_kappa, const double *qn,
+                                  const double *xn, const int64_t *conn, const double *e0,
+                                  double *energy, double *node_vec)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
+    BY_NODE_COUNT(NODE_LOOP)
     return 0;
 }
 

@@ -347,6 +347,20 @@ class ElasticRod:
         return out[0], out[1], out[2][:, idx[:, None], idx[None, :]]
 
     @logged("ElasticKernel")
+    def node_residual(self, q, r, conn, e0=None):
+        """(energy (ne,), residual summed per node (len(q), 6)) at the nodes' quaternions q and
+        positions r, the elements' nodes conn (rows of q and r): element_terms of the gathered
+        elements without tangent, its rows summed per node in the elements' order; the compiled
+        kernel gathers and sums in its pass (elastic_compiled.node_residual)."""
+        if self.kernel == "compiled":
+            return elastic_compiled.node_residual(self, q, r, conn, e0)
+        energy, vec, _ = self.element_terms(np.take(q, conn, axis=0), np.take(r, conn, axis=0),
+                                            e0, tangent=False)
+        out = np.zeros((len(q), 6))
+        np.add.at(out, np.asarray(conn).ravel(), vec.reshape(-1, 6))
+        return energy, out
+
+    @logged("ElasticKernel")
     def plane_tangents(self, qe, xe, plane, e0=None, reuse=False):
         """The in-plane tangents (ne, 3(p+1), 3(p+1)) at a state in ``plane`` (model.plane.Plane:
         normal e_axis), rows and columns (node, plane.inplane = (r_P, r_Q, theta_axis), P < Q):

@@ -26,6 +26,11 @@ C entry point:
                          (the in-plane tangent of a planar state: planar.PlanarSystem)
     int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const double *dN,
                                 const double *qe, const double *xe, double *strain);
+    int rodsnes_elastic_node_residual(int ne, int nn, int nq, ... the same ...,
+                                      const double *qn, const double *xn, const int64_t *conn,
+                                      const double *e0, double *energy, double *node_vec);
+                         (the residual summed per node, the elements' nodes gathered in C:
+                          RodProblem.residual)
                          (the strains at the points of N, dN: ElasticRod.strains,
                           strains_at_nodes)
 """
@@ -53,7 +58,10 @@ def _declare(lib):
     pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent, common + [c_int, f64], c_int)
     st = compiled.Foreign(lib.rodsnes_elastic_strains,
                           [c_int, c_int, c_int, f64, f64, f64, f64, f64], c_int)
-    return fn, en, pl, st
+    nr = compiled.Foreign(lib.rodsnes_elastic_node_residual,
+                          [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64,
+                           compiled.I64, f64, f64, f64], c_int)
+    return fn, en, pl, st, nr
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -179,3 +187,36 @@ def strains(N, dN, qe, xe):
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_strains failed ({info})")
     return out
+
+
+def node_residual(rod, qn, xn, conn, e0=None):
+    """(energy (ne,), the residual summed per node (nodes, 6)) of ElasticRod rod at the nodes'
+    quaternions qn (nodes, 4) and positions xn (nodes, 3), its elements' nodes conn (ne, nn)
+    (rows of them): element_terms(qn[conn], xn[conn], tangent=False) with its element rows
+    summed per node in the elements' order, without the gathered element arrays and the
+    sparse row sum (0.7 ms of a 4.5 ms residual at 10^4 cubic elements)."""
+    if not _load():
+        raise RuntimeError("the compiled elastic kernel is not built (run pip install -e .)")
+    e0 = rod.e0 if e0 is None else e0
+    if e0 is None:
+        raise ValueError("no reference strains e0 (ElasticRod.set_reference)")
+    nq, nn = rod.N.shape
+    conn = np.ascontiguousarray(conn, dtype=np.int64)
+    ne = len(conn)
+    if conn.shape != (ne, nn) or nn > _MAX_NODES:
+        raise ValueError(f"conn {conn.shape}: (elements, {nn}) expected")
+    qn = np.ascontiguousarray(qn, dtype=np.float64)
+    xn = np.ascontiguousarray(xn, dtype=np.float64)
+    n = len(qn)
+    if qn.shape != (n, 4) or xn.shape != (n, 3) or (ne and (conn.min() < 0 or conn.max() >= n)):
+        raise ValueError(f"nodes {qn.shape} {xn.shape} do not hold the elements' {conn.shape}")
+    e0 = np.ascontiguousarray(np.broadcast_to(np.asarray(e0, dtype=np.float64), (ne, nq, 6)))
+    limit = rod.kappa_max is not None
+    energy, node_vec = np.empty(ne), np.zeros((n, 6))
+    info = _load()[4](ne, nn, nq, _f64(rod.N, (nq, nn), "N"), _f64(rod.dN, (nq, nn), "dN"),
+                      _f64(rod.wJ, (nq,), "wJ"), _f64(rod.C, (6,), "C"), int(limit),
+                      float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa), qn, xn, conn,
+                      e0, energy, node_vec)
+    if info != 0:
+        raise RuntimeError(f"rodsnes_elastic_node_residual failed ({info})")
+    return energy, node_vec

@@ -235,10 +235,6 @@ class RodProblem:
         self.F = layout.create_vec()
         self.lconn = lconn
         self._gconn = layout.gconn.astype(PETSc.IntType)     # element node blocks, PETSc ids
-        # element node rows -> local nodes: F_loc = S vec (the assembly sum as one sparse product)
-        import scipy.sparse as sp
-        self._scatter = sp.csr_matrix((np.ones(lconn.size), (lconn.ravel(), np.arange(lconn.size))),
-                                      shape=(len(layout.local_nodes), lconn.size))
         self.stats = {}
         self.inertia = None                 # stability.Inertia, made at the first count
         self.planar = None                  # planar.PlanarSystem of a planar run (run.py)
@@ -478,11 +474,9 @@ class RodProblem:
         """The residual at X into F: the rod's, then every term's (``terms``: these only, e.g.
         load_terms), Dirichlet rows x - target."""
         r, q = self.state.local_config(X)
-        # np.take: the same gather as q[self.lconn], a quarter of the time
-        energy, vec, _ = self.elastic.element_terms(np.take(q, self.lconn, axis=0),
-                                                    np.take(r, self.lconn, axis=0),
-                                                    tangent=False, reuse=True)
-        Floc = self._scatter @ vec.reshape(-1, NDOF)        # sum of element rows per local node
+        # the element rows summed per local node (ghosts included), the elements' nodes
+        # gathered in the kernel's pass (ElasticRod.node_residual)
+        _, Floc = self.elastic.node_residual(q, r, self.lconn)
         for t in (self.terms if terms is None else terms):
             t.add_residual(self.lam, r, q, Floc)
         F.set(0.0)
