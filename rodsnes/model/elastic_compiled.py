@@ -80,8 +80,9 @@ def _f64(a, shape, name):
     return a
 
 
-def _inputs(rod, qe, xe, e0):
-    """The kernel's common arguments (after ne, nn, nq) and (ne, nn, nq)."""
+def _rod_arguments(rod, e0, ne):
+    """The kernel's arguments of the rod (N, dN, wJ, C, limit, kappa_max, mu_kappa), its
+    reference strains e0 for ne elements (the rod's by default), and (nn, nq)."""
     if not _load():
         raise RuntimeError("the compiled elastic kernel is not built (run pip install -e .)")
     e0 = rod.e0 if e0 is None else e0
@@ -90,16 +91,22 @@ def _inputs(rod, qe, xe, e0):
     nq, nn = rod.N.shape
     if nn > _MAX_NODES:
         raise ValueError(f"order {nn - 1} exceeds the compiled kernel's {_MAX_NODES - 1}")
-    qe = np.asarray(qe)
-    ne = qe.shape[0]
-    qe = _f64(qe, (ne, nn, 4), "qe")
-    xe = _f64(xe, (ne, nn, 3), "xe")
     e0 = np.ascontiguousarray(np.broadcast_to(np.asarray(e0, dtype=np.float64), (ne, nq, 6)))
     limit = rod.kappa_max is not None
     args = (_f64(rod.N, (nq, nn), "N"), _f64(rod.dN, (nq, nn), "dN"),
             _f64(rod.wJ, (nq,), "wJ"), _f64(rod.C, (6,), "C"), int(limit),
-            float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa), qe, xe, e0)
-    return args, (ne, nn, nq)
+            float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa))
+    return args, e0, (nn, nq)
+
+
+def _inputs(rod, qe, xe, e0):
+    """The kernel's common arguments (after ne, nn, nq) and (ne, nn, nq)."""
+    qe = np.asarray(qe)
+    ne = qe.shape[0]
+    args, e0, (nn, nq) = _rod_arguments(rod, e0, ne)
+    qe = _f64(qe, (ne, nn, 4), "qe")
+    xe = _f64(xe, (ne, nn, 3), "xe")
+    return args + (qe, xe, e0), (ne, nn, nq)
 
 
 def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None, comps=None):
@@ -195,28 +202,18 @@ def node_residual(rod, qn, xn, conn, e0=None):
     (rows of them): element_terms(qn[conn], xn[conn], tangent=False) with its element rows
     summed per node in the elements' order, without the gathered element arrays and the
     sparse row sum (0.7 ms of a 4.5 ms residual at 10^4 cubic elements)."""
-    if not _load():
-        raise RuntimeError("the compiled elastic kernel is not built (run pip install -e .)")
-    e0 = rod.e0 if e0 is None else e0
-    if e0 is None:
-        raise ValueError("no reference strains e0 (ElasticRod.set_reference)")
-    nq, nn = rod.N.shape
     conn = np.ascontiguousarray(conn, dtype=np.int64)
     ne = len(conn)
-    if conn.shape != (ne, nn) or nn > _MAX_NODES:
+    args, e0, (nn, nq) = _rod_arguments(rod, e0, ne)
+    if conn.shape != (ne, nn):
         raise ValueError(f"conn {conn.shape}: (elements, {nn}) expected")
     qn = np.ascontiguousarray(qn, dtype=np.float64)
     xn = np.ascontiguousarray(xn, dtype=np.float64)
     n = len(qn)
     if qn.shape != (n, 4) or xn.shape != (n, 3) or (ne and (conn.min() < 0 or conn.max() >= n)):
         raise ValueError(f"nodes {qn.shape} {xn.shape} do not hold the elements' {conn.shape}")
-    e0 = np.ascontiguousarray(np.broadcast_to(np.asarray(e0, dtype=np.float64), (ne, nq, 6)))
-    limit = rod.kappa_max is not None
     energy, node_vec = np.empty(ne), np.zeros((n, 6))
-    info = _load()[4](ne, nn, nq, _f64(rod.N, (nq, nn), "N"), _f64(rod.dN, (nq, nn), "dN"),
-                      _f64(rod.wJ, (nq,), "wJ"), _f64(rod.C, (6,), "C"), int(limit),
-                      float(rod.kappa_max) if limit else 0.0, float(rod.mu_kappa), qn, xn, conn,
-                      e0, energy, node_vec)
+    info = _load()[4](ne, nn, nq, *args, qn, xn, conn, e0, energy, node_vec)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_node_residual failed ({info})")
     return energy, node_vec
