@@ -609,6 +609,30 @@ static ALWAYS_INLINE double element_energy(const int NN, const Setup *st, const 
         energy[e] = element_energy(NN, &st, qe + (long)e * 4 * (NN), xe + (long)e * 3 * (NN), \
                                    e0 + (long)e * 6 * nq)
 
+#define NODE_ENERGY_LOOP(NN)                                                               \
+    for (int e = 0; e < ne; e++) {                                                         \
+        double qb[4 * MAXNN], xb[3 * MAXNN];                                               \
+        const int64_t *ce = conn + (long)e * (NN);                                         \
+        for (int a = 0; a < (NN); a++) {                                                   \
+            for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];                 \
+            for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];                 \
+        }                                                                                  \
+        energy[e] = element_energy(NN, &st, qb, xb, e0 + (long)e * 6 * nq);                \
+    }
+
+/* The energy of every element (ne), its nodes gathered from the node arrays qn, xn by conn
+ * (ne, nn) as in rodsnes_elastic_node_residual.  Returns 0, or -1. */
+int rodsnes_elastic_node_energy(int ne, int nn, int nq, const double *N, const double *dN,
+                                const double *wJ, const double *C, int limit, double kappa_max,
+                                double mu_kappa, const double *qn, const double *xn,
+                                const int64_t *conn, const double *e0, double *energy)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
+    BY_NODE_COUNT(NODE_ENERGY_LOOP)
+    return 0;
+}
+
 /* The energy of every element (ne), arguments as rodsnes_elastic_terms.  Returns 0, or -1. */
 int rodsnes_elastic_energy(int ne, int nn, int nq, const double *N, const double *dN,
                            const double *wJ, const double *C, int limit, double kappa_max,

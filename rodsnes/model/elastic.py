@@ -309,6 +309,13 @@ class ElasticRod:
         W, _, _ = self.law(self.strains(qe, xe), e0)
         return float(np.sum(W @ self.wJ))
 
+    def node_energy(self, q, r, conn, e0=None):
+        """energy(q[conn], r[conn], e0) with the elements' nodes gathered in the compiled
+        kernel's pass (elastic_compiled.node_energy: no gathered arrays), else in numpy."""
+        if self.kernel == "compiled" and len(conn):
+            return float(np.sum(elastic_compiled.node_energy(self, q, r, conn, e0)))
+        return self.energy(np.take(q, conn, axis=0), np.take(r, conn, axis=0), e0)
+
     def stress(self, qe, xe, e0=None):
         """Material stress resultants S = dW/de = (R^T n, R^T m) at quadrature points."""
         e0 = self.e0 if e0 is None else e0

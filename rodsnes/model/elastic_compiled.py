@@ -31,6 +31,8 @@ C entry point:
                                       const double *e0, double *energy, double *node_vec);
                          (the residual summed per node, the elements' nodes gathered in C:
                           RodProblem.residual)
+    int rodsnes_elastic_node_energy(... the same but node_vec ..., double *energy);
+                         (the energy, the elements' nodes gathered in C: the line searches)
                          (the strains at the points of N, dN: ElasticRod.strains,
                           strains_at_nodes)
 """
@@ -61,7 +63,10 @@ def _declare(lib):
     nr = compiled.Foreign(lib.rodsnes_elastic_node_residual,
                           [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64,
                            compiled.I64, f64, f64, f64], c_int)
-    return fn, en, pl, st, nr
+    ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy,
+                           [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64,
+                            compiled.I64, f64, f64], c_int)
+    return fn, en, pl, st, nr, ne_
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -196,12 +201,9 @@ def strains(N, dN, qe, xe):
     return out
 
 
-def node_residual(rod, qn, xn, conn, e0=None):
-    """(energy (ne,), the residual summed per node (nodes, 6)) of ElasticRod rod at the nodes'
-    quaternions qn (nodes, 4) and positions xn (nodes, 3), its elements' nodes conn (ne, nn)
-    (rows of them): element_terms(qn[conn], xn[conn], tangent=False) with its element rows
-    summed per node in the elements' order, without the gathered element arrays and the
-    sparse row sum (0.7 ms of a 4.5 ms residual at 10^4 cubic elements)."""
+def _node_inputs(rod, qn, xn, conn, e0):
+    """The rod's arguments, e0, conn, qn, xn checked (the node arrays hold the elements'
+    nodes) and (ne, nn, nq), for the node-gathering passes."""
     conn = np.ascontiguousarray(conn, dtype=np.int64)
     ne = len(conn)
     args, e0, (nn, nq) = _rod_arguments(rod, e0, ne)
@@ -212,6 +214,29 @@ def node_residual(rod, qn, xn, conn, e0=None):
     n = len(qn)
     if qn.shape != (n, 4) or xn.shape != (n, 3) or (ne and (conn.min() < 0 or conn.max() >= n)):
         raise ValueError(f"nodes {qn.shape} {xn.shape} do not hold the elements' {conn.shape}")
+    return args, e0, conn, qn, xn, (ne, nn, nq)
+
+
+def node_energy(rod, qn, xn, conn, e0=None):
+    """The energy of every element (ne,) of ElasticRod rod, its nodes gathered in C from the
+    node arrays qn, xn by conn (node_residual's): element_energy(qn[conn], xn[conn]) without
+    the gathered arrays (the line searches' trials)."""
+    args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
+    energy = np.empty(ne)
+    info = _load()[5](ne, nn, nq, *args, qn, xn, conn, e0, energy)
+    if info != 0:
+        raise RuntimeError(f"rodsnes_elastic_node_energy failed ({info})")
+    return energy
+
+
+def node_residual(rod, qn, xn, conn, e0=None):
+    """(energy (ne,), the residual summed per node (nodes, 6)) of ElasticRod rod at the nodes'
+    quaternions qn (nodes, 4) and positions xn (nodes, 3), its elements' nodes conn (ne, nn)
+    (rows of them): element_terms(qn[conn], xn[conn], tangent=False) with its element rows
+    summed per node in the elements' order, without the gathered element arrays and the
+    sparse row sum (0.7 ms of a 4.5 ms residual at 10^4 cubic elements)."""
+    args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
+    n = len(qn)
     energy, node_vec = np.empty(ne), np.zeros((n, 6))
     info = _load()[4](ne, nn, nq, *args, qn, xn, conn, e0, energy, node_vec)
     if info != 0:

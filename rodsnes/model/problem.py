@@ -659,7 +659,7 @@ class RodProblem:
         loads' potential, contact) at local positions r and rotations q; ``shares``: the terms'
         shares when known (trial: precheck and the minimiser take them from the evaluation
         they make anyway)."""
-        E = self.elastic.energy(q[self.lconn], r[self.lconn])
+        E = self.elastic.node_energy(q, r, self.lconn)
         if shares is None:
             shares = [t.energy_local(self.lam, r, q) for t in self.terms]
         for e in shares:
