@@ -40,7 +40,12 @@ def function(name, *argtypes):
     """PETSc's C function ``name`` with those argument types (returning its error code), or
     None where the library or the function cannot be reached."""
     lib = library()
-    fn = getattr(lib, name, None) if lib is not None else None
+    try:
+        # lib[name]: a function object of its own (getattr's is shared by every caller of the
+        # name, whose argument types the last one set)
+        fn = lib[name] if lib is not None else None
+    except AttributeError:
+        fn = None
     if fn is not None:
         fn.argtypes, fn.restype = list(argtypes), _INT
     return fn
