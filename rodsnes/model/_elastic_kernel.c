@@ -554,18 +554,25 @@ int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const doubl
     return 0;
 }
 
-/* The residual summed per node: element e's nodes conn[e nn + a] (rows of the node arrays qn
- * (nodes, 4), xn (nodes, 3)) gathered here, its residual rows added to node_vec (nodes, 6, zero
- * on entry) in the order of the elements (the sparse row sum's order), its energy into
- * energy[e]; no element arrays in memory. */
+/* Element e's nodes ce[a] (rows of the node arrays qn (nodes, 4), xn (nodes, 3)) copied into
+ * the element arrays qb (NN, 4), xb (NN, 3) that the element passes read. */
+static ALWAYS_INLINE void gather_element(const int NN, const int64_t *ce, const double *qn,
+                                         const double *xn, double *qb, double *xb)
+{
+    for (int a = 0; a < NN; a++) {
+        for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];
+        for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];
+    }
+}
+
+/* The residual summed per node: element e's nodes conn[e nn + a] gathered (gather_element),
+ * its residual rows added to node_vec (nodes, 6, zero on entry) in the order of the elements
+ * (the sparse row sum's order), its energy into energy[e]; no element arrays in memory. */
 #define NODE_LOOP(NN)                                                                      \
     for (int e = 0; e < ne; e++) {                                                         \
         double qb[4 * MAXNN], xb[3 * MAXNN], vb[6 * MAXNN];                                \
         const int64_t *ce = conn + (long)e * (NN);                                         \
-        for (int a = 0; a < (NN); a++) {                                                   \
-            for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];                 \
-            for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];                 \
-        }                                                                                  \
+        gather_element(NN, ce, qn, xn, qb, xb);                                            \
         element(NN, &st, qb, xb, e0 + (long)e * 6 * nq, 0, energy + e, vb, (double *)0);   \
         for (int a = 0; a < (NN); a++)                                                     \
             for (int k = 0; k < 6; k++) node_vec[6 * ce[a] + k] += vb[6 * a + k];          \
@@ -612,11 +619,7 @@ static ALWAYS_INLINE double element_energy(const int NN, const Setup *st, const 
 #define NODE_ENERGY_LOOP(NN)                                                               \
     for (int e = 0; e < ne; e++) {                                                         \
         double qb[4 * MAXNN], xb[3 * MAXNN];                                               \
-        const int64_t *ce = conn + (long)e * (NN);                                         \
-        for (int a = 0; a < (NN); a++) {                                                   \
-            for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];                 \
-            for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];                 \
-        }                                                                                  \
+        gather_element(NN, conn + (long)e * (NN), qn, xn, qb, xb);                         \
         energy[e] = element_energy(NN, &st, qb, xb, e0 + (long)e * 6 * nq);                \
     }
 

@@ -122,9 +122,10 @@ class ElementBlocks:
         """Add the tangents V (b - a, k bs, k bs) of groups a..b - 1: the direct ones into the
         value array, then insert(i) for the others (i: their indices in a..b - 1, minus a)."""
         V = np.ascontiguousarray(V, dtype=np.float64)
-        if V.shape != (b - a, self.k * self.bs, self.k * self.bs) or not 0 <= a <= b <= len(self.pos):
-            raise ValueError(f"tangents {V.shape} for groups {a}..{b}: "
-                             f"({b - a}, {self.k * self.bs}, {self.k * self.bs}) expected")
+        kb = self.k * self.bs
+        if V.shape != (b - a, kb, kb) or not 0 <= a <= b <= len(self.pos):
+            raise ValueError(f"tangents {V.shape} for groups {a}..{b}: ({b - a}, {kb}, {kb}) "
+                             "expected")
         with petsc_lib.values_of(self.seq) as ptr:
             if _load()(ptr, self.pos[a:b], V, b - a, self.k, self.bs):
                 raise ValueError(f"block size {self.bs}: the assembly kernel has 3 and 6")

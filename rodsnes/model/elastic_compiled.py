@@ -26,6 +26,8 @@ C entry point:
                          (the in-plane tangent of a planar state: planar.PlanarSystem)
     int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const double *dN,
                                 const double *qe, const double *xe, double *strain);
+                         (the strains at the points of N, dN: ElasticRod.strains,
+                          strains_at_nodes)
     int rodsnes_elastic_node_residual(int ne, int nn, int nq, ... the same ...,
                                       const double *qn, const double *xn, const int64_t *conn,
                                       const double *e0, double *energy, double *node_vec);
@@ -33,8 +35,6 @@ C entry point:
                           RodProblem.residual)
     int rodsnes_elastic_node_energy(... the same but node_vec ..., double *energy);
                          (the energy, the elements' nodes gathered in C: the line searches)
-                         (the strains at the points of N, dN: ElasticRod.strains,
-                          strains_at_nodes)
 """
 import ctypes
 
@@ -53,19 +53,17 @@ def library_path():
 def _declare(lib):
     """The C functions of the built library, with their signatures (compiled.Foreign)."""
     c_int, c_dbl, f64 = ctypes.c_int, ctypes.c_double, compiled.F64
-    common = [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64, f64]
+    rod = [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl]     # ne .. mu_kappa
+    common = rod + [f64, f64, f64]                          # qe, xe, e0
+    nodes = rod + [f64, f64, compiled.I64, f64]             # qn, xn, conn, e0
     fn = compiled.Foreign(lib.rodsnes_elastic_terms,
                           common + [c_int, c_int, ctypes.c_void_p, c_int, f64, f64, f64], c_int)
     en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
     pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent, common + [c_int, f64], c_int)
     st = compiled.Foreign(lib.rodsnes_elastic_strains,
                           [c_int, c_int, c_int, f64, f64, f64, f64, f64], c_int)
-    nr = compiled.Foreign(lib.rodsnes_elastic_node_residual,
-                          [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64,
-                           compiled.I64, f64, f64, f64], c_int)
-    ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy,
-                           [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl, f64, f64,
-                            compiled.I64, f64, f64], c_int)
+    nr = compiled.Foreign(lib.rodsnes_elastic_node_residual, nodes + [f64, f64], c_int)
+    ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy, nodes + [f64], c_int)
     return fn, en, pl, st, nr, ne_
 
 

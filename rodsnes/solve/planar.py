@@ -294,13 +294,14 @@ class PlanarSystem:
         if self.ksp is None:
             opts = PETSc.Options()
             pre = self.prefix
-            for key in ("ksp_type", "pc_type", "pc_factor_mat_solver_type",
-                        "pc_factor_mat_ordering_type", "redundant_pc_type",
-                        "redundant_pc_factor_mat_solver_type",
-                        "redundant_pc_factor_mat_ordering_type"):
-                if pre != PREFIX:                # a solver of its own (-estimate_*)
-                    break
-                if opts.hasName(key):            # the 3-D step's choice, the user's or its default
+            # the run's in-plane step takes the 3-D step's choice (the user's or its default);
+            # a solver of its own (-estimate_*) its own options
+            keys = ("ksp_type", "pc_type", "pc_factor_mat_solver_type",
+                    "pc_factor_mat_ordering_type", "redundant_pc_type",
+                    "redundant_pc_factor_mat_solver_type",
+                    "redundant_pc_factor_mat_ordering_type") if pre == PREFIX else ()
+            for key in keys:
+                if opts.hasName(key):
                     if is_default(key):
                         option_default(pre + key, opts.getString(key))
                     elif not opts.hasName(pre + key):

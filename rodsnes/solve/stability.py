@@ -29,8 +29,9 @@ def zero_shift(A):
 class Inertia:
     """The negative eigenvalues of the energy Hessian, counted by MUMPS LDL^T (INFOG(12), the
     negative pivots; -stability_mat_mumps_icntl_13 1 makes the count right on any number of
-    ranks; ordered as the Newton step's MUMPS, linear.mumps_ordering).  The Hessian goes into an SBAIJ matrix of the problem's layout (the upper block
-    triangle, half the entries; Dirichlet rows masked as it is assembled) that is kept, with
+    ranks; ordered as the Newton step's MUMPS, linear.mumps_ordering).  The Hessian goes into
+    an SBAIJ matrix of the problem's layout (the upper block triangle, half the entries;
+    Dirichlet rows masked as it is assembled) that is kept, with
     its factorisation's symbolic analysis, while the block pattern stays the same: a count is
     one Hessian assembly and one numeric LDL^T (half the flops of Newton's LU).  The diagonal
     is shifted by tau = 1000 eps max|diag| (zero_shift) so that exact zero modes count as
