@@ -53,6 +53,15 @@ search_kernel = Extension(
     libraries=["m"],
 )
 
+# The rank's stretch of a rod factored without fill, its inverse's trailing block without a
+# whole substitution (rodsnes/solve/chain.py, schur.RankSchur on several ranks).
+chain_kernel = Extension(
+    "rodsnes.solve._chain_kernel",
+    sources=["rodsnes/solve/_chain_kernel.c"],
+    extra_compile_args=["-O3", "-std=c99"],
+    libraries=["m"],
+)
+
 setup(
     name="rodsnes",
     version="0.1.0",
@@ -64,5 +73,5 @@ setup(
     install_requires=["numpy", "pymetis", "typing_extensions"],
     entry_points={"console_scripts": ["rodsnes = rodsnes.cli:main"]},
     ext_modules=[elastic_kernel, potential_kernel, topology_kernel, rotation_kernel,
-                 assembly_kernel, search_kernel],
+                 assembly_kernel, search_kernel, chain_kernel],
 )

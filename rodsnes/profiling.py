@@ -14,6 +14,8 @@ residual and Jacobian into the elastic kernel and the parts of self-contact
     MinHessian       the symmetric Hessian and its LDL^T factorisations (shifts, certificate)
     MinLineSearch    the energy line search (trial energies)
     MinCurved        the curved trial of a full Newton step (a residual, a factorisation, a trial)
+    ChainFactor      a rank's stretch factored by its own LU without fill (solve/chain.py)
+    ChainSolve       its substitutions (whole, or over the stretch's last rows)
 
 A call site is either a ``with timed("ContactSearch"):`` block or a method decorated with
 ``@logged("ContactSearch")``.  Events nest in PETSc's log: the time of one counts inside the
@@ -26,7 +28,7 @@ import functools
 
 NAMES = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "ContactHalo",
          "ContactAssemble", "MinStep", "MinGradient", "MinNewton", "MinHessian", "MinLineSearch",
-         "MinCurved")
+         "MinCurved", "ChainFactor", "ChainSolve")
 
 _events = {}
 

@@ -138,21 +138,35 @@ TEN_TURNS = __import__("os").path.join(__import__("os").path.dirname(__file__), 
                                        "plectoneme_10")
 
 
+def _interior_lu(ctx):
+    """The kept object of the rank's interior LU: its chain LU (chain.py) or its KSP."""
+    k = ctx.kept
+    return k["chain"] if k["chain"] is not None else k["ksp"].handle
+
+
 @pytest.mark.mpi
-@pytest.mark.parametrize("case,kw", [("mattiasson", dict(rod_nelem=40, rod_planar="off")),
-                                     ("michell", dict(rod_nelem=24)),
-                                     # contact pairs and the mounts' end couplings across ranks
-                                     ("plectoneme", dict(restart=TEN_TURNS))])
-def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
+@pytest.mark.parametrize("case,kw,chains", [
+    ("mattiasson", dict(rod_nelem=40, rod_planar="off"), True),
+    ("mattiasson", dict(rod_nelem=40, rod_planar="off"), False),
+    ("michell", dict(rod_nelem=24), False),
+    # contact pairs and the mounts' end couplings across ranks
+    ("plectoneme", dict(restart=TEN_TURNS), False)])
+def test_the_condensed_solve_is_the_lu_solve(case, kw, chains, monkeypatch):
     """On 2 ranks a chain (the cantilever) and a ring (michell: cut twice) solved by static
     condensation: the same solution as PETSc's LU of the whole matrix to round-off, by the
     condensation (a separator of one node per cut) and, above SCHUR_MAX, by the whole-matrix
-    LU it falls back to; the second set-up of the same matrix reuses its blocks."""
+    LU it falls back to; the second set-up of the same matrix reuses its blocks.  The
+    cantilever's end stretches are factored by their own LU without fill (``chains``: chain.py,
+    the inverse's trailing block without column solves), or by PETSc's LU with the separator's
+    column solves (CHAIN_TAIL_MAX < 0), as the ring's stretches, cut at both ends, and the
+    plectoneme's, filled by contact, are."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
     if case == "plectoneme" and PETSc.COMM_WORLD.getSize() > 2:
         pytest.skip("60 elements on more than 2 ranks: a separator above SCHUR_MAX")
     monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)      # condensed however short
+    if not chains:
+        monkeypatch.setattr(schur, "CHAIN_TAIL_MAX", -1)
     run = build_run(case, **kw)
     A, b, x = _system(run)
     xr = _lu(A, b)
@@ -160,6 +174,10 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     y = _solve(A, b, ctx)
     assert ctx.mode == "schur" and ctx.setups == {"schur": 1, "whole": 0}
     size = PETSc.COMM_WORLD.getSize()
+    # the end stretches of a chain have the separator at one end (a middle one at both: its
+    # chain LU only where it is as short as CHAIN_TAIL_MAX)
+    chained = PETSc.COMM_WORLD.tompi4py().allgather(ctx.kept["chain"] is not None)
+    assert (chained[0] and chained[-1]) if chains else not any(chained)
     cuts = size if run.mesh.closed else size - 1    # one node where consecutive stretches meet
     if case != "plectoneme":
         assert ctx.kept["sep"].size == cuts
@@ -188,11 +206,11 @@ def test_the_condensed_solve_is_the_lu_solve(case, kw, monkeypatch):
     _solve(A, b, schur.RankSchur(run.problem))
     A.mult(y, Ay2)
     assert Ay.equal(Ay2)
-    kept, ksp_kept = ctx.kept, ctx.kept["ksp"].handle   # the condensation's blocks and KSP
+    kept, lu_kept = ctx.kept, _interior_lu(ctx)     # the condensation's blocks and interior LU
     A.scale(2.0)
     y2 = _solve(A, b, ctx)
     A.scale(0.5)
-    assert ctx.kept is kept and ctx.kept["ksp"].handle == ksp_kept and ctx.setups["schur"] == 2
+    assert ctx.kept is kept and _interior_lu(ctx) == lu_kept and ctx.setups["schur"] == 2
     d = y2.copy()
     d.axpy(-0.5, y)
     assert d.norm() <= 1e-12 * y.norm()
@@ -297,12 +315,12 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
     # and with separator rows; on the ring every rank owns one (a cut 3 + 1 on each side)
     assert any(owners)
     assert all(owners) if case == "michell" else not all(owners)
-    kept, ksp_kept = ctx.kept, ctx.kept["ksp"].handle   # the condensation's blocks and KSP
+    kept, lu_kept = ctx.kept, _interior_lu(ctx)     # the condensation's blocks and interior LU
     # another state: a re-assembled Jacobian (P.zeroEntries, blocks added)
     perturb_state(p, scale=3e-3)
     p.jacobian(None, p.state.X, p.J, p.J)
     _check(ksp, A, p)
-    assert ctx.kept is kept and ctx.kept["ksp"].handle == ksp_kept and ctx.setups["schur"] == 2
+    assert ctx.kept is kept and _interior_lu(ctx) == lu_kept and ctx.setups["schur"] == 2
     # entries added to an assembled matrix (no zeroEntries): on every rank's first, last and
     # separator rows
     lo, hi = A.getOwnershipRange()
@@ -313,7 +331,7 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
         A.setValue(r, r, 5.0e3 * (1 + r % 7), addv=PETSc.InsertMode.ADD_VALUES)
     A.assemble()
     _check(ksp, A, p)
-    assert ctx.kept is kept and ctx.kept["ksp"].handle == ksp_kept and ctx.setups["schur"] == 3
+    assert ctx.kept is kept and _interior_lu(ctx) == lu_kept and ctx.setups["schur"] == 3
 
 
 @pytest.mark.mpi

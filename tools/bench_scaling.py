@@ -37,9 +37,9 @@ Each run writes PETSc's -log_view (ASCII) and rodsnes' summary.json; the parts o
 are the events of -log_view divided by the Newton iterations (SNESJacobianEval's count: every
 iteration, those of failed and cut-back solves included), times the maximum over the ranks:
 
-  residual    SNESFunctionEval          factor      MatLUFactorNum (+ MatCholFctrNum): MUMPS
+  residual    SNESFunctionEval          factor      MatLUFactorNum (+ MatCholFctrNum, ChainFactor)
   jacobian    SNESJacobianEval          factor_sym  MatLUFactorSym (+ MatCholFctrSym)
-  solve       MatSolve                  linesearch  SNESLineSearch without its residual
+  solve       MatSolve (+ ChainSolve)   linesearch  SNESLineSearch without its residual
   total       SNESSolve                 other       total - the rest (updates, pattern checks)
 
 and, from rodsnes' own log events (rodsnes/profiling.py; inside the SNES events above):
@@ -162,14 +162,16 @@ def iteration_parts(log):
     p = {"iterations": its,
          "residual_evals": _n(ev, "SNESFunctionEval"),
          "snes_solves": _n(ev, "SNESSolve"),
-         "factorisations": _n(ev, "MatLUFactorNum") + _n(ev, "MatCholFctrNum"),
+         "factorisations": (_n(ev, "MatLUFactorNum") + _n(ev, "MatCholFctrNum")
+                            + _n(ev, "ChainFactor")),
          "analyses": _n(ev, "MatLUFactorSym") + _n(ev, "MatCholFctrSym"),
          "total": _t(ev, "SNESSolve") / its,
          "residual": _t(ev, "SNESFunctionEval") / its,
          "jacobian": _t(ev, "SNESJacobianEval") / its,
-         "factor": (_t(ev, "MatLUFactorNum") + _t(ev, "MatCholFctrNum")) / its,
+         "factor": (_t(ev, "MatLUFactorNum") + _t(ev, "MatCholFctrNum")
+                    + _t(ev, "ChainFactor")) / its,
          "factor_sym": (_t(ev, "MatLUFactorSym") + _t(ev, "MatCholFctrSym")) / its,
-         "solve": _t(ev, "MatSolve") / its,
+         "solve": (_t(ev, "MatSolve") + _t(ev, "ChainSolve")) / its,
          "linesearch": ls / its,
          "elastic": _t(ev, "ElasticKernel") / its,
          "contact_search": _t(ev, "ContactSearch") / its,

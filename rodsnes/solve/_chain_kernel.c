@@ -1,0 +1,242 @@
+/* Block LU without fill of a rank's stretch of a rod (rodsnes/solve/chain.py; plain C99, no
+ * Python API, loaded with ctypes).
+ *
+ * The matrix is a block CSR (n block rows, row pointers ai, sorted block columns aj, values V:
+ * bs x bs blocks stored column by column, as PETSc's BAIJ) whose elimination in the natural
+ * order (dir = +1) or the reversed one (dir = -1) makes no fill: an open rod's chain.  The
+ * factors overwrite V in place: the multipliers L_ik = A_ik D_k^-1 at the places of the blocks
+ * eliminated before their row ("lower"), the updated blocks after them ("upper"), and each
+ * diagonal block inverted (partial pivoting inside the block; no pivoting between blocks, as
+ * PETSc's own BAIJ LU).  Order position s holds row s (dir +1) or n - 1 - s (dir -1).
+ *
+ * Because the rows last in the order are eliminated last, the solves restricted to them give
+ * the inverse's trailing block without a whole substitution (chain.py).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define ROW(s) (dir > 0 ? (s) : n - 1 - (s))
+
+/* The position of block column j in row i (binary search), or -1. */
+static int find(const int *ai, const int *aj, int i, int j)
+{
+    int lo = ai[i], hi = ai[i + 1] - 1;
+    while (lo <= hi) {
+        int mid = (lo + hi) / 2;
+        if (aj[mid] == j) return mid;
+        if (aj[mid] < j) lo = mid + 1; else hi = mid - 1;
+    }
+    return -1;
+}
+
+/* The lower blocks of row i: positions from *p0 stepping by *step until p1 (exclusive), in the
+ * order of elimination; the upper blocks: [*q0, *q1). */
+static inline void lower_range(int dir, const int *ai, const int *diag, int i,
+                               int *p0, int *p1, int *step)
+{
+    if (dir > 0) { *p0 = ai[i]; *p1 = diag[i]; *step = 1; }
+    else { *p0 = ai[i + 1] - 1; *p1 = diag[i]; *step = -1; }
+}
+
+static inline void upper_range(int dir, const int *ai, const int *diag, int i, int *q0, int *q1)
+{
+    if (dir > 0) { *q0 = diag[i] + 1; *q1 = ai[i + 1]; }
+    else { *q0 = ai[i]; *q1 = diag[i]; }
+}
+
+/* Symbolic phase: the diagonal's places (diag, n) and, for every update A_ij -= L_ik U_kj of
+ * the elimination in its order, the place of (i, j) (target, at most cap of them; NULL: only
+ * counted).  Returns the number of updates, -1 when a row has no diagonal block, -2 when the
+ * elimination would fill (a block (i, j) missing). */
+int64_t rodsnes_chain_plan(int n, const int *ai, const int *aj, int dir, int *diag,
+                           int *target, int64_t cap)
+{
+    for (int i = 0; i < n; i++) {
+        diag[i] = find(ai, aj, i, i);
+        if (diag[i] < 0) return -1;
+    }
+    int64_t t = 0;
+    for (int s = 0; s < n; s++) {
+        int i = ROW(s), p0, p1, step;
+        lower_range(dir, ai, diag, i, &p0, &p1, &step);
+        for (int p = p0; p != p1; p += step) {
+            int k = aj[p], q0, q1;
+            upper_range(dir, ai, diag, k, &q0, &q1);
+            for (int q = q0; q < q1; q++) {
+                int pos = find(ai, aj, i, aj[q]);
+                if (pos < 0) return -2;
+                if (target != NULL && t < cap) target[t] = pos;
+                t++;
+            }
+        }
+    }
+    return t;
+}
+
+/* ---- bs x bs blocks, column by column: element (r, c) at r + c bs ------------------------- */
+
+/* C = A B */
+static inline void block_mul(const int BS, const double *A, const double *B, double *C)
+{
+    for (int c = 0; c < BS; c++)
+        for (int r = 0; r < BS; r++) {
+            double s = 0.0;
+            for (int m = 0; m < BS; m++) s += A[r + m * BS] * B[m + c * BS];
+            C[r + c * BS] = s;
+        }
+}
+
+/* C -= A B */
+static inline void block_mulsub(const int BS, const double *A, const double *B, double *C)
+{
+    for (int c = 0; c < BS; c++)
+        for (int r = 0; r < BS; r++) {
+            double s = 0.0;
+            for (int m = 0; m < BS; m++) s += A[r + m * BS] * B[m + c * BS];
+            C[r + c * BS] -= s;
+        }
+}
+
+/* A <- A^-1 in place by Gauss-Jordan with partial pivoting (the row swaps of the elimination
+ * undone as column swaps, last first); returns -1 when a pivot is 0 or not finite. */
+static inline int block_invert(const int BS, double *A)
+{
+    int piv[8];
+    for (int c = 0; c < BS; c++) {
+        int pr = c;
+        double big = fabs(A[c + c * BS]);
+        for (int r = c + 1; r < BS; r++)
+            if (fabs(A[r + c * BS]) > big) { big = fabs(A[r + c * BS]); pr = r; }
+        if (!(big > 0.0) || !isfinite(big)) return -1;
+        piv[c] = pr;
+        if (pr != c)
+            for (int m = 0; m < BS; m++) {
+                double tmp = A[c + m * BS]; A[c + m * BS] = A[pr + m * BS]; A[pr + m * BS] = tmp;
+            }
+        double d = 1.0 / A[c + c * BS];
+        A[c + c * BS] = 1.0;
+        for (int m = 0; m < BS; m++) A[c + m * BS] *= d;
+        for (int r = 0; r < BS; r++) {
+            if (r == c) continue;
+            double f = A[r + c * BS];
+            A[r + c * BS] = 0.0;
+            for (int m = 0; m < BS; m++) A[r + m * BS] -= f * A[c + m * BS];
+        }
+    }
+    for (int c = BS - 1; c >= 0; c--)
+        if (piv[c] != c)
+            for (int r = 0; r < BS; r++) {
+                double tmp = A[r + c * BS]; A[r + c * BS] = A[r + piv[c] * BS];
+                A[r + piv[c] * BS] = tmp;
+            }
+    return 0;
+}
+
+/* ---- the numeric factorisation and the substitutions, for a block size known at compile
+ * time (3: a planar node, 6: a node in 3-D) or any other ---------------------------------- */
+
+static inline int factor_bs(const int BS, int n, const int *ai, const int *aj, const int *diag,
+                            int dir, const int *target, double *V)
+{
+    const int B2 = BS * BS;
+    double L[64];
+    int64_t t = 0;
+    for (int s = 0; s < n; s++) {
+        int i = ROW(s), p0, p1, step;
+        lower_range(dir, ai, diag, i, &p0, &p1, &step);
+        for (int p = p0; p != p1; p += step) {
+            int k = aj[p], q0, q1;
+            block_mul(BS, V + (int64_t)p * B2, V + (int64_t)diag[k] * B2, L);
+            memcpy(V + (int64_t)p * B2, L, sizeof(double) * B2);
+            upper_range(dir, ai, diag, k, &q0, &q1);
+            for (int q = q0; q < q1; q++) {
+                double *C = V + (int64_t)target[t++] * B2, U[64];
+                memcpy(U, V + (int64_t)q * B2, sizeof(double) * B2);
+                block_mulsub(BS, L, U, C);
+            }
+        }
+        if (block_invert(BS, V + (int64_t)diag[i] * B2)) return i + 1;
+    }
+    return 0;
+}
+
+/* x <- L^-1 x over the order positions first..n-1 (the entries before them are read: zero
+ * where x is zero there).  Each row is summed in registers (x's rows may alias, for the
+ * compiler). */
+static inline void forward_bs(const int BS, int n, const int *ai, const int *aj, const int *diag,
+                              int dir, const double *V, int first, double *x)
+{
+    const int B2 = BS * BS;
+    double acc[8];
+    for (int s = first; s < n; s++) {
+        int i = ROW(s), p0, p1, step;
+        double *xi = x + (int64_t)i * BS;
+        for (int r = 0; r < BS; r++) acc[r] = xi[r];
+        lower_range(dir, ai, diag, i, &p0, &p1, &step);
+        for (int p = p0; p != p1; p += step) {
+            const double *A = V + (int64_t)p * B2, *xk = x + (int64_t)aj[p] * BS;
+            for (int c = 0; c < BS; c++)
+                for (int r = 0; r < BS; r++) acc[r] -= A[r + c * BS] * xk[c];
+        }
+        for (int r = 0; r < BS; r++) xi[r] = acc[r];
+    }
+}
+
+/* x <- U^-1 x over the order positions n-1 down to last (those after them only are read) */
+static inline void backward_bs(const int BS, int n, const int *ai, const int *aj, const int *diag,
+                               int dir, const double *V, int last, double *x)
+{
+    const int B2 = BS * BS;
+    double acc[8];
+    for (int s = n - 1; s >= last; s--) {
+        int i = ROW(s), q0, q1;
+        double *xi = x + (int64_t)i * BS;
+        for (int r = 0; r < BS; r++) acc[r] = xi[r];
+        upper_range(dir, ai, diag, i, &q0, &q1);
+        for (int q = q0; q < q1; q++) {
+            const double *A = V + (int64_t)q * B2, *xj = x + (int64_t)aj[q] * BS;
+            for (int c = 0; c < BS; c++)
+                for (int r = 0; r < BS; r++) acc[r] -= A[r + c * BS] * xj[c];
+        }
+        const double *D = V + (int64_t)diag[i] * B2;
+        for (int r = 0; r < BS; r++) {
+            double a = 0.0;
+            for (int c = 0; c < BS; c++) a += D[r + c * BS] * acc[c];
+            xi[r] = a;
+        }
+    }
+}
+
+#define DISPATCH(call3, call6, callany) \
+    do { if (bs == 3) { call3; } else if (bs == 6) { call6; } else { callany; } } while (0)
+
+/* In place: V (the blocks of the block CSR) <- its factors.  Returns 0, the 1-based row of a
+ * singular diagonal block, or -1 for a block size outside 1..8. */
+int rodsnes_chain_factor(int n, int bs, const int *ai, const int *aj, const int *diag, int dir,
+                         const int *target, double *V)
+{
+    if (bs < 1 || bs > 8) return -1;
+    int r;
+    DISPATCH(r = factor_bs(3, n, ai, aj, diag, dir, target, V),
+             r = factor_bs(6, n, ai, aj, diag, dir, target, V),
+             r = factor_bs(bs, n, ai, aj, diag, dir, target, V));
+    return r;
+}
+
+/* x (n bs) <- U^-1 L^-1 x restricted: the forward substitution over the order positions
+ * first..n-1, the backward one over n-1..last.  first = 0, last = 0: the whole solve. */
+int rodsnes_chain_solve(int n, int bs, const int *ai, const int *aj, const int *diag, int dir,
+                        const double *V, int first, int last, double *x)
+{
+    if (bs < 1 || bs > 8) return -1;
+    if (first < n)
+        DISPATCH(forward_bs(3, n, ai, aj, diag, dir, V, first, x),
+                 forward_bs(6, n, ai, aj, diag, dir, V, first, x),
+                 forward_bs(bs, n, ai, aj, diag, dir, V, first, x));
+    if (last < n)
+        DISPATCH(backward_bs(3, n, ai, aj, diag, dir, V, last, x),
+                 backward_bs(6, n, ai, aj, diag, dir, V, last, x),
+                 backward_bs(bs, n, ai, aj, diag, dir, V, last, x));
+    return 0;
+}

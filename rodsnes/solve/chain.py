@@ -1,0 +1,120 @@
+"""The LU of a rank's stretch of a rod, without fill, that gives its inverse's trailing block
+without a whole substitution (schur.RankSchur on several ranks).
+
+An open rod's chain without contact is eliminated in its own node order, or the reversed one,
+with no fill: every block the elimination updates is already in the pattern
+(``ChainLU.plan`` checks it).  rodsnes/solve/_chain_kernel.c factors a SeqBAIJ matrix of such a
+pattern in place of a copy of its values (block LU, each diagonal block inverted with partial
+pivoting inside it, no pivoting between blocks: as PETSc's own BAIJ LU) and solves with the
+factors over a range of the order.
+
+What it is for: in the condensation of schur.py each rank needs A_GN (A_II^-1)_NN A_NG, N the
+few interior rows next to the separator.  PETSc's LU hands out no part of its factors, so that
+block costs a whole forward and backward substitution for each separator unknown (3 on a
+planar rod cut once, 6 in 3-D).  With N last in the order of elimination (the natural order
+where N is the stretch's end, the reversed one where it is its start), A_II^-1 on N is
+U_NN^-1 L_NN^-1: substitutions over the last rows alone (the ``tail``), and one whole solve per
+application, as on one rank.
+"""
+import ctypes
+
+import numpy as np
+
+from rodsnes import compiled, petsc_lib
+from rodsnes.profiling import logged
+
+I32 = np.dtype(np.int32)
+
+
+def _declare(lib):
+    i32, f64, c_int = I32, compiled.F64, ctypes.c_int
+    plan = compiled.Foreign(lib.rodsnes_chain_plan,
+                            [c_int, i32, i32, c_int, i32, ctypes.c_void_p, ctypes.c_int64],
+                            ctypes.c_int64)
+    factor = compiled.Foreign(lib.rodsnes_chain_factor,
+                              [c_int, c_int, i32, i32, i32, c_int, i32, f64], c_int)
+    solve = compiled.Foreign(lib.rodsnes_chain_solve,
+                             [c_int, c_int, i32, i32, i32, c_int, f64, c_int, c_int, f64], c_int)
+    return plan, factor, solve
+
+
+_load = compiled.loader("rodsnes.solve._chain_kernel", _declare)
+
+
+def available():
+    """True when the compiled kernel is built and loads."""
+    return bool(_load())
+
+
+class ChainLU:
+    """The LU without fill of a SeqBAIJ matrix of block CSR (ai, aj) and block size bs,
+    eliminated in the natural order (direction +1) or the reversed one (-1).  Made by
+    ``ChainLU.plan``; factor() at every new set of values, solve() after."""
+
+    def __init__(self, ai, aj, bs, direction, diag, target, out):
+        self.ai, self.aj, self.bs, self.dir = ai, aj, bs, direction
+        self.n = len(ai) - 1
+        self.diag, self.target = diag, target
+        self.values = np.empty(int(ai[-1]) * bs * bs)
+        self.failed_row = None
+        # the block rows taken out: the places made zero (their rows' and columns' other
+        # blocks) and the identity (their diagonal blocks) in the copy
+        rows = np.repeat(np.arange(self.n), np.diff(ai))
+        hit = np.isin(rows, out) | np.isin(aj, out)
+        self.zero = np.flatnonzero(hit & (rows != aj))
+        self.unit = diag[np.asarray(out, dtype=np.int64)]
+
+    @classmethod
+    def plan(cls, ai, aj, bs, direction, out=()):
+        """The ChainLU of that pattern, or None when its elimination in that direction would
+        fill (or a row has no diagonal block, or the kernel is not built).  ``out``: block
+        rows taken out of the system (their rows and columns the identity's at every
+        factorisation: a separator's, schur.py)."""
+        fns = _load()
+        if not fns:
+            return None
+        plan = fns[0]
+        ai = np.ascontiguousarray(ai, dtype=I32)
+        aj = np.ascontiguousarray(aj, dtype=I32)
+        n = len(ai) - 1
+        diag = np.empty(n, dtype=I32)
+        count = plan(n, ai, aj, int(direction), diag, None, 0)
+        if count < 0:
+            return None
+        target = np.empty(max(count, 1), dtype=I32)
+        plan(n, ai, aj, int(direction), diag, target.ctypes.data, count)
+        return cls(ai, aj, bs, int(direction), diag, target, out)
+
+    def order_position(self, rows):
+        """Where the block rows ``rows`` come in the order of elimination (and the rows at the
+        order positions ``rows``: the map is its own inverse)."""
+        rows = np.asarray(rows)
+        return rows if self.dir > 0 else self.n - 1 - rows
+
+    @logged("ChainFactor")
+    def factor(self, mat=None, values=None):
+        """Factor the values of the SeqBAIJ ``mat`` (or the array ``values``), the rows taken
+        out made the identity's in the copy.  Returns False at a singular diagonal block
+        (``failed_row``: its row)."""
+        fns = _load()
+        v = self.values
+        if mat is not None:
+            with petsc_lib.values_of(mat) as ptr:
+                ctypes.memmove(v.ctypes.data, ptr, v.nbytes)
+        else:
+            v[:] = values
+        blocks = v.reshape(-1, self.bs * self.bs)
+        blocks[self.zero] = 0.0
+        blocks[self.unit] = np.eye(self.bs).ravel()
+        code = fns[1](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.target, v)
+        self.failed_row = None if code == 0 else code - 1
+        return code == 0
+
+    @logged("ChainSolve")
+    def solve(self, x, first=0, last=0):
+        """x <- A^-1 x in place (x: n bs values, contiguous), restricted: the forward
+        substitution over the order positions first..n-1, the backward one over n-1..last
+        (first = n: none; last = n: none)."""
+        _load()[2](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.values,
+                   int(first), int(last), x)
+        return x

@@ -1,0 +1,156 @@
+"""The LU without fill of a rank's stretch (rodsnes/solve/chain.py): against dense LU on
+random chains of cubic elements, block sizes 3 and 6, both directions of elimination; the
+substitutions over the last rows give the inverse's trailing block; a pattern that fills, a
+singular block, the separator taken out."""
+import numpy as np
+import pytest
+from petsc4py import PETSc
+
+from rodsnes.solve import chain
+
+pytestmark = pytest.mark.skipif(not chain.available(), reason="chain kernel not built")
+
+
+def _chain_matrix(ne, bs, order=3, closed=False, seed=0, pivoting=False):
+    """A SeqBAIJ matrix of ne elements of order+1 nodes (a chain, or a ring), random
+    non-symmetric element blocks, diagonally dominant enough to factor without pivoting
+    between blocks; with ``pivoting`` every node's first two rows swapped and the first
+    diagonal entry zero (the first pivot block of either order has a zero first pivot: the
+    block's own partial pivoting needed).  Returns (PETSc matrix, dense copy)."""
+    rng = np.random.default_rng(seed)
+    nn = order * ne + (0 if closed else 1)
+    conn = (np.arange(ne)[:, None] * order + np.arange(order + 1)) % nn
+    k = (order + 1) * bs
+    dense = np.zeros((nn * bs, nn * bs))
+    for e in range(ne):
+        M = rng.standard_normal((k, k))
+        K = M @ M.T + k * np.eye(k) + 0.5 * rng.standard_normal((k, k))
+        idx = (conn[e][:, None] * bs + np.arange(bs)).ravel()
+        dense[np.ix_(idx, idx)] += K
+    if pivoting:        # swap the first two rows of every node's block row
+        for a in range(nn):
+            r = a * bs
+            dense[[r, r + 1]] = dense[[r + 1, r]]
+            dense[r, r] = 0.0
+    A = PETSc.Mat().createBAIJ((nn * bs, nn * bs), bs, nnz=2 * order + 1, comm=PETSc.COMM_SELF)
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    for e in range(ne):
+        c = conn[e].astype(PETSc.IntType)
+        idx = (conn[e][:, None] * bs + np.arange(bs)).ravel()
+        A.setValuesBlocked(c, c, dense[np.ix_(idx, idx)].ravel(), addv=PETSc.InsertMode.INSERT)
+    A.assemble()
+    return A, dense
+
+
+def _plan(A, direction):
+    ai, aj = A.getRowIJ(compressed=True)
+    return chain.ChainLU.plan(ai, aj, A.getBlockSize(), direction)
+
+
+@pytest.mark.parametrize("bs", [3, 6, 2])
+@pytest.mark.parametrize("direction", [1, -1])
+def test_the_chain_lu_solves_as_dense_lu(bs, direction):
+    A, dense = _chain_matrix(12, bs, seed=bs)
+    lu = _plan(A, direction)
+    assert lu is not None and lu.factor(A)
+    b = np.random.default_rng(1).standard_normal(dense.shape[0])
+    x = lu.solve(b.copy())
+    ref = np.linalg.solve(dense, b)
+    assert np.abs(x - ref).max() <= 1e-12 * np.abs(ref).max()
+    # the values were copied: the matrix keeps its own
+    assert np.array_equal(A.convert("dense").getDenseArray(), dense)
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_each_block_is_inverted_with_partial_pivoting(direction):
+    """Every diagonal block with a zero first pivot: still the dense solution."""
+    A, dense = _chain_matrix(6, 3, seed=3, pivoting=True)
+    lu = _plan(A, direction)
+    assert lu.factor(A)
+    b = np.arange(dense.shape[0], dtype=float)
+    assert np.allclose(lu.solve(b.copy()), np.linalg.solve(dense, b), rtol=1e-11, atol=0)
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_the_tail_substitutions_give_the_inverses_trailing_block(direction):
+    """The substitutions over the order positions t..n-1 of a vector zero outside them: the
+    forward one and the backward one give A^-1's block on those rows (what RankSchur uses
+    next to the separator), and a forward one alone L^-1 there."""
+    bs = 3
+    A, dense = _chain_matrix(10, bs, seed=5)
+    lu = _plan(A, direction)
+    assert lu.factor(A)
+    n = lu.n
+    t = n - 4
+    rows = np.sort(lu.order_position(np.arange(t, n)))
+    idx = (rows[:, None] * bs + np.arange(bs)).ravel()
+    inv = np.linalg.inv(dense)
+    for j, col in enumerate(idx):
+        w = np.zeros(n * bs)
+        w[col] = 1.0
+        lu.solve(w, t, t)
+        assert np.abs(w[idx] - inv[idx, col]).max() <= 1e-12 * np.abs(inv).max()
+    # whole forward then the tail's backward: A^-1 b on the tail, the rest untouched
+    b = np.random.default_rng(2).standard_normal(n * bs)
+    z = lu.solve(b.copy(), 0, n)
+    w = np.zeros(n * bs)
+    w[idx] = z[idx]
+    lu.solve(w, n, t)
+    assert np.allclose(w[idx], np.linalg.solve(dense, b)[idx], rtol=1e-11, atol=1e-13)
+
+
+def test_a_pattern_that_fills_or_lacks_a_diagonal_has_no_chain_lu():
+    """A ring's closing element couples the first and last nodes: eliminated in either
+    order it fills, so no ChainLU (PETSc's LU then, with AMD)."""
+    A, _ = _chain_matrix(6, 3, closed=True)
+    assert _plan(A, 1) is None and _plan(A, -1) is None
+    ai, aj = A.getRowIJ(compressed=True)
+    keep = np.ones(len(aj), dtype=bool)
+    keep[ai[2]:ai[3]] = aj[ai[2]:ai[3]] != 2            # row 2 without its diagonal block
+    ai2 = np.concatenate([[0], np.cumsum([keep[ai[i]:ai[i + 1]].sum()
+                                          for i in range(len(ai) - 1)])])
+    assert chain.ChainLU.plan(ai2, aj[keep], 3, 1) is None
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_a_singular_block_fails_the_factorisation(direction):
+    """A node whose rows and columns are zero: its diagonal block is singular at its turn,
+    factor() says so and names its row."""
+    A, _ = _chain_matrix(4, 3, seed=7)
+    lu = _plan(A, direction)
+    ai, aj = A.getRowIJ(compressed=True)
+    rows = np.repeat(np.arange(len(ai) - 1), np.diff(ai))
+    values = _values(A)
+    assert lu.factor(values=values)
+    values.reshape(-1, 9)[(rows == 5) | (aj == 5)] = 0.0
+    assert not lu.factor(values=values) and lu.failed_row == 5
+
+
+def _values(A):
+    """The SeqBAIJ matrix's value array (blocks column by column), a copy."""
+    bs = A.getBlockSize()
+    ai, aj = A.getRowIJ(compressed=True)
+    rows = np.repeat(np.arange(len(ai) - 1), np.diff(ai))
+    d = A.convert("dense").getDenseArray()
+    out = np.empty((len(aj), bs, bs))
+    for p, (i, j) in enumerate(zip(rows, aj)):
+        out[p] = d[i * bs:(i + 1) * bs, j * bs:(j + 1) * bs].T     # column by column
+    return out.ravel()
+
+
+def test_the_separator_taken_out():
+    """Block rows ``out`` taken out: the solve of the matrix with node s's rows and columns
+    those of the identity, the matrix itself unchanged."""
+    bs, s = 3, 7
+    A, dense = _chain_matrix(6, bs, seed=11)
+    ai, aj = A.getRowIJ(compressed=True)
+    lu = chain.ChainLU.plan(ai, aj, bs, 1, out=[s])
+    assert lu.factor(A)
+    ref = dense.copy()
+    idx = np.arange(s * bs, (s + 1) * bs)
+    ref[idx, :] = 0.0
+    ref[:, idx] = 0.0
+    ref[idx, idx] = 1.0
+    b = np.random.default_rng(4).standard_normal(dense.shape[0])
+    assert np.allclose(lu.solve(b.copy()), np.linalg.solve(ref, b), rtol=1e-11, atol=1e-13)
+    assert np.array_equal(A.convert("dense").getDenseArray(), dense)
