@@ -78,13 +78,26 @@ def values_of(mat):
     """The address of the value array of the sequential BAIJ or SBAIJ matrix ``mat`` (its
     blocks in the order of its block CSR, each bs x bs column by column), for the with
     block (MatSeqBAIJGetArray ... RestoreArray).  The caller assembles the matrix after."""
-    get, restore = _ARRAY[mat.getType()]
+    with values_at(mat.handle, mat.getType()) as ptr:
+        yield ptr
+
+
+@contextlib.contextmanager
+def values_at(handle, kind):
+    """values_of for the matrix of PETSc handle ``handle`` and type ``kind``: for an object
+    kept in the matrix's own attributes (setAttr), which must not hold a petsc4py wrapper of
+    it - the cyclic garbage collector sees the attributes' dict through every wrapper (petsc4py
+    traverses it) and, in a collection that leaves out the older wrapper that keeps the matrix,
+    takes the dict, the object and the wrapper for an unreachable cycle and clears the dict:
+    every attribute of the matrix gone (a split matrix taken for a block-6 one: a traceback in
+    the bench coil, 1000 elements)."""
+    get, restore = _ARRAY[kind]
     ptr = ctypes.c_void_p()
-    call(get, mat.handle, ctypes.byref(ptr))
+    call(get, handle, ctypes.byref(ptr))
     try:
         yield ptr.value
     finally:
-        call(restore, mat.handle, ctypes.byref(ptr))
+        call(restore, handle, ctypes.byref(ptr))
 
 
 def nonzero_state(mat):

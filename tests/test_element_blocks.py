@@ -223,3 +223,27 @@ def test_not_for_aij_nor_without_the_kernel(monkeypatch):
                                                                dtype=PETSc.IntType), 3) is None
     monkeypatch.setattr(assembly, "available", lambda: False)
     assert assembly.element_blocks(baij, touch, G, 3) is None
+
+
+def test_the_kept_places_survive_the_garbage_collector():
+    """The places are kept in the matrix's attributes; they hold no wrapper of the matrix: the
+    cyclic garbage collector sees the attributes' dict through every petsc4py wrapper, and a
+    collection of the young objects alone took the dict, the places and a short-lived wrapper
+    (the SNES callback's) for an unreachable cycle and cleared the dict, every attribute of the
+    matrix with it (the split marker: a traceback in the bench coil)."""
+    import gc
+    bs, n = 3, 7
+    G = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1).astype(PETSc.IntType)
+    A = small_baij(bs, False)
+    A.setAttr("marker", True)
+    gc.collect()                                # A's wrapper among the old objects
+    ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+    ksp.setOperators(A)
+    other = ksp.getOperators()[0]               # a second wrapper, as a callback's
+    blocks = assembly.element_blocks(other, Touched(n, hit=[]), G, bs)
+    assert blocks is not None
+    del other, blocks
+    ksp.destroy()
+    gc.collect(0)
+    gc.collect(1)
+    assert A.getAttr("marker") is True and A.getAttr(assembly.ATTR) is not None

@@ -88,7 +88,10 @@ class ElementBlocks:
     Of a split matrix a group of k nodes is one of 2k blocks (position, rotation of each)."""
 
     def __init__(self, mat, seq, groups, touched, split, upper, state):
-        self.seq, self.groups, self.touched, self.state = seq, groups, touched, state
+        # seq's handle and type, not seq: kept in mat's attributes, a wrapper of it would make
+        # a cycle the garbage collector clears (petsc_lib.values_at)
+        self.seq = (seq.handle, seq.getType())
+        self.groups, self.touched, self.state = groups, touched, state
         bs = mat.getBlockSize()
         lo, hi = (r // bs for r in mat.getOwnershipRange())
         G = np.asarray(groups, dtype=np.int64)
@@ -126,7 +129,7 @@ class ElementBlocks:
         if V.shape != (b - a, kb, kb) or not 0 <= a <= b <= len(self.pos):
             raise ValueError(f"tangents {V.shape} for groups {a}..{b}: ({b - a}, {kb}, {kb}) "
                              "expected")
-        with petsc_lib.values_of(self.seq) as ptr:
+        with petsc_lib.values_at(*self.seq) as ptr:
             if _load()(ptr, self.pos[a:b], V, b - a, self.k, self.bs):
                 raise ValueError(f"block size {self.bs}: the assembly kernel has 3 and 6")
         lo, hi = np.searchsorted(self.rest, (a, b))
