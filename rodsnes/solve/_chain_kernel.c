@@ -4,7 +4,7 @@
  * The matrix is a block CSR (n block rows, row pointers ai, sorted block columns aj, values V:
  * bs x bs blocks stored column by column, as PETSc's BAIJ) whose elimination in the natural
  * order (dir = +1) or the reversed one (dir = -1) makes no fill: an open rod's chain.  The
- * factors overwrite V in place: the multipliers L_ik = A_ik D_k^-1 at the places of the blocks
+ * factors go to V, each row copied from the matrix's values as its turn comes: the multipliers L_ik = A_ik D_k^-1 at the places of the blocks
  * eliminated before their row ("lower"), the updated blocks after them ("upper"), and each
  * diagonal block inverted (partial pivoting inside the block; no pivoting between blocks, as
  * PETSc's own BAIJ LU).  Order position s holds row s (dir +1) or n - 1 - s (dir -1).
@@ -137,13 +137,24 @@ static inline int block_invert(const int BS, double *A)
  * time (3: a planar node, 6: a node in 3-D) or any other ---------------------------------- */
 
 static inline int factor_bs(const int BS, int n, const int *ai, const int *aj, const int *diag,
-                            int dir, const int *target, double *V)
+                            int dir, const int *target, const double *A, const signed char *kind,
+                            double *V)
 {
     const int B2 = BS * BS;
     double L[64];
     int64_t t = 0;
     for (int s = 0; s < n; s++) {
         int i = ROW(s), p0, p1, step;
+        /* the row's values copied in just before its elimination (which changes this row
+         * alone): one pass over the matrix, the row then in cache */
+        for (int p = ai[i]; p < ai[i + 1]; p++) {
+            double *v = V + (int64_t)p * B2;
+            if (kind[p] == 0) memcpy(v, A + (int64_t)p * B2, sizeof(double) * B2);
+            else {
+                memset(v, 0, sizeof(double) * B2);
+                if (kind[p] == 2) for (int r = 0; r < BS; r++) v[r + r * BS] = 1.0;
+            }
+        }
         lower_range(dir, ai, diag, i, &p0, &p1, &step);
         for (int p = p0; p != p1; p += step) {
             int k = aj[p], q0, q1;
@@ -211,16 +222,17 @@ static inline void backward_bs(const int BS, int n, const int *ai, const int *aj
 #define DISPATCH(call3, call6, callany) \
     do { if (bs == 3) { call3; } else if (bs == 6) { call6; } else { callany; } } while (0)
 
-/* In place: V (the blocks of the block CSR) <- its factors.  Returns 0, the 1-based row of a
- * singular diagonal block, or -1 for a block size outside 1..8. */
+/* V <- the factors of the blocks A of the block CSR, each block taken as it is (kind 0), as
+ * zero (1) or as the identity (2: a row taken out).  Returns 0, the 1-based row of a singular
+ * diagonal block, or -1 for a block size outside 1..8. */
 int rodsnes_chain_factor(int n, int bs, const int *ai, const int *aj, const int *diag, int dir,
-                         const int *target, double *V)
+                         const int *target, const double *A, const signed char *kind, double *V)
 {
     if (bs < 1 || bs > 8) return -1;
     int r;
-    DISPATCH(r = factor_bs(3, n, ai, aj, diag, dir, target, V),
-             r = factor_bs(6, n, ai, aj, diag, dir, target, V),
-             r = factor_bs(bs, n, ai, aj, diag, dir, target, V));
+    DISPATCH(r = factor_bs(3, n, ai, aj, diag, dir, target, A, kind, V),
+             r = factor_bs(6, n, ai, aj, diag, dir, target, A, kind, V),
+             r = factor_bs(bs, n, ai, aj, diag, dir, target, A, kind, V));
     return r;
 }
 

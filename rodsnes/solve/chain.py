@@ -24,6 +24,7 @@ from rodsnes import compiled, petsc_lib
 from rodsnes.profiling import logged
 
 I32 = np.dtype(np.int32)
+I8 = np.dtype(np.int8)
 
 
 def _declare(lib):
@@ -32,7 +33,8 @@ def _declare(lib):
                             [c_int, i32, i32, c_int, i32, ctypes.c_void_p, ctypes.c_int64],
                             ctypes.c_int64)
     factor = compiled.Foreign(lib.rodsnes_chain_factor,
-                              [c_int, c_int, i32, i32, i32, c_int, i32, f64], c_int)
+                              [c_int, c_int, i32, i32, i32, c_int, i32, ctypes.c_void_p, I8,
+                               f64], c_int)
     solve = compiled.Foreign(lib.rodsnes_chain_solve,
                              [c_int, c_int, i32, i32, i32, c_int, f64, c_int, c_int, f64], c_int)
     return plan, factor, solve
@@ -57,12 +59,12 @@ class ChainLU:
         self.diag, self.target = diag, target
         self.values = np.empty(int(ai[-1]) * bs * bs)
         self.failed_row = None
-        # the block rows taken out: the places made zero (their rows' and columns' other
-        # blocks) and the identity (their diagonal blocks) in the copy
+        # how each block enters the factorisation: as it is (0), or, for the block rows taken
+        # out, zero (1: their rows' and columns' other blocks) and the identity (2: their
+        # diagonal blocks)
         rows = np.repeat(np.arange(self.n), np.diff(ai))
         hit = np.isin(rows, out) | np.isin(aj, out)
-        self.zero = np.flatnonzero(hit & (rows != aj))
-        self.unit = diag[np.asarray(out, dtype=np.int64)]
+        self.kind = np.where(hit, np.where(rows == aj, 2, 1), 0).astype(I8)
 
     @classmethod
     def plan(cls, ai, aj, bs, direction, out=()):
@@ -93,20 +95,23 @@ class ChainLU:
 
     @logged("ChainFactor")
     def factor(self, mat=None, values=None):
-        """Factor the values of the SeqBAIJ ``mat`` (or the array ``values``), the rows taken
-        out made the identity's in the copy.  Returns False at a singular diagonal block
+        """Factor the values of the SeqBAIJ ``mat`` (or the array ``values``, blocks column by
+        column), the rows taken out made the identity's (the matrix itself unchanged: each
+        row is copied as its turn comes).  Returns False at a singular diagonal block
         (``failed_row``: its row)."""
         fns = _load()
-        v = self.values
+
+        def run(source):
+            return fns[1](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.target,
+                          source, self.kind, self.values)
         if mat is not None:
             with petsc_lib.values_of(mat) as ptr:
-                ctypes.memmove(v.ctypes.data, ptr, v.nbytes)
+                code = run(ptr)
         else:
-            v[:] = values
-        blocks = v.reshape(-1, self.bs * self.bs)
-        blocks[self.zero] = 0.0
-        blocks[self.unit] = np.eye(self.bs).ravel()
-        code = fns[1](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.target, v)
+            values = np.ascontiguousarray(values, dtype=np.float64)
+            if values.shape != self.values.shape:
+                raise ValueError(f"{values.shape} values: {self.values.shape} expected")
+            code = run(values.ctypes.data)
         self.failed_row = None if code == 0 else code - 1
         return code == 0
 
