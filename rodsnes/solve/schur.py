@@ -30,8 +30,8 @@ identity's in the copy).  As A_IG has entries on the rows N only and N comes las
 substitutions over the last few rows (the ``tail``) instead of a whole substitution for each
 separator unknown, and the application is one forward and one backward substitution, the
 tail's in between: z = L^-1 b_I; y_N = U^-1 z on the tail; x_G; z -= L^-1 A_IG x_G on the
-tail; x_I = U^-1 z.  The planar cantilever at 10^4 elements on 2 ranks: 17.3 -> 14.8 ms an
-iteration; in 3-D 51.4 -> 39.1 ms (docs/parallel.md).  Against PCREDUNDANT,
+tail; x_I = U^-1 z.  The planar cantilever at 10^4 elements on 2 ranks: 17.3 -> 14.5 ms an
+iteration; in 3-D 51.4 -> 38.8 ms (docs/parallel.md).  Against PCREDUNDANT,
 where every rank gathers the whole matrix and factors all of it, each rank factors only its
 share (the planar cantilever at 10^4 elements on 2 ranks: docs/parallel.md).
 
