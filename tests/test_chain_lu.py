@@ -63,7 +63,7 @@ def test_the_chain_lu_solves_as_dense_lu(bs, direction):
 
 @pytest.mark.parametrize("direction", [1, -1])
 def test_each_block_is_inverted_with_partial_pivoting(direction):
-    """Every diagonal block with a zero first pivot: still the dense solution."""
+    """The first pivot block of the order with a zero first pivot: still the dense solution."""
     A, dense = _chain_matrix(6, 3, seed=3, pivoting=True)
     lu = _plan(A, direction)
     assert lu.factor(A)
@@ -90,6 +90,26 @@ def test_the_tail_substitutions_give_the_inverses_trailing_block(direction):
         w[col] = 1.0
         lu.solve(w, t, t)
         assert np.abs(w[idx] - inv[idx, col]).max() <= 1e-12 * np.abs(inv).max()
+    # the forward substitution alone over the tail: L^-1 on it (L of the dense block LU without
+    # pivoting in the same order, unit diagonal blocks, of the vector zero outside the tail);
+    # then the backward one: the same as both in one call
+    perm = (lu.order_position(np.arange(n))[:, None] * bs + np.arange(bs)).ravel()
+    Up = dense[np.ix_(perm, perm)].copy()
+    Lp = np.eye(len(Up))
+    for c in range(n - 1):              # block Doolittle in the order's numbering
+        k = slice(c * bs, (c + 1) * bs)
+        below = slice((c + 1) * bs, None)
+        Lp[below, k] = Up[below, k] @ np.linalg.inv(Up[k, k])
+        Up[below] -= Lp[below, k] @ Up[k]
+    v = np.zeros(n * bs)
+    v[idx] = np.random.default_rng(3).standard_normal(len(idx))
+    want = np.linalg.solve(Lp, v[perm])
+    w = v.copy()
+    lu.solve(w, t, n)
+    assert np.allclose(w[perm], want, rtol=1e-11, atol=1e-12 * np.abs(want).max())
+    lu.solve(w, n, t)
+    both = lu.solve(v.copy(), t, t)
+    assert np.array_equal(w, both)
     # whole forward then the tail's backward: A^-1 b on the tail, the rest untouched
     b = np.random.default_rng(2).standard_normal(n * bs)
     z = lu.solve(b.copy(), 0, n)
@@ -138,13 +158,15 @@ def _values(A):
     return out.ravel()
 
 
-def test_the_separator_taken_out():
-    """Block rows ``out`` taken out: the solve of the matrix with node s's rows and columns
-    those of the identity, the matrix itself unchanged."""
-    bs, s = 3, 7
+@pytest.mark.parametrize("direction,s", [(1, 7), (-1, 7), (1, 17), (-1, 0)])
+def test_the_separator_taken_out(direction, s):
+    """Block rows ``out`` taken out, in the middle or at the end of the order (where a rank's
+    separator node sits): the solve of the matrix with node s's rows and columns those of the
+    identity, the matrix itself unchanged."""
+    bs = 3
     A, dense = _chain_matrix(6, bs, seed=11)
     ai, aj = A.getRowIJ(compressed=True)
-    lu = chain.ChainLU.plan(ai, aj, bs, 1, out=[s])
+    lu = chain.ChainLU.plan(ai, aj, bs, direction, out=[s])
     assert lu.factor(A)
     ref = dense.copy()
     idx = np.arange(s * bs, (s + 1) * bs)
@@ -154,3 +176,52 @@ def test_the_separator_taken_out():
     b = np.random.default_rng(4).standard_normal(dense.shape[0])
     assert np.allclose(lu.solve(b.copy()), np.linalg.solve(ref, b), rtol=1e-11, atol=1e-13)
     assert np.array_equal(A.convert("dense").getDenseArray(), dense)
+
+
+@pytest.mark.parametrize("bs", [3, 6])
+@pytest.mark.parametrize("direction", [1, -1])
+@pytest.mark.parametrize("shift", [0.0, 30.0, 60.0])
+def test_the_pivot_blocks_count_a_symmetric_matrixs_negative_eigenvalues(bs, direction, shift):
+    """A symmetric chain shifted down by ``shift`` (0 to a few dozen negative eigenvalues): the
+    negative eigenvalues of the pivot blocks add up to the matrix's (numpy's eigvalsh)."""
+    A, dense = _chain_matrix(10, bs, seed=20 + bs)
+    sym = 0.5 * (dense + dense.T)
+    sym -= shift * np.eye(len(sym))
+    ai, aj = A.getRowIJ(compressed=True)
+    lu = chain.ChainLU.plan(ai, aj, bs, direction)
+    assert lu.factor(values=_values_of_dense(sym, ai, aj, bs), inertia=True)
+    want = int((np.linalg.eigvalsh(sym) < 0).sum())
+    assert lu.negative == want
+    assert (shift == 0.0) == (want == 0)
+    assert lu.factor(values=_values_of_dense(sym, ai, aj, bs)) and lu.negative is None
+
+
+def _values_of_dense(dense, ai, aj, bs):
+    """The block CSR (ai, aj) values of ``dense`` (blocks column by column)."""
+    rows = np.repeat(np.arange(len(ai) - 1), np.diff(ai))
+    out = np.empty((len(aj), bs, bs))
+    for p, (i, j) in enumerate(zip(rows, aj)):
+        out[p] = dense[i * bs:(i + 1) * bs, j * bs:(j + 1) * bs].T
+    return out.ravel()
+
+
+@pytest.mark.parametrize("bs", [2, 3, 6, 8])
+def test_a_pivot_blocks_inertia_with_bunch_kaufman_pivots(bs):
+    """One block (a chain of one node): its negative eigenvalues by its own LDL^T with
+    Bunch-Kaufman pivoting, for random symmetric blocks with a zero diagonal (2 x 2 pivots
+    needed), indefinite ones and definite ones of either sign (numpy's eigvalsh)."""
+    rng = np.random.default_rng(bs)
+    ai, aj = np.array([0, 1]), np.array([0])
+    lu = chain.ChainLU.plan(ai, aj, bs, 1)
+    for trial in range(200):
+        M = rng.standard_normal((bs, bs))
+        M = M + M.T
+        kind = trial % 4
+        if kind == 0:
+            np.fill_diagonal(M, 0.0)
+        elif kind == 2:
+            M = M @ M.T + 0.1 * np.eye(bs)
+        elif kind == 3:
+            M = -(M @ M.T) - 0.1 * np.eye(bs)
+        assert lu.factor(values=M.T.ravel(), inertia=True)
+        assert lu.negative == int((np.linalg.eigvalsh(M) < 0).sum()), (trial, M)

@@ -5,6 +5,7 @@ import os
 
 import numpy as np
 import pytest
+from petsc4py import PETSc
 
 from rodsnes.model import elastic, so3
 from conftest import gathered_positions, inertia_solve, place, run_case
@@ -88,7 +89,10 @@ def test_stability_count_by_the_kept_ldlt_equals_a_fresh_factorisation():
         assert stability.negative_eigenvalues(p) == want
         assert stability.negative_eigenvalues_scaled(p) == want
         inertia = p.inertia
-        assert "sbaij" in inertia.H.getType()
+        if PETSc.COMM_WORLD.getSize() == 1:     # one rank: the chain LDL^T, every count
+            assert inertia.H.getType() == "seqbaij" and inertia.chain_counts == inertia.counts
+        else:
+            assert "sbaij" in inertia.H.getType() and inertia.chain_counts == 0
         assert inertia.builds == 1 and inertia.counts >= len(run.solver.results) + 1
 
 
@@ -116,8 +120,9 @@ def test_the_kept_ldlt_follows_a_new_contact_pattern():
 
 
 @pytest.mark.mpi
-def test_a_small_hessian_is_factored_whole_on_every_rank():
-    """On several ranks a Hessian of at most Inertia.REDUNDANT_MAX unknowns is factored whole
+def test_a_small_hessian_is_factored_whole_on_every_rank(monkeypatch):
+    """(MUMPS's paths: on one rank the chain LDL^T would count.)  On several ranks a Hessian of
+    at most Inertia.REDUNDANT_MAX unknowns is factored whole
     on every rank (sequential MUMPS LDL^T of the gathered matrix: reproducible bit for bit,
     where MUMPS over the ranks is not); its count and solve equal those of MUMPS over the ranks
     (REDUNDANT_MAX 0) on the Euler column at 1.2 P_cr held straight (two negative modes): both
@@ -129,6 +134,7 @@ def test_a_small_hessian_is_factored_whole_on_every_rank():
                    load_steps=4)
     p = run.problem
     size = p.layout.comm.getSize()
+    monkeypatch.setattr(Inertia, "_chain_applies", lambda self: False)
     whole, spread = Inertia(p), Inertia(p)
     spread.REDUNDANT_MAX = 0
     xs = []
@@ -160,7 +166,9 @@ def test_the_stability_ldlt_is_ordered_as_the_newton_steps_mumps(user):
     from petsc4py import PETSc
     from conftest import build_run
     from rodsnes.solve.stability import Inertia
-    kw = {} if user is None else {"stability_mat_mumps_icntl_7": user}
+    # MUMPS asked for (on one rank the chain LDL^T counts otherwise)
+    kw = {"stability_pc_factor_mat_solver_type": "mumps"} if user is None else \
+        {"stability_mat_mumps_icntl_7": user}
     p = build_run("mattiasson", rod_nelem=40, rod_planar="off", **kw).problem
     p.set_load(0.5)
     inertia = Inertia(p)
@@ -170,3 +178,30 @@ def test_the_stability_ldlt_is_ordered_as_the_newton_steps_mumps(user):
     assert inertia.pc.getFactorMatrix().getMumpsIcntl(7) == want
     inertia.destroy()
     PETSc.Options().delValue("stability_mat_mumps_icntl_7")
+    PETSc.Options().delValue("stability_pc_factor_mat_solver_type")
+
+
+def test_one_rank_counts_by_the_chain_ldlt_and_hands_an_unstable_one_to_mumps(monkeypatch):
+    """On one rank an open rod without contact has its Hessian counted by the chain LDL^T
+    (chain.py: the pivot blocks' inertias; Inertia.chain_counts), the count taken where its
+    factors solve at round-off (Inertia.backward), and its factors serve solve(); with the
+    backward error bound at 0 every count goes to MUMPS on an AIJ copy, the same counts and a
+    solve as accurate.  The Euler column at 1.2 P_cr held straight: two negative modes."""
+    from rodsnes.solve import stability
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank")
+    p = run_case("euler", rod_imperfection=0.0, load_path="newton", rod_planar="off",
+                 load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4), load_steps=4).problem
+    counts = {}
+    for bound in (stability.Inertia.CHAIN_BACKWARD, 0.0):
+        monkeypatch.setattr(stability.Inertia, "CHAIN_BACKWARD", bound)
+        inertia = stability.Inertia(p)
+        inertia.assemble()
+        counts[bound] = inertia.factor()
+        assert inertia.H.getType() == "seqbaij" and inertia.chain is not None
+        assert inertia.chain_counts == (1 if bound else 0)
+        assert (inertia.backward <= 1e-14) and inertia.by_chain == bool(bound)
+        inertia_solve(inertia, 1e-12)
+        inertia.destroy()
+    assert list(counts.values()) == [2, 2]
+    assert stability.negative_eigenvalues_scaled(p) == 2

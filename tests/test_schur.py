@@ -251,13 +251,15 @@ def test_the_planar_cantilever_by_condensation_is_the_serial_run(monkeypatch):
 
 
 @pytest.mark.mpi
-def test_a_failed_interior_fails_on_every_rank(monkeypatch):
+@pytest.mark.parametrize("tail_max", [schur.CHAIN_TAIL_MAX, -1])
+def test_a_failed_interior_fails_on_every_rank(tail_max, monkeypatch):
     """An interior factorisation that fails on one rank (a NaN in its block): the solution is
     NaN on every rank (the Newton step fails as a failed LU does), and no rank waits for
-    another."""
+    another.  By the chain LU and by PETSc's LU (CHAIN_TAIL_MAX < 0)."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
     monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)
+    monkeypatch.setattr(schur, "CHAIN_TAIL_MAX", tail_max)
     run = build_run("mattiasson", rod_nelem=40, rod_planar="off")
     A, b, _ = _system(run)
     lo, hi = A.getOwnershipRange()
@@ -296,12 +298,16 @@ def _check(ksp, A, p):
 @pytest.mark.mpi
 @pytest.mark.parametrize("case,kw", [("mattiasson", dict(rod_nelem=60, rod_planar="off")),
                                      ("michell", dict(rod_nelem=48))])
-def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
+@pytest.mark.parametrize("tail_max", [schur.CHAIN_TAIL_MAX, -1])
+def test_the_condensed_solve_follows_new_values(case, kw, tail_max, monkeypatch):
     """On 2 or 3 ranks (on the chain some rank owns no separator node, its interior is its
     diagonal block itself; on the ring every rank owns one): the condensed solve equals the LU's for the first
     Jacobian, for a re-assembled one at another state (zeroEntries and ADD_VALUES), and for
     entries added without zeroEntries (ADD_VALUES then assembly, separator rows included); the
-    interior is the diagonal block each time (no copy)."""
+    interior is the diagonal block each time (PETSc's LU: no copy; the chain LU copies its
+    values at each factorisation).  By the chain LU where it applies and by PETSc's LU
+    (CHAIN_TAIL_MAX < 0)."""
+    monkeypatch.setattr(schur, "CHAIN_TAIL_MAX", tail_max)
     comm = PETSc.COMM_WORLD
     p = _condensed_problem(monkeypatch, case, **kw)
     A = p.J
@@ -335,10 +341,13 @@ def test_the_condensed_solve_follows_new_values(case, kw, monkeypatch):
 
 
 @pytest.mark.mpi
-def test_the_condensed_solve_recovers_after_a_failed_interior(monkeypatch):
+@pytest.mark.parametrize("tail_max", [schur.CHAIN_TAIL_MAX, -1])
+def test_the_condensed_solve_recovers_after_a_failed_interior(tail_max, monkeypatch):
     """A NaN in one rank's interior fails the solve on every rank; the next Jacobian (same
     matrix, sane values) is solved right by the same PC: the interior's factor is redone on
-    every rank, the one holding its diagonal block itself included."""
+    every rank, the one holding its diagonal block itself included.  By the chain LU and by
+    PETSc's LU (CHAIN_TAIL_MAX < 0)."""
+    monkeypatch.setattr(schur, "CHAIN_TAIL_MAX", tail_max)
     comm = PETSc.COMM_WORLD
     p = _condensed_problem(monkeypatch, "mattiasson", rod_nelem=60, rod_planar="off")
     for bad in range(comm.getSize()):
@@ -407,12 +416,15 @@ def _redistributed(A, ranges):
 
 
 @pytest.mark.mpi
-def test_a_middle_rank_owning_separator_nodes_on_both_sides(monkeypatch):
+@pytest.mark.parametrize("tail_max", [schur.CHAIN_TAIL_MAX, -1])
+def test_a_middle_rank_owning_separator_nodes_on_both_sides(tail_max, monkeypatch):
     """3 ranks (or 2) owning the chain's cubic elements so that each cut is 3 + 1 with the
     lone node on the middle rank: it owns the separator on both sides (its diagonal block has
     the identity at both ends while factored), rank 0 none (its diagonal block as it is).  The
     solution is a fresh condensation's and the LU's, for the first values and for new values (2 A, then ADD_VALUES
-    on the separator rows)."""
+    on the separator rows).  By the chain LU where it applies (the middle stretch here is
+    short enough for its tail to be the whole of it) and by PETSc's LU (CHAIN_TAIL_MAX < 0)."""
+    monkeypatch.setattr(schur, "CHAIN_TAIL_MAX", tail_max)
     comm = PETSc.COMM_WORLD
     size = comm.getSize()
     p = _condensed_problem(monkeypatch, "mattiasson", rod_nelem=20 * size, rod_planar="off")

@@ -65,9 +65,10 @@ def element_blocks(mat, dirichlet, groups, size):
     info = seq.getInfo(PETSc.Mat.InfoType.LOCAL)
     if info["nz_allocated"] >= 2 ** 31:         # beyond the places' int32
         return None
-    # the pattern's key: PETSc's nonzero state, and the stored entries (in PETSc 3.18 a new
-    # nonzero of a BAIJ matrix leaves the state as it was)
-    state = (petsc_lib.nonzero_state(seq), info["nz_used"])
+    # the pattern's key: the value matrix itself (its handle: ElementBlocks keeps no wrapper),
+    # PETSc's nonzero state, and the stored entries (in PETSc 3.18 a new nonzero of a BAIJ
+    # matrix leaves the state as it was)
+    state = (seq.handle, petsc_lib.nonzero_state(seq), info["nz_used"])
     kept = mat.getAttr(ATTR)
     if kept is not None and kept.fits(groups, dirichlet.touched, state):
         return kept

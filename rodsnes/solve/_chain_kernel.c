@@ -133,12 +133,78 @@ static inline int block_invert(const int BS, double *A)
     return 0;
 }
 
+/* The negative eigenvalues of the symmetric part of the block A (column by column): its
+ * LDL^T with Bunch-Kaufman pivoting (1 x 1 and 2 x 2 pivots, alpha = (1 + sqrt 17) / 8), a
+ * congruence, the negative eigenvalues counted on D; a zero pivot column counts as positive
+ * (Sylvester's law of inertia).  (The pivot blocks of a symmetric matrix's LU without pivoting
+ * between blocks are symmetric: H = L D L^T, a congruence, so H's inertia is the sum of
+ * theirs.) */
+static int block_inertia(const int BS, const double *A)
+{
+    const double alpha = 0.6403882032022076;
+    double S[8][8];
+    for (int r = 0; r < BS; r++)
+        for (int c = 0; c < BS; c++) S[r][c] = 0.5 * (A[r + c * BS] + A[c + r * BS]);
+    int neg = 0, k = 0;
+    while (k < BS) {
+        double lam = 0.0;
+        int r = k;
+        for (int i = k + 1; i < BS; i++)
+            if (fabs(S[i][k]) > lam) { lam = fabs(S[i][k]); r = i; }
+        double akk = fabs(S[k][k]);
+        if (akk == 0.0 && lam == 0.0) { k++; continue; }    /* a zero column: not negative */
+        int two = 0;
+        if (akk < alpha * lam) {
+            double sigma = 0.0;
+            for (int j = k; j < BS; j++)
+                if (j != r && fabs(S[r][j]) > sigma) sigma = fabs(S[r][j]);
+            if (akk * sigma >= alpha * lam * lam) {
+                /* 1 x 1 at k */
+            } else if (fabs(S[r][r]) >= alpha * sigma) {
+                int p = r;          /* 1 x 1 at r: swap k and r */
+                for (int j = 0; j < BS; j++) { double t = S[k][j]; S[k][j] = S[p][j]; S[p][j] = t; }
+                for (int j = 0; j < BS; j++) { double t = S[j][k]; S[j][k] = S[j][p]; S[j][p] = t; }
+            } else {
+                two = 1;            /* 2 x 2 at (k, r): swap k + 1 and r */
+                int p = r, q = k + 1;
+                if (p != q) {
+                    for (int j = 0; j < BS; j++) { double t = S[q][j]; S[q][j] = S[p][j]; S[p][j] = t; }
+                    for (int j = 0; j < BS; j++) { double t = S[j][q]; S[j][q] = S[j][p]; S[j][p] = t; }
+                }
+            }
+        }
+        if (!two) {
+            double d = S[k][k];
+            if (d < 0.0) neg++;
+            for (int i = k + 1; i < BS; i++) {
+                double f = S[i][k] / d;
+                for (int j = k + 1; j < BS; j++) S[i][j] -= f * S[k][j];
+            }
+            k += 1;
+        } else {
+            double a = S[k][k], b = S[k + 1][k], c = S[k + 1][k + 1];
+            double det = a * c - b * b;
+            /* det < 0 (always, for a Bunch-Kaufman 2 x 2 pivot): one eigenvalue of each sign */
+            if (det < 0.0) neg += 1;
+            else if (a + c < 0.0) neg += 2;
+            for (int i = k + 2; i < BS; i++)
+                for (int j = k + 2; j < BS; j++) {
+                    /* S_ij -= [S_ik S_i,k+1] D^-1 [S_kj; S_k+1,j] */
+                    double x = S[i][k], y = S[i][k + 1], u = S[k][j], v = S[k + 1][j];
+                    S[i][j] -= (x * (c * u - b * v) + y * (a * v - b * u)) / det;
+                }
+            k += 2;
+        }
+    }
+    return neg;
+}
+
 /* ---- the numeric factorisation and the substitutions, for a block size known at compile
  * time (3: a planar node, 6: a node in 3-D) or any other ---------------------------------- */
 
 static inline int factor_bs(const int BS, int n, const int *ai, const int *aj, const int *diag,
                             int dir, const int *target, const double *A, const signed char *kind,
-                            double *V)
+                            double *V, int *neg)
 {
     const int B2 = BS * BS;
     double L[64];
@@ -167,6 +233,8 @@ static inline int factor_bs(const int BS, int n, const int *ai, const int *aj, c
                 block_mulsub(BS, L, U, C);
             }
         }
+        if (neg != NULL)         /* the pivot block's inertia, before it is inverted */
+            *neg += block_inertia(BS, V + (int64_t)diag[i] * B2);
         if (block_invert(BS, V + (int64_t)diag[i] * B2)) return i + 1;
     }
     return 0;
@@ -223,16 +291,18 @@ static inline void backward_bs(const int BS, int n, const int *ai, const int *aj
     do { if (bs == 3) { call3; } else if (bs == 6) { call6; } else { callany; } } while (0)
 
 /* V <- the factors of the blocks A of the block CSR, each block taken as it is (kind 0), as
- * zero (1) or as the identity (2: a row taken out).  Returns 0, the 1-based row of a singular
- * diagonal block, or -1 for a block size outside 1..8. */
-int rodsnes_chain_factor(int n, int bs, const int *ai, const int *aj, const int *diag, int dir,
-                         const int *target, const double *A, const signed char *kind, double *V)
+ * zero (1) or as the identity (2: a row taken out).  With neg (not NULL) the pivot blocks'
+ * negative eigenvalues are added to *neg (a symmetric matrix's inertia).  Returns 0, the 1-based row of
+ * a singular diagonal block, or -1 for a block size outside 1..8. */
+int rodsnes_chain_factor_counting(int n, int bs, const int *ai, const int *aj, const int *diag, int dir,
+                         const int *target, const double *A, const signed char *kind, double *V,
+                         int *neg)
 {
     if (bs < 1 || bs > 8) return -1;
     int r;
-    DISPATCH(r = factor_bs(3, n, ai, aj, diag, dir, target, A, kind, V),
-             r = factor_bs(6, n, ai, aj, diag, dir, target, A, kind, V),
-             r = factor_bs(bs, n, ai, aj, diag, dir, target, A, kind, V));
+    DISPATCH(r = factor_bs(3, n, ai, aj, diag, dir, target, A, kind, V, neg),
+             r = factor_bs(6, n, ai, aj, diag, dir, target, A, kind, V, neg),
+             r = factor_bs(bs, n, ai, aj, diag, dir, target, A, kind, V, neg));
     return r;
 }
 

@@ -11,20 +11,24 @@ factors over a range of the order.
 What it is for: in the condensation of schur.py each rank needs A_GN (A_II^-1)_NN A_NG, N the
 few interior rows next to the separator.  PETSc's LU hands out no part of its factors, so that
 block costs a whole forward and backward substitution for each separator unknown (3 on a
-planar rod cut once, 6 in 3-D).  With N last in the order of elimination (the natural order
-where N is the stretch's end, the reversed one where it is its start), A_II^-1 on N is
-U_NN^-1 L_NN^-1: substitutions over the last rows alone (the ``tail``), and one whole solve per
-application, as on one rank.
+planar rod cut once, 6 in 3-D).  With N among the last rows T of the order of elimination
+(the natural order where N is the stretch's end, the reversed one where it is its start),
+A_II^-1 on T is U_TT^-1 L_TT^-1, so its N block takes substitutions over T alone (the
+``tail``), and an application one whole solve, as on one rank.  The same factors of a symmetric
+matrix give its inertia: H = L D L^T is a congruence, so H's negative eigenvalues are those
+of the pivot blocks D (stability.Inertia on one rank).
 """
 import ctypes
 
 import numpy as np
+from petsc4py import PETSc
 
 from rodsnes import compiled, petsc_lib
 from rodsnes.profiling import logged
 
 I32 = np.dtype(np.int32)
 I8 = np.dtype(np.int8)
+MAX_BS = 8                  # the kernel's largest block size
 
 
 def _declare(lib):
@@ -32,9 +36,11 @@ def _declare(lib):
     plan = compiled.Foreign(lib.rodsnes_chain_plan,
                             [c_int, i32, i32, c_int, i32, ctypes.c_void_p, ctypes.c_int64],
                             ctypes.c_int64)
-    factor = compiled.Foreign(lib.rodsnes_chain_factor,
+    # the entry's name changes with its arguments: a library built from an older source lacks
+    # it and the kernel counts as not built (compiled.load), instead of being misread
+    factor = compiled.Foreign(lib.rodsnes_chain_factor_counting,
                               [c_int, c_int, i32, i32, i32, c_int, i32, ctypes.c_void_p, I8,
-                               f64], c_int)
+                               f64, ctypes.c_void_p], c_int)
     solve = compiled.Foreign(lib.rodsnes_chain_solve,
                              [c_int, c_int, i32, i32, i32, c_int, f64, c_int, c_int, f64], c_int)
     return plan, factor, solve
@@ -59,6 +65,7 @@ class ChainLU:
         self.diag, self.target = diag, target
         self.values = np.empty(int(ai[-1]) * bs * bs)
         self.failed_row = None
+        self.stale = False
         # how each block enters the factorisation: as it is (0), or, for the block rows taken
         # out, zero (1: their rows' and columns' other blocks) and the identity (2: their
         # diagonal blocks)
@@ -73,7 +80,7 @@ class ChainLU:
         rows taken out of the system (their rows and columns the identity's at every
         factorisation: a separator's, schur.py)."""
         fns = _load()
-        if not fns:
+        if not fns or not 1 <= bs <= MAX_BS:
             return None
         plan = fns[0]
         ai = np.ascontiguousarray(ai, dtype=I32)
@@ -94,16 +101,29 @@ class ChainLU:
         return rows if self.dir > 0 else self.n - 1 - rows
 
     @logged("ChainFactor")
-    def factor(self, mat=None, values=None):
+    def factor(self, mat=None, values=None, inertia=False):
         """Factor the values of the SeqBAIJ ``mat`` (or the array ``values``, blocks column by
         column), the rows taken out made the identity's (the matrix itself unchanged: each
-        row is copied as its turn comes).  Returns False at a singular diagonal block
-        (``failed_row``: its row)."""
+        row is copied as its turn comes; ``stale`` and False where ``mat`` no longer has the
+        planned pattern).  With ``inertia`` (a symmetric matrix): ``negative``
+        the number of its negative eigenvalues, the sum over the pivot blocks' (H = L D L^T, a
+        congruence; each block's by its own LDL^T with Bunch-Kaufman pivoting).  Returns
+        False at a singular diagonal block (``failed_row``: its row)."""
         fns = _load()
+        self.stale = False
+        if mat is not None and (mat.getBlockSize() != self.bs or mat.getInfo(
+                PETSc.Mat.InfoType.LOCAL)["nz_used"] != self.values.size):
+            # not the pattern planned for (a block inserted since): nothing read; the caller
+            # plans anew
+            self.stale = True
+            self.failed_row = self.negative = None
+            return False
+        neg = ctypes.c_int(0)
+        count = ctypes.addressof(neg) if inertia else None
 
         def run(source):
             return fns[1](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.target,
-                          source, self.kind, self.values)
+                          source, self.kind, self.values, count)
         if mat is not None:
             with petsc_lib.values_of(mat) as ptr:
                 code = run(ptr)
@@ -113,6 +133,7 @@ class ChainLU:
                 raise ValueError(f"{values.shape} values: {self.values.shape} expected")
             code = run(values.ctypes.data)
         self.failed_row = None if code == 0 else code - 1
+        self.negative = neg.value if inertia and code == 0 else None
         return code == 0
 
     @logged("ChainSolve")

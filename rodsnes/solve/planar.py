@@ -131,8 +131,8 @@ class BlockInertia(Inertia):
         self.comps = np.asarray(comps)
         self.plane = plane                # the Plane of an in-plane block (ComponentView)
 
-    def _matrix(self, patterns):
-        return create_block_matrix(self.problem, patterns, symmetric=True)
+    def _matrix(self, patterns, symmetric=True):
+        return create_block_matrix(self.problem, patterns, symmetric=symmetric)
 
     def _view(self):
         return ComponentView(self.H, self.comps, self.problem.constraints, self.plane)

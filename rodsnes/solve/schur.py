@@ -23,11 +23,12 @@ Where the rank's stretch is a chain that its own node order, or the reversed one
 without fill, with the interior rows N next to the separator at the end of that order (an open
 rod without contact, cut once at each end stretch: chain.py), the rank factors a copy of its
 diagonal block's values by chain.ChainLU instead (the separator's rows and columns the
-identity's in the copy).  As A_IG has entries on the rows N only and N comes last,
+identity's in the copy).  As A_IG has entries on the rows N only and N lies among the last
+rows T of the order,
 
-    A_{G I_r} A_{I_r I_r}^-1 A_{I_r G} = A_GN U_NN^-1 L_NN^-1 A_NG,
+    A_{G I_r} A_{I_r I_r}^-1 A_{I_r G} = A_GN [U_TT^-1 L_TT^-1]_NN A_NG,
 
-substitutions over the last few rows (the ``tail``) instead of a whole substitution for each
+substitutions over those last few rows (the ``tail``) instead of a whole substitution for each
 separator unknown, and the application is one forward and one backward substitution, the
 tail's in between: z = L^-1 b_I; y_N = U^-1 z on the tail; x_G; z -= L^-1 A_IG x_G on the
 tail; x_I = U^-1 z.  The planar cantilever at 10^4 elements on 2 ranks: 17.3 -> 14.5 ms an
@@ -76,10 +77,10 @@ from rodsnes.model.partition import is_split, split_index
 
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
 PACKAGES = ("petsc", "mumps")       # the interiors' LU (module docstring)
-# the most block rows after the first near one in a stretch's order of elimination for its own
-# LU without fill (chain.ChainLU: the trailing substitutions run over them); a stretch whose
-# near rows lie deeper (a middle rank of three, whose stretch the separator cuts at both ends)
-# is factored by PETSc's LU with the separator's column solves
+# the most block rows from the first near one to the end of a stretch's order of elimination
+# for its own LU without fill (chain.ChainLU: the tail's substitutions run over them); a
+# stretch whose near rows lie deeper (a middle rank of three, cut at both ends, unless its
+# whole stretch is that short) is factored by PETSc's LU with the separator's column solves
 CHAIN_TAIL_MAX = 64
 # nodes per rank below which the whole matrix is factored instead: the condensation's fixed
 # cost per set-up (the separator's columns, the gathers, the isolation) outweighs what it saves
@@ -524,22 +525,30 @@ class RankSchur:
     def _tail_solve(self, values, first, last):
         """The chain LU's substitutions restricted to its tail (``first``, ``last``: chain.
         ChainLU.solve) on a vector zero but for ``values`` on the near rows; returns the
-        result on the tail's rows (tail_rows)."""
+        result on the tail's rows (tail_rows).  The work vector is zero outside the tail (no
+        other row is ever written) and its tail is cleared first: a substitution interrupted
+        before the clearing leaves nothing behind."""
         k = self.kept
         w, rows = k["work"], k["tail_rows"]
+        w[rows] = 0.0
         w[k["Npos"]] = values
         k["chain"].solve(w, first, last)
-        out = w[rows]
-        w[rows] = 0.0
-        return out
+        return w[rows].copy()
 
     def _factor_chain(self, ANS, ASS, comm):
         """The stretch's LU without fill (chain.py) and its part of S from the inverse's
-        trailing block: A_GN (A_II^-1)_NN A_NG, (A_II^-1)_NN = U_NN^-1 L_NN^-1 by substitutions
-        over the tail alone."""
+        trailing block: A_GN (A_II^-1)_NN A_NG, (A_II^-1)_TT = U_TT^-1 L_TT^-1 by substitutions
+        over the tail T alone.  A failure here is every rank's (_share), never a hang: an error
+        raised is a failed factorisation; a matrix no longer of the planned pattern makes the
+        next set-up condense anew."""
         k = self.kept
         lu, tail = k["chain"], k["tail"]
-        ok = lu.factor(k["AII"])
+        try:
+            ok = lu.factor(k["AII"])
+        except (PETSc.Error, RuntimeError, ValueError):
+            ok = False
+        if lu.stale:
+            k["A"] = None
         part = None
         if ok:
             WN = np.empty_like(ANS)

@@ -4,7 +4,10 @@ At an equilibrium the consistent tangent equals the (symmetric) Hessian of the t
 the exponential chart (elastic.py).  Its number of negative eigenvalues, from a MUMPS LDL^T
 (Cholesky-type) factorisation (-mat_mumps_icntl_13 1 for a parallel-correct count), is the
 number of independent directions in which the energy decreases: 0 means a stable (local
-minimum) equilibrium.  Dirichlet rows hold 1 on the diagonal and count as positive.
+minimum) equilibrium.  Dirichlet rows hold 1 on the diagonal and count as positive.  On one
+rank an open rod's Hessian without contact is counted by the chain LDL^T (chain.py, the pivot
+blocks' inertias) where its factors are backward stable (Inertia.CHAIN_BACKWARD), by MUMPS
+otherwise.
 
 lowest_eigenpair gives the lowest eigenvalue of the same (unscaled) Hessian and its eigenvector
 (the buckling or writhing mode of an unstable equilibrium; tests/test_relax.py):
@@ -15,6 +18,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.model.term import same_patterns
+from rodsnes.solve import chain
 from rodsnes.solve.linear import mumps_fill_room, mumps_ordering, option_default
 
 
@@ -48,6 +52,12 @@ class Inertia:
     (different iterations and final states, each a stable equilibrium)."""
 
     REDUNDANT_MAX = 30000       # unknowns up to which several ranks each factor H whole
+    # the chain LDL^T's count is taken where its factors solve H x = b (b fixed) to a backward
+    # error |H x - b| <= CHAIN_BACKWARD |H| |x|: factors of a matrix within round-off of H, whose
+    # inertia is H's but for eigenvalues within round-off of zero (which the zero shift tau
+    # places).  Without pivoting between blocks a small pivot block can carry growth (the rod's
+    # leading stretch near a critical state of its own); then MUMPS, pivoting, counts instead.
+    CHAIN_BACKWARD = 1e-12
 
     def __init__(self, problem, prefix="stability_"):
         self.problem, self.prefix = problem, prefix
@@ -55,15 +65,45 @@ class Inertia:
         self.H = None
         self.pc = None
         self.whole = None               # the redundant factorisation's gathered H, IS, scatter
+        self.chain = None               # the chain LDL^T (chain.ChainLU) where it applies
+        self.by_chain = False           # the last factorisation was the chain's
+        self.fallback = None            # H's AIJ copy for a count handed to MUMPS
         self.diagonal = None
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
+        self.chain_counts = 0            # counts made by the chain LDL^T
+        self.backward = None             # the backward error of its last factors
 
-    def _matrix(self, patterns):
-        """The SBAIJ matrix the Hessian goes into (the problem's layout)."""
+    def _matrix(self, patterns, symmetric=True):
+        """The SBAIJ matrix the Hessian goes into (the problem's layout); BAIJ for the chain
+        LDL^T (``symmetric`` False)."""
         p = self.problem
-        return p.layout.create_matrix(p.node_groups(patterns), symmetric=True,
+        return p.layout.create_matrix(p.node_groups(patterns), symmetric=symmetric,
                                       positions_only=p.positions_only(patterns))
+
+    def _chain_applies(self):
+        """The Hessian counted by the chain LDL^T: one rank, a pattern that stays, the kernel
+        built, and no solver or MUMPS option given under the prefix (-stability_pc_factor_mat_
+        solver_type mumps, any -stability_mat_mumps_*: MUMPS as asked)."""
+        p = self.problem
+        asked = [k for k in PETSc.Options().getAll()
+                 if k.startswith((self.prefix + "pc_factor_mat_solver_type",
+                                  self.prefix + "mat_mumps_"))]
+        return (p.layout.comm.getSize() == 1 and not p.moving_pattern and chain.available()
+                and not asked)
+
+    def _build_chain(self, patterns):
+        """H as BAIJ and its chain LDL^T, where the pattern eliminates without fill in the node
+        order (an open rod without contact).  Returns whether it was made."""
+        H = self._matrix(patterns, symmetric=False)
+        ai, aj = H.getRowIJ(compressed=True)
+        lu = chain.ChainLU.plan(ai, aj, H.getBlockSize(), 1)
+        if lu is None:
+            H.destroy()
+            return False
+        self.H, self.chain, self.patterns = H, lu, patterns
+        self.builds += 1
+        return True
 
     def _view(self):
         """What the Hessian is assembled through (None: H itself, Dirichlet rows masked)."""
@@ -72,9 +112,22 @@ class Inertia:
     def _build(self, patterns):
         p = self.problem
         self.destroy()
-        self.H = self._matrix(patterns)
+        if self._chain_applies() and self._build_chain(patterns):
+            return
+        self._build_mumps(patterns)
+
+    def _build_mumps(self, patterns, H=None):
+        """H as SBAIJ (or ``H``, the chain's BAIJ, as an AIJ copy flagged symmetric: the
+        hand-over of one count) with MUMPS's LDL^T."""
+        p = self.problem
+        if H is None:
+            self.H = self._matrix(patterns)
+        else:
+            A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
+            A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+            self.fallback = A
         n = self.H.getSize()[0]
-        whole = p.layout.comm.getSize() > 1 and n <= self.REDUNDANT_MAX
+        whole = H is None and p.layout.comm.getSize() > 1 and n <= self.REDUNDANT_MAX
         if whole:
             self.whole = {"is": PETSc.IS().createStride(n, 0, 1, comm=PETSc.COMM_SELF),
                           "H": None, "scatter": None}
@@ -86,8 +139,10 @@ class Inertia:
         mumps_fill_room(p, self.prefix)
         mumps_ordering(p, self.prefix)
         pc.setFromOptions()
-        self.pc, self.patterns = pc, patterns
-        self.builds += 1
+        self.pc = pc
+        if H is None:
+            self.patterns = patterns
+            self.builds += 1
 
     def assemble(self, patterns=None):
         """The symmetric Hessian of the problem's current state into H (kept; a new matrix and
@@ -117,9 +172,23 @@ class Inertia:
             d.axpy(1.0, shift)
         H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
         d.destroy()
-        A = self._gathered(H) if self.whole is not None else H
-        self.pc.setOperators(A)
         self.counts += 1
+        self.by_chain = False
+        if self.chain is not None:
+            lu = self.chain
+            if lu.factor(H, inertia=True) and self._backward_stable(H, lu):
+                self.by_chain = True
+                self.chain_counts += 1
+                return lu.negative
+            # a singular or small pivot block: this count by MUMPS (pivoting) on an AIJ copy
+            if self.pc is not None:
+                self.pc.destroy()
+                self.fallback.destroy()
+            self._build_mumps(self.patterns, H=H)
+            A = self.fallback
+        else:
+            A = self._gathered(H) if self.whole is not None else H
+        self.pc.setOperators(A)
         try:
             self.pc.setUp()
         except PETSc.Error:
@@ -136,6 +205,22 @@ class Inertia:
             return -1
         return int(F.getMumpsInfog(12))
 
+    def _backward_stable(self, H, lu):
+        """Whether the chain factors of H solve H x = b, b_i = sin(0.37 i), to a backward error
+        of at most CHAIN_BACKWARD (one rank).  Sets ``backward``, the error found."""
+        b = H.createVecRight()
+        b.setArray(np.sin(0.37 * np.arange(b.getSize())))
+        x = b.duplicate()
+        x.setArray(lu.solve(b.getArray(readonly=True).copy()))
+        r = b.duplicate()
+        H.mult(x, r)
+        r.axpy(-1.0, b)
+        scale = H.norm(PETSc.NormType.INFINITY) * x.norm(PETSc.NormType.INFINITY)
+        self.backward = r.norm(PETSc.NormType.INFINITY) / scale if scale > 0 else np.inf
+        for v in (b, x, r):
+            v.destroy()
+        return bool(self.backward <= self.CHAIN_BACKWARD)
+
     def _gathered(self, H):
         """The whole of H on every rank (a sequential SBAIJ, refilled in place).  Collective."""
         w = self.whole
@@ -147,6 +232,9 @@ class Inertia:
 
     def solve(self, b, x):
         """x = (H + shift)^-1 b with the last factor.  Collective."""
+        if self.by_chain:
+            x.setArray(self.chain.solve(b.getArray(readonly=True).copy()))
+            return
         w = self.whole
         if w is None:
             self.pc.apply(b, x)
@@ -169,10 +257,11 @@ class Inertia:
     def destroy(self):
         w = self.whole or {}
         for obj in (self.pc, self.H, self.diagonal, w.get("H"), w.get("is"), w.get("scatter"),
-                    w.get("b"), w.get("x")):
+                    w.get("b"), w.get("x"), self.fallback):
             if obj is not None:
                 obj.destroy()
-        self.pc = self.H = self.whole = self.diagonal = None
+        self.pc = self.H = self.whole = self.diagonal = self.chain = self.fallback = None
+        self.by_chain = False
 
 
 def negative_eigenvalues(problem):
