@@ -266,6 +266,13 @@ class RankSchur:
         self.mode = None            # "schur" or "whole" for the current matrix
         self.failed = False
         self.setups = {"schur": 0, "whole": 0}
+        # with ``inertia`` (a symmetric matrix; stability.Inertia) every set-up counts its
+        # negative eigenvalues where every rank's stretch has the chain LU: by Haynsworth's
+        # inertia additivity, inertia(A) = inertia(A_II) + inertia(S), A_II's the sum of the
+        # stretches' (their pivot blocks', chain.py; the separator rows taken out are identity
+        # rows, positive) and S's from its eigenvalues; else None
+        self.inertia = False
+        self.negative = None
 
     # -- life (petsc_exit: a python PC still alive at exit) ---------------------------
     def create(self, pc):
@@ -321,6 +328,7 @@ class RankSchur:
             self.kept = None
             self._whole(A).setUp()
             self.failed = False
+            self.negative = None
             return
         same = k is not None and k["A"] == key and np.array_equal(k["sep"], sep)
         if comm.allreduce(bool(same), op=MPI.LAND):
@@ -328,6 +336,20 @@ class RankSchur:
         else:
             self._condense(A, key, sep, mine, near)
         self._factor(A, comm)
+        self.negative = self._count(comm) if self.inertia else None
+
+    def _count(self, comm):
+        """The negative eigenvalues of A (symmetric) from the last set-up (``inertia``), or
+        None where some rank's stretch is not factored by the chain LU or the set-up failed.
+        Collective."""
+        k = self.kept
+        lu = k["chain"]
+        mine = lu.negative if lu is not None and not self.failed else None
+        counts = comm.allgather(mine)
+        if any(c is None for c in counts):
+            return None
+        S = k["S_dense"]
+        return sum(counts) + int((np.linalg.eigvalsh(0.5 * (S + S.T)) < 0.0).sum())
 
     def _whole(self, A):
         """PETSc's LU of the whole matrix on every rank (PCREDUNDANT; its inner solver set
@@ -544,7 +566,7 @@ class RankSchur:
         k = self.kept
         lu, tail = k["chain"], k["tail"]
         try:
-            ok = lu.factor(k["AII"])
+            ok = lu.factor(k["AII"], inertia=self.inertia)
         except (PETSc.Error, RuntimeError, ValueError):
             ok = False
         if lu.stale:
@@ -613,7 +635,7 @@ class RankSchur:
         ``ok``: this rank's part was made (else self.failed on every rank)."""
         k = self.kept
         ng = k["ng"]
-        S = ASS + comm.allreduce(part if ok else np.zeros((ng, ng)))
+        S = k["S_dense"] = ASS + comm.allreduce(part if ok else np.zeros((ng, ng)))
         self.failed = not comm.allreduce(ok, op=MPI.LAND)
         if not self.failed:
             k["S"] = _dense_lu(S)

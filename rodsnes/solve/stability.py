@@ -4,10 +4,10 @@ At an equilibrium the consistent tangent equals the (symmetric) Hessian of the t
 the exponential chart (elastic.py).  Its number of negative eigenvalues, from a MUMPS LDL^T
 (Cholesky-type) factorisation (-mat_mumps_icntl_13 1 for a parallel-correct count), is the
 number of independent directions in which the energy decreases: 0 means a stable (local
-minimum) equilibrium.  Dirichlet rows hold 1 on the diagonal and count as positive.  On one
-rank an open rod's Hessian without contact is counted by the chain LDL^T (chain.py, the pivot
-blocks' inertias) where its factors are backward stable (Inertia.CHAIN_BACKWARD), by MUMPS
-otherwise.
+minimum) equilibrium.  Dirichlet rows hold 1 on the diagonal and count as positive.  An open
+rod's Hessian without contact is counted by the chain LDL^T (chain.py, the pivot blocks'
+inertias; on several ranks schur.RankSchur, Haynsworth's inertia additivity) where its factors
+are backward stable (Inertia.CHAIN_BACKWARD), by MUMPS otherwise.
 
 lowest_eigenpair gives the lowest eigenvalue of the same (unscaled) Hessian and its eigenvector
 (the buckling or writhing mode of an unstable equilibrium; tests/test_relax.py):
@@ -18,7 +18,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.model.term import same_patterns
-from rodsnes.solve import chain
+from rodsnes.solve import chain, schur
 from rodsnes.solve.linear import mumps_fill_room, mumps_ordering, option_default
 
 
@@ -65,7 +65,9 @@ class Inertia:
         self.H = None
         self.pc = None
         self.whole = None               # the redundant factorisation's gathered H, IS, scatter
-        self.chain = None               # the chain LDL^T (chain.ChainLU) where it applies
+        # the chain LDL^T where it applies: chain.ChainLU (one rank) or the python PC of
+        # schur.RankSchur counting by its stretches' (several ranks)
+        self.chain = None
         self.by_chain = False           # the last factorisation was the chain's
         self.fallback = None            # H's AIJ copy for a count handed to MUMPS
         self.diagonal = None
@@ -82,20 +84,33 @@ class Inertia:
                                       positions_only=p.positions_only(patterns))
 
     def _chain_applies(self):
-        """The Hessian counted by the chain LDL^T: one rank, a pattern that stays, the kernel
-        built, and no solver or MUMPS option given under the prefix (-stability_pc_factor_mat_
-        solver_type mumps, any -stability_mat_mumps_*: MUMPS as asked)."""
+        """The Hessian counted by the chain LDL^T: a pattern that stays, the kernel built, on
+        several ranks a rod long enough for the condensation (schur.pays), and no solver or
+        MUMPS option given under the prefix (-stability_pc_factor_mat_solver_type mumps, any
+        -stability_mat_mumps_*: MUMPS as asked)."""
         p = self.problem
         asked = [k for k in PETSc.Options().getAll()
                  if k.startswith((self.prefix + "pc_factor_mat_solver_type",
                                   self.prefix + "mat_mumps_"))]
-        return (p.layout.comm.getSize() == 1 and not p.moving_pattern and chain.available()
-                and not asked)
+        size = p.layout.comm.getSize()
+        return (not p.moving_pattern and chain.available() and not asked
+                and (size == 1 or schur.pays(p.mesh.n_nodes, size)))
 
     def _build_chain(self, patterns):
         """H as BAIJ and its chain LDL^T, where the pattern eliminates without fill in the node
-        order (an open rod without contact).  Returns whether it was made."""
+        order (an open rod without contact); on several ranks schur.RankSchur with its
+        stretches' chain LUs and Haynsworth's count (decided at every factorisation).  Returns
+        whether it was made."""
         H = self._matrix(patterns, symmetric=False)
+        if self.problem.layout.comm.getSize() > 1:
+            pc = PETSc.PC().create(comm=H.getComm())
+            pc.setType(PETSc.PC.Type.PYTHON)
+            ctx = schur.RankSchur(self.problem)
+            ctx.inertia = True
+            pc.setPythonContext(ctx)
+            self.H, self.chain, self.patterns = H, pc, patterns
+            self.builds += 1
+            return True
         ai, aj = H.getRowIJ(compressed=True)
         lu = chain.ChainLU.plan(ai, aj, H.getBlockSize(), 1)
         if lu is None:
@@ -104,6 +119,29 @@ class Inertia:
         self.H, self.chain, self.patterns = H, lu, patterns
         self.builds += 1
         return True
+
+    def _chain_count(self, H):
+        """The chain LDL^T's count of H's negative eigenvalues, or None (a stretch not a chain,
+        a singular pivot, factors not backward stable: MUMPS then)."""
+        c = self.chain
+        if isinstance(c, chain.ChainLU):
+            if not c.factor(H, inertia=True):
+                return None
+            n = c.negative
+
+            def solve(b, x):
+                x.setArray(c.solve(b.getArray(readonly=True).copy()))
+        else:                           # the python PC of schur.RankSchur
+            c.setOperators(H)
+            try:
+                c.setUp()
+            except PETSc.Error:
+                return None
+            n = c.getPythonContext().negative
+            solve = c.apply
+        if n is None or not self._backward_stable(H, solve):
+            return None
+        return n
 
     def _view(self):
         """What the Hessian is assembled through (None: H itself, Dirichlet rows masked)."""
@@ -175,11 +213,11 @@ class Inertia:
         self.counts += 1
         self.by_chain = False
         if self.chain is not None:
-            lu = self.chain
-            if lu.factor(H, inertia=True) and self._backward_stable(H, lu):
+            n = self._chain_count(H)
+            if n is not None:
                 self.by_chain = True
                 self.chain_counts += 1
-                return lu.negative
+                return n
             # a singular or small pivot block: this count by MUMPS (pivoting) on an AIJ copy
             if self.pc is not None:
                 self.pc.destroy()
@@ -205,13 +243,15 @@ class Inertia:
             return -1
         return int(F.getMumpsInfog(12))
 
-    def _backward_stable(self, H, lu):
+    def _backward_stable(self, H, solve):
         """Whether the chain factors of H solve H x = b, b_i = sin(0.37 i), to a backward error
-        of at most CHAIN_BACKWARD (one rank).  Sets ``backward``, the error found."""
+        of at most CHAIN_BACKWARD (``solve(b, x)``: by those factors).  Sets ``backward``, the
+        error found.  Collective."""
         b = H.createVecRight()
-        b.setArray(np.sin(0.37 * np.arange(b.getSize())))
+        lo, hi = b.getOwnershipRange()
+        b.setArray(np.sin(0.37 * np.arange(lo, hi)))
         x = b.duplicate()
-        x.setArray(lu.solve(b.getArray(readonly=True).copy()))
+        solve(b, x)
         r = b.duplicate()
         H.mult(x, r)
         r.axpy(-1.0, b)
@@ -233,7 +273,10 @@ class Inertia:
     def solve(self, b, x):
         """x = (H + shift)^-1 b with the last factor.  Collective."""
         if self.by_chain:
-            x.setArray(self.chain.solve(b.getArray(readonly=True).copy()))
+            if isinstance(self.chain, chain.ChainLU):
+                x.setArray(self.chain.solve(b.getArray(readonly=True).copy()))
+            else:
+                self.chain.apply(b, x)
             return
         w = self.whole
         if w is None:
@@ -256,8 +299,9 @@ class Inertia:
 
     def destroy(self):
         w = self.whole or {}
+        pc_chain = self.chain if isinstance(self.chain, PETSc.PC) else None
         for obj in (self.pc, self.H, self.diagonal, w.get("H"), w.get("is"), w.get("scatter"),
-                    w.get("b"), w.get("x"), self.fallback):
+                    w.get("b"), w.get("x"), self.fallback, pc_chain):
             if obj is not None:
                 obj.destroy()
         self.pc = self.H = self.whole = self.diagonal = self.chain = self.fallback = None
