@@ -259,8 +259,15 @@ def test_tolerance_refuses_what_it_cannot_do():
 
 
 @pytest.mark.mpi
-def test_estimate_on_two_ranks_matches_one_rank():
+@pytest.mark.parametrize("condensed", [False, True])
+def test_estimate_on_two_ranks_matches_one_rank(condensed, monkeypatch):
+    """The estimate of a run on several ranks is the serial one's: with the whole matrix
+    factored on every rank (a rod this short), and condensed however short (schur.RankSchur
+    with the stretches' chain LUs, for its SNES's interior stage as for the minimiser)."""
     from petsc4py import PETSc
+    from rodsnes.solve import schur
+    if condensed:
+        monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)
     par = run_case("mattiasson", rod_nelem=7, load_steps=2)
     ser = run_case("mattiasson", rod_nelem=7, load_steps=2, comm=PETSc.COMM_SELF,
                    outdir=par.outdir + f"_serial{PETSc.COMM_WORLD.getRank()}")

@@ -45,7 +45,7 @@ from rodsnes.model.scales import force_scale
 from rodsnes.solve.minimize import EnergyMinimizer
 from rodsnes.solve.planar import PlanarSystem
 from rodsnes.terms import scene_terms
-from rodsnes.solve.linear import direct_solver_defaults, option_default
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, option_default
 
 PREFIX = "estimate_"          # options prefix of the enriched problem's SNES (-estimate_snes_*)
 
@@ -116,17 +116,26 @@ class EnrichedProblem:
         p = self.problem
         for name, value in (("snes_linesearch_type", "basic"), ("snes_max_it", str(self.MAX_IT))):
             option_default(PREFIX + name, value)
-        direct_solver_defaults(p, PREFIX)
+        # the LU as the Newton path's: MUMPS from a pattern that contact fills, on several
+        # ranks each rank's stretch with the Schur complement where they meet (linear.LUChoice;
+        # without it the whole matrix on every rank: 2 ranks took longer than one)
+        self.lu = LUChoice(direct_solver_defaults(p, PREFIX))
         snes = PETSc.SNES().create(comm=self.layout.comm)
         snes.setOptionsPrefix(PREFIX)
         snes.setType("newtonls")
         snes.setFunction(self._residual, p.F)
         snes.setJacobian(self._jacobian, p.J)
-        snes.setUpdate(p.update)
+        snes.setUpdate(self._update)
         snes.setConvergenceTest(self._converged)
         snes.setLineSearchPreCheck(self._precheck)
         snes.setFromOptions()
         return snes
+
+    def _update(self, snes, its):
+        """Before every Newton step: the problem's update (the rotations re-centred) and the
+        LU's choice for a new pattern (linear.LUChoice)."""
+        self.problem.update(snes, its)
+        self.lu.check(snes.getKSP(), self.problem)
 
     def _set_matrix(self, J):
         """A new contact pattern (RodProblem._new_matrix): the new matrix, no old factorisation."""
