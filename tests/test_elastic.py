@@ -146,3 +146,14 @@ def test_quaternion_product_is_the_product_of_rotations():
     assert np.allclose(so3.qmul(a[:, None, :], b[None, :5, :]).shape, (40, 5, 4))
     tiny = np.array([[3e-9, -1e-9, 2e-9], [0.0, 0.0, 0.0]])
     assert np.allclose(so3.rot(so3.qexp(tiny)), np.eye(3) + so3.hat(tiny), atol=1e-16)
+
+
+def test_lagrange_values_are_lagranges_n():
+    """fe.lagrange_values (the basis alone, for the error estimate's 8e4 sample points) equals
+    fe.lagrange's N to round-off, orders 1-7, and is a partition of unity."""
+    from rodsnes.model import fe
+    for order in range(1, 8):
+        xi = np.random.default_rng(order).uniform(-1.0, 1.0, 500)
+        N = fe.lagrange_values(order, xi)
+        assert np.abs(N - fe.lagrange(order, xi)[0]).max() < 1e-13
+        assert np.abs(N.sum(axis=1) - 1.0).max() < 1e-13

@@ -207,3 +207,47 @@ def test_the_chain_ldlt_counts_and_hands_an_unstable_factorisation_to_mumps(monk
         inertia.destroy()
     assert list(counts.values()) == [2, 2]
     assert stability.negative_eigenvalues_scaled(p) == 2
+
+
+def test_a_closed_turn_hands_its_count_to_mumps_and_the_chain_stays(monkeypatch):
+    """A roll-up's closed turn (8 cubic elements) has a pivot block carrying growth: the chain
+    factors' backward error (2e-13 |H| |x|) exceeds a tenth of the zero shift, MUMPS counts
+    (the same count as the fresh factorisation's).  The MUMPS options rodsnes set for that
+    count are its own defaults, not the user's: a later count still takes the chain where it
+    is backward stable (the Euler column)."""
+    from rodsnes.solve import stability
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank (the rods are shorter than a condensation)")
+    p = run_case("rollup", rod_nelem=8).problem
+    inertia = stability.Inertia(p)
+    n = inertia.count()
+    assert inertia.chain is not None and not inertia.by_chain and inertia.chain_counts == 0
+    assert inertia.backward > 1e-14 and n == stability.negative_eigenvalues_scaled(p)
+    inertia_solve(inertia, 1e-12)
+    inertia.destroy()
+    q = run_case("euler", stability=True, rod_imperfection=1e-3, load_path="newton",
+                 rod_planar="off", load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4),
+                 load_steps=4).problem
+    again = stability.Inertia(q)
+    assert again.count() == 0 and again.by_chain and again.chain_counts == 1
+    again.destroy()
+
+
+@pytest.mark.mpi
+def test_a_ring_on_several_ranks_is_counted_by_the_kept_mumps_ldlt(monkeypatch):
+    """Michell's ring on several ranks, condensed however short: its stretches are cut at both
+    ends and the separator's neighbours lie deep (CHAIN_TAIL_MAX 0), so the condensation
+    cannot count (RankSchur.structural); the first count goes to MUMPS, and from the next
+    assembly on the kept SBAIJ LDL^T counts - the fresh factorisation's count each time."""
+    from rodsnes.solve import schur, stability
+    if PETSc.COMM_WORLD.getSize() == 1:
+        pytest.skip("several ranks only (make test-mpi)")
+    monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)
+    monkeypatch.setattr(schur, "CHAIN_TAIL_MAX", 0)
+    p = run_case("michell", rod_nelem=24).problem
+    inertia = stability.Inertia(p)
+    want = stability.negative_eigenvalues_scaled(p)
+    assert inertia.count() == want and not inertia.by_chain and inertia.chain_structural
+    assert inertia.count() == want and inertia.chain is None
+    assert "sbaij" in inertia.H.getType()
+    inertia.destroy()

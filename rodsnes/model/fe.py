@@ -50,6 +50,20 @@ def lagrange(order, xi):
     return N, dN, d2N
 
 
+def lagrange_values(order, xi):
+    """The Lagrange basis of degree ``order`` at the points ``xi`` alone, (len(xi), order+1):
+    lagrange's N without its derivatives (whose products over every pair of the other nodes
+    cost 0.1 s for the 8e4 sample points of an error estimate at 10^4 elements)."""
+    xi = np.atleast_1d(np.asarray(xi, dtype=float))
+    nodes = reference_nodes(order)
+    N = np.ones((len(xi), len(nodes)))
+    for a, na in enumerate(nodes):
+        for b, nb in enumerate(nodes):
+            if b != a:
+                N[:, a] *= (xi - nb) / (na - nb)
+    return N
+
+
 def quadrature_points(rule, order):
     """Number of Gauss points: 'full' integrates the degree-2p products exactly
     (p+1 points), 'reduced' uses p points (the usual cure for shear/membrane locking)."""

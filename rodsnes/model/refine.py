@@ -35,7 +35,7 @@ def locate(mesh, s):
 
 def _basis(mesh, s):
     e, xi = locate(mesh, s)
-    N = fe.lagrange(mesh.order, xi)[0]                   # (m, p+1)
+    N = fe.lagrange_values(mesh.order, xi)               # (m, p+1)
     return mesh.conn[e], N
 
 

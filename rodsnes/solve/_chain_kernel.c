@@ -135,8 +135,9 @@ static inline int block_invert(const int BS, double *A)
 
 /* The negative eigenvalues of the symmetric part of the block A (column by column): its
  * LDL^T with Bunch-Kaufman pivoting (1 x 1 and 2 x 2 pivots, alpha = (1 + sqrt 17) / 8), a
- * congruence, the negative eigenvalues counted on D; a zero pivot column counts as positive
- * (Sylvester's law of inertia).  (The pivot blocks of a symmetric matrix's LU without pivoting
+ * congruence, the negative eigenvalues counted on D; an exactly zero column counts as not
+ * negative, a nearly singular block gets its round-off's sign, as LAPACK's would (Sylvester's
+ * law of inertia; the caller's zero shift and backward-error test decide near zero).  (The pivot blocks of a symmetric matrix's LU without pivoting
  * between blocks are symmetric: H = L D L^T, a congruence, so H's inertia is the sum of
  * theirs.) */
 static int block_inertia(const int BS, const double *A)

@@ -273,6 +273,7 @@ class RankSchur:
         # rows, positive) and S's from its eigenvalues; else None
         self.inertia = False
         self.negative = None
+        self.structural = False     # no count because some stretch has no chain LU (or whole)
 
     # -- life (petsc_exit: a python PC still alive at exit) ---------------------------
     def create(self, pc):
@@ -329,6 +330,7 @@ class RankSchur:
             self._whole(A).setUp()
             self.failed = False
             self.negative = None
+            self.structural = True
             return
         same = k is not None and k["A"] == key and np.array_equal(k["sep"], sep)
         if comm.allreduce(bool(same), op=MPI.LAND):
@@ -345,9 +347,11 @@ class RankSchur:
         k = self.kept
         lu = k["chain"]
         mine = lu.negative if lu is not None and not self.failed else None
-        counts = comm.allgather(mine)
-        if any(c is None for c in counts):
+        counts = comm.allgather((mine, lu is not None))
+        self.structural = not all(chained for _, chained in counts)
+        if any(c is None for c, _ in counts):
             return None
+        counts = [c for c, _ in counts]
         S = k["S_dense"]
         return sum(counts) + int((np.linalg.eigvalsh(0.5 * (S + S.T)) < 0.0).sum())
 

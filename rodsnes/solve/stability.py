@@ -19,7 +19,7 @@ from petsc4py import PETSc
 
 from rodsnes.model.term import same_patterns
 from rodsnes.solve import chain, schur
-from rodsnes.solve.linear import mumps_fill_room, mumps_ordering, option_default
+from rodsnes.solve.linear import is_default, mumps_fill_room, mumps_ordering, option_default
 
 
 def zero_shift(A):
@@ -31,7 +31,9 @@ def zero_shift(A):
 
 
 class Inertia:
-    """The negative eigenvalues of the energy Hessian, counted by MUMPS LDL^T (INFOG(12), the
+    """The negative eigenvalues of the energy Hessian, counted by the chain LDL^T where it
+    applies (an open rod without contact: H in BAIJ, chain.ChainLU on one rank, schur.RankSchur
+    on several; module docstring, CHAIN_BACKWARD) and otherwise by MUMPS LDL^T (INFOG(12), the
     negative pivots; -stability_mat_mumps_icntl_13 1 makes the count right on any number of
     ranks; ordered as the Newton step's MUMPS, linear.mumps_ordering).  The Hessian goes into
     an SBAIJ matrix of the problem's layout (the upper block triangle, half the entries;
@@ -53,11 +55,13 @@ class Inertia:
 
     REDUNDANT_MAX = 30000       # unknowns up to which several ranks each factor H whole
     # the chain LDL^T's count is taken where its factors solve H x = b (b fixed) to a backward
-    # error |H x - b| <= CHAIN_BACKWARD |H| |x|: factors of a matrix within round-off of H, whose
-    # inertia is H's but for eigenvalues within round-off of zero (which the zero shift tau
-    # places).  Without pivoting between blocks a small pivot block can carry growth (the rod's
-    # leading stretch near a critical state of its own); then MUMPS, pivoting, counts instead.
-    CHAIN_BACKWARD = 1e-12
+    # error |H x - b| <= CHAIN_BACKWARD (tau / |H|) |H| |x|, tau the zero shift: the factors of
+    # H + E with |E| a tenth of tau, whose inertia is H's but where an eigenvalue lies within
+    # |E| of zero - which the shift already decides.  Without pivoting between blocks a small
+    # pivot block can carry growth (the rod's leading stretch near a critical state of its own:
+    # 2e-13 in a roll-up's closed turn, while tau / |H| is about 1e-13); then MUMPS, pivoting,
+    # counts instead.
+    CHAIN_BACKWARD = 0.1
 
     def __init__(self, problem, prefix="stability_"):
         self.problem, self.prefix = problem, prefix
@@ -70,6 +74,9 @@ class Inertia:
         self.chain = None
         self.by_chain = False           # the last factorisation was the chain's
         self.fallback = None            # H's AIJ copy for a count handed to MUMPS
+        # the condensation cannot count by its stretches (a ring, a long middle stretch): the
+        # kept SBAIJ MUMPS LDL^T from the next assembly on
+        self.chain_structural = False
         self.diagonal = None
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
@@ -89,9 +96,10 @@ class Inertia:
         MUMPS option given under the prefix (-stability_pc_factor_mat_solver_type mumps, any
         -stability_mat_mumps_*: MUMPS as asked)."""
         p = self.problem
+        # the user's options, not those rodsnes set for its own MUMPS LDL^T (option_default)
         asked = [k for k in PETSc.Options().getAll()
                  if k.startswith((self.prefix + "pc_factor_mat_solver_type",
-                                  self.prefix + "mat_mumps_"))]
+                                  self.prefix + "mat_mumps_")) and not is_default(k)]
         size = p.layout.comm.getSize()
         return (not p.moving_pattern and chain.available() and not asked
                 and (size == 1 or schur.pays(p.mesh.n_nodes, size)))
@@ -120,10 +128,12 @@ class Inertia:
         self.builds += 1
         return True
 
-    def _chain_count(self, H):
+    def _chain_count(self, H, tau):
         """The chain LDL^T's count of H's negative eigenvalues, or None (a stretch not a chain,
-        a singular pivot, factors not backward stable: MUMPS then)."""
+        a singular pivot, factors not backward stable: MUMPS then; ``chain_structural`` where
+        the condensation cannot count by its stretches at all).  ``tau``: the zero shift."""
         c = self.chain
+        self.backward = None
         if isinstance(c, chain.ChainLU):
             if not c.factor(H, inertia=True):
                 return None
@@ -137,9 +147,11 @@ class Inertia:
                 c.setUp()
             except PETSc.Error:
                 return None
-            n = c.getPythonContext().negative
+            ctx = c.getPythonContext()
+            n = ctx.negative
+            self.chain_structural = ctx.structural
             solve = c.apply
-        if n is None or not self._backward_stable(H, solve):
+        if n is None or not self._backward_stable(H, solve, tau):
             return None
         return n
 
@@ -192,6 +204,9 @@ class Inertia:
             patterns = p.patterns_at()
         if not same_patterns(patterns, self.patterns):
             self._build(patterns)
+        elif self.chain_structural:     # the condensation cannot count: MUMPS, kept, from now
+            self.destroy()
+            self._build_mumps(patterns)
         p.jacobian(None, p.state.X, self.H, self.H, symmetric=True, view=self._view())
         if self.diagonal is not None:
             self.diagonal.destroy()
@@ -213,7 +228,7 @@ class Inertia:
         self.counts += 1
         self.by_chain = False
         if self.chain is not None:
-            n = self._chain_count(H)
+            n = self._chain_count(H, zero_shift(H))
             if n is not None:
                 self.by_chain = True
                 self.chain_counts += 1
@@ -243,10 +258,10 @@ class Inertia:
             return -1
         return int(F.getMumpsInfog(12))
 
-    def _backward_stable(self, H, solve):
+    def _backward_stable(self, H, solve, tau):
         """Whether the chain factors of H solve H x = b, b_i = sin(0.37 i), to a backward error
-        of at most CHAIN_BACKWARD (``solve(b, x)``: by those factors).  Sets ``backward``, the
-        error found.  Collective."""
+        of at most CHAIN_BACKWARD tau / |H| (``solve(b, x)``: by those factors; ``tau``: the
+        zero shift).  Sets ``backward``, the error found.  Collective."""
         b = H.createVecRight()
         lo, hi = b.getOwnershipRange()
         b.setArray(np.sin(0.37 * np.arange(lo, hi)))
@@ -255,11 +270,12 @@ class Inertia:
         r = b.duplicate()
         H.mult(x, r)
         r.axpy(-1.0, b)
-        scale = H.norm(PETSc.NormType.INFINITY) * x.norm(PETSc.NormType.INFINITY)
+        norm = H.norm(PETSc.NormType.INFINITY)
+        scale = norm * x.norm(PETSc.NormType.INFINITY)
         self.backward = r.norm(PETSc.NormType.INFINITY) / scale if scale > 0 else np.inf
         for v in (b, x, r):
             v.destroy()
-        return bool(self.backward <= self.CHAIN_BACKWARD)
+        return bool(self.backward <= self.CHAIN_BACKWARD * tau / norm) if norm > 0 else False
 
     def _gathered(self, H):
         """The whole of H on every rank (a sequential SBAIJ, refilled in place).  Collective."""
@@ -305,7 +321,7 @@ class Inertia:
             if obj is not None:
                 obj.destroy()
         self.pc = self.H = self.whole = self.diagonal = self.chain = self.fallback = None
-        self.by_chain = False
+        self.by_chain = self.chain_structural = False
 
 
 def negative_eigenvalues(problem):
