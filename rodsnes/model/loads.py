@@ -38,7 +38,7 @@ class Loads(Term):
         self.active = bool(np.any(self.f) or np.any(self.m) or np.any(self.g))
         if np.any(self.g):
             xi, w = fe.gauss_legendre(nq)
-            N = fe.lagrange_values(mesh.order, xi)
+            N, _, _ = fe.lagrange(mesh.order, xi)
             self.gravity_weights = (w * mesh.h / 2.0) @ N            # int N_a ds per element node
         else:
             self.gravity_weights = None

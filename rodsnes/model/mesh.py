@@ -175,7 +175,7 @@ def lumped_weights(mesh, layout):
     lumping of the consistent mass matrix of a unit line density, positive for the equispaced
     Lagrange elements of order 1..4 (the minimiser's metric).  Collective."""
     xi, w = fe.gauss_legendre(mesh.order + 1)
-    N = fe.lagrange_values(mesh.order, xi)
+    N, _, _ = fe.lagrange(mesh.order, xi)
     we = (w * mesh.h / 2.0) @ N                       # (p+1,) per element node
     loc = np.zeros((len(layout.local_nodes), NDOF))
     np.add.at(loc, layout.lconn, np.broadcast_to(we[None, :, None], layout.lconn.shape + (NDOF,)))
