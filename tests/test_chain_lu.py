@@ -225,3 +225,21 @@ def test_a_pivot_blocks_inertia_with_bunch_kaufman_pivots(bs):
             M = -(M @ M.T) - 0.1 * np.eye(bs)
         assert lu.factor(values=M.T.ravel(), inertia=True)
         assert lu.negative == int((np.linalg.eigvalsh(M) < 0).sum()), (trial, M)
+
+
+@pytest.mark.parametrize("bs", [2, 3, 6, 8])
+def test_a_block_needing_every_row_exchange_is_inverted(bs):
+    """One block (a chain of one node) whose rows are a permutation of a well-conditioned
+    matrix's with zeros on the diagonal, so that partial pivoting exchanges rows at every step:
+    the solve is the dense one (block_invert's exchanges undone as column exchanges)."""
+    rng = np.random.default_rng(10 + bs)
+    lu = chain.ChainLU.plan(np.array([0, 1]), np.array([0]), bs, 1)
+    for trial in range(50):
+        M = rng.standard_normal((bs, bs)) + 3.0 * np.eye(bs)
+        M = M[rng.permutation(bs)][:, ::-1] if trial % 2 else M[::-1]
+        np.fill_diagonal(M, 0.0)
+        if abs(np.linalg.det(M)) < 1e-3:
+            continue
+        b = rng.standard_normal(bs)
+        assert lu.factor(values=M.T.ravel())
+        assert np.allclose(lu.solve(b.copy()), np.linalg.solve(M, b), rtol=1e-10, atol=1e-12)
