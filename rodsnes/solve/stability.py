@@ -30,6 +30,85 @@ def zero_shift(A):
     return 1e3 * np.finfo(float).eps * A.getDiagonal().norm(PETSc.NormType.INFINITY)
 
 
+class ChainCount:
+    """The chain LDL^T's count of the negative eigenvalues of a symmetric BAIJ matrix H (module
+    docstring): chain.ChainLU's pivot blocks on one rank, on several schur.RankSchur (a python
+    PC) with its stretches' and the separator's Schur complement's (Haynsworth).  A count is
+    taken where the factors solve H x = b, b_i = sin(0.37 i), to a backward error within the
+    caller's bound: count(H, bound) gives it or None; solve(b, x) by the last factors;
+    ``backward`` the error found, ``structural`` where the condensation cannot count at all (a
+    stretch not a chain, the whole-matrix mode)."""
+
+    def __init__(self, lu=None, pc=None):
+        self.lu, self.pc = lu, pc
+        self.backward = None
+        self.structural = False
+
+    @classmethod
+    def make(cls, H, problem):
+        """The ChainCount of H (one rank: None where its pattern fills in the node order)."""
+        if H.getComm().getSize() > 1:
+            pc = PETSc.PC().create(comm=H.getComm())
+            pc.setType(PETSc.PC.Type.PYTHON)
+            ctx = schur.RankSchur(problem)
+            ctx.inertia = True
+            pc.setPythonContext(ctx)
+            return cls(pc=pc)
+        ai, aj = H.getRowIJ(compressed=True)
+        lu = chain.ChainLU.plan(ai, aj, H.getBlockSize(), 1)
+        return None if lu is None else cls(lu=lu)
+
+    def count(self, H, bound):
+        """H's negative eigenvalues, or None (a singular pivot block, factors not backward
+        stable within ``bound`` |H| |x|, a stretch not a chain).  Collective."""
+        self.backward = None
+        if self.lu is not None:
+            if not self.lu.factor(H, inertia=True):
+                return None
+            n = self.lu.negative
+        else:
+            self.pc.setOperators(H)
+            try:
+                self.pc.setUp()
+            except PETSc.Error:
+                return None
+            ctx = self.pc.getPythonContext()
+            n, self.structural = ctx.negative, ctx.structural
+        if n is None or not self._backward_stable(H, bound):
+            return None
+        return n
+
+    def solve(self, b, x):
+        """x = H^-1 b by the last factors.  Collective."""
+        if self.lu is not None:
+            x.setArray(self.lu.solve(b.getArray(readonly=True).copy()))
+        else:
+            self.pc.apply(b, x)
+
+    def _backward_stable(self, H, bound):
+        """Whether the last factors solve H x = b to a backward error |H x - b| / (|H| |x|) of
+        at most ``bound`` / |H| (sets ``backward``).  Collective."""
+        b = H.createVecRight()
+        lo, hi = b.getOwnershipRange()
+        b.setArray(np.sin(0.37 * np.arange(lo, hi)))
+        x = b.duplicate()
+        self.solve(b, x)
+        r = b.duplicate()
+        H.mult(x, r)
+        r.axpy(-1.0, b)
+        norm = H.norm(PETSc.NormType.INFINITY)
+        scale = norm * x.norm(PETSc.NormType.INFINITY)
+        self.backward = r.norm(PETSc.NormType.INFINITY) / scale if scale > 0 else np.inf
+        for v in (b, x, r):
+            v.destroy()
+        return bool(norm > 0 and self.backward <= bound / norm)
+
+    def destroy(self):
+        if self.pc is not None:
+            self.pc.destroy()
+        self.lu = self.pc = None
+
+
 class Inertia:
     """The negative eigenvalues of the energy Hessian, counted by the chain LDL^T where it
     applies (an open rod without contact: H in BAIJ, chain.ChainLU on one rank, schur.RankSchur
@@ -69,9 +148,7 @@ class Inertia:
         self.H = None
         self.pc = None
         self.whole = None               # the redundant factorisation's gathered H, IS, scatter
-        # the chain LDL^T where it applies: chain.ChainLU (one rank) or the python PC of
-        # schur.RankSchur counting by its stretches' (several ranks)
-        self.chain = None
+        self.chain = None               # the ChainCount where the chain LDL^T applies
         self.by_chain = False           # the last factorisation was the chain's
         self.fallback = None            # H's AIJ copy for a count handed to MUMPS
         # the condensation cannot count by its stretches (a ring, a long middle stretch): the
@@ -105,54 +182,23 @@ class Inertia:
                 and (size == 1 or schur.pays(p.mesh.n_nodes, size)))
 
     def _build_chain(self, patterns):
-        """H as BAIJ and its chain LDL^T, where the pattern eliminates without fill in the node
-        order (an open rod without contact); on several ranks schur.RankSchur with its
-        stretches' chain LUs and Haynsworth's count (decided at every factorisation).  Returns
-        whether it was made."""
+        """H as BAIJ and its ChainCount, where the pattern eliminates without fill in the node
+        order (one rank; on several, decided at every count).  Returns whether it was made."""
         H = self._matrix(patterns, symmetric=False)
-        if self.problem.layout.comm.getSize() > 1:
-            pc = PETSc.PC().create(comm=H.getComm())
-            pc.setType(PETSc.PC.Type.PYTHON)
-            ctx = schur.RankSchur(self.problem)
-            ctx.inertia = True
-            pc.setPythonContext(ctx)
-            self.H, self.chain, self.patterns = H, pc, patterns
-            self.builds += 1
-            return True
-        ai, aj = H.getRowIJ(compressed=True)
-        lu = chain.ChainLU.plan(ai, aj, H.getBlockSize(), 1)
-        if lu is None:
+        counter = ChainCount.make(H, self.problem)
+        if counter is None:
             H.destroy()
             return False
-        self.H, self.chain, self.patterns = H, lu, patterns
+        self.H, self.chain, self.patterns = H, counter, patterns
         self.builds += 1
         return True
 
     def _chain_count(self, H, tau):
-        """The chain LDL^T's count of H's negative eigenvalues, or None (a stretch not a chain,
-        a singular pivot, factors not backward stable: MUMPS then; ``chain_structural`` where
-        the condensation cannot count by its stretches at all).  ``tau``: the zero shift."""
-        c = self.chain
-        self.backward = None
-        if isinstance(c, chain.ChainLU):
-            if not c.factor(H, inertia=True):
-                return None
-            n = c.negative
-
-            def solve(b, x):
-                x.setArray(c.solve(b.getArray(readonly=True).copy()))
-        else:                           # the python PC of schur.RankSchur
-            c.setOperators(H)
-            try:
-                c.setUp()
-            except PETSc.Error:
-                return None
-            ctx = c.getPythonContext()
-            n = ctx.negative
-            self.chain_structural = ctx.structural
-            solve = c.apply
-        if n is None or not self._backward_stable(H, solve, tau):
-            return None
+        """The chain LDL^T's count of H's negative eigenvalues, or None (MUMPS then;
+        ``chain_structural`` where the condensation cannot count by its stretches at all)."""
+        n = self.chain.count(H, self.CHAIN_BACKWARD * tau)
+        self.backward = self.chain.backward
+        self.chain_structural = self.chain.structural
         return n
 
     def _view(self):
@@ -258,25 +304,6 @@ class Inertia:
             return -1
         return int(F.getMumpsInfog(12))
 
-    def _backward_stable(self, H, solve, tau):
-        """Whether the chain factors of H solve H x = b, b_i = sin(0.37 i), to a backward error
-        of at most CHAIN_BACKWARD tau / |H| (``solve(b, x)``: by those factors; ``tau``: the
-        zero shift).  Sets ``backward``, the error found.  Collective."""
-        b = H.createVecRight()
-        lo, hi = b.getOwnershipRange()
-        b.setArray(np.sin(0.37 * np.arange(lo, hi)))
-        x = b.duplicate()
-        solve(b, x)
-        r = b.duplicate()
-        H.mult(x, r)
-        r.axpy(-1.0, b)
-        norm = H.norm(PETSc.NormType.INFINITY)
-        scale = norm * x.norm(PETSc.NormType.INFINITY)
-        self.backward = r.norm(PETSc.NormType.INFINITY) / scale if scale > 0 else np.inf
-        for v in (b, x, r):
-            v.destroy()
-        return bool(self.backward <= self.CHAIN_BACKWARD * tau / norm) if norm > 0 else False
-
     def _gathered(self, H):
         """The whole of H on every rank (a sequential SBAIJ, refilled in place).  Collective."""
         w = self.whole
@@ -289,10 +316,7 @@ class Inertia:
     def solve(self, b, x):
         """x = (H + shift)^-1 b with the last factor.  Collective."""
         if self.by_chain:
-            if isinstance(self.chain, chain.ChainLU):
-                x.setArray(self.chain.solve(b.getArray(readonly=True).copy()))
-            else:
-                self.chain.apply(b, x)
+            self.chain.solve(b, x)
             return
         w = self.whole
         if w is None:
@@ -315,9 +339,8 @@ class Inertia:
 
     def destroy(self):
         w = self.whole or {}
-        pc_chain = self.chain if isinstance(self.chain, PETSc.PC) else None
         for obj in (self.pc, self.H, self.diagonal, w.get("H"), w.get("is"), w.get("scatter"),
-                    w.get("b"), w.get("x"), self.fallback, pc_chain):
+                    w.get("b"), w.get("x"), self.fallback, self.chain):
             if obj is not None:
                 obj.destroy()
         self.pc = self.H = self.whole = self.diagonal = self.chain = self.fallback = None
