@@ -64,8 +64,9 @@ class ChainLU:
         self.n = len(ai) - 1
         self.diag, self.target = diag, target
         self.values = np.empty(int(ai[-1]) * bs * bs)
-        self.failed_row = None
-        self.stale = False
+        self.failed_row = None          # the row of a singular pivot block (last factor)
+        self.stale = False              # the last factor() found another pattern
+        self.negative = None            # the last factor()'s count (inertia=True)
         # how each block enters the factorisation: as it is (0), or, for the block rows taken
         # out, zero (1: their rows' and columns' other blocks) and the identity (2: their
         # diagonal blocks)
