@@ -251,3 +251,20 @@ def test_a_ring_on_several_ranks_is_counted_by_the_kept_mumps_ldlt(monkeypatch):
     assert inertia.count() == want and inertia.chain is None
     assert "sbaij" in inertia.H.getType()
     inertia.destroy()
+
+
+@pytest.mark.mpi
+def test_an_aij_hessian_is_counted_by_mumps():
+    """-mat_type aij: the Hessian is not BAIJ, the chain LDL^T does not apply (no block value
+    array), MUMPS counts as before - the fresh factorisation's count."""
+    from rodsnes.solve import stability
+    try:
+        p = run_case("euler", rod_imperfection=0.0, load_path="newton", rod_planar="off",
+                     load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4), load_steps=4,
+                     mat_type="aij").problem
+        inertia = stability.Inertia(p)
+        assert inertia.count() == 2 == stability.negative_eigenvalues_scaled(p)
+        assert inertia.chain is None and inertia.chain_counts == 0
+        inertia.destroy()
+    finally:
+        PETSc.Options().delValue("mat_type")

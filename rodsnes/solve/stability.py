@@ -46,7 +46,10 @@ class ChainCount:
 
     @classmethod
     def make(cls, H, problem):
-        """The ChainCount of H (one rank: None where its pattern fills in the node order)."""
+        """The ChainCount of H (None for a matrix other than BAIJ, -mat_type aij say, and on one
+        rank where its pattern fills in the node order)."""
+        if H.getType() not in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
+            return None
         if H.getComm().getSize() > 1:
             pc = PETSc.PC().create(comm=H.getComm())
             pc.setType(PETSc.PC.Type.PYTHON)
