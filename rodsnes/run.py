@@ -25,7 +25,7 @@ from rodsnes.model.problem import RodProblem
 from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.terms import scene_terms, contact_term
-from rodsnes.solve import estimate, linear
+from rodsnes.solve import estimate, linear, schur
 from rodsnes.solve import planar
 from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
@@ -311,6 +311,12 @@ class Run:
         parts.append(self.model() + " (in-plane unknowns only)" if self.plane is not None
                      else "3-D (" + self.planar_why + ")")
         parts += [t.describe() for t in self.problem.terms if t.describe()]
+        size = self.comm.getSize()
+        if size > 1 and not schur.pays(self.mesh.n_nodes, size, "mumps"):
+            # below both condensation thresholds: the ranks share the residual and the tangent,
+            # not the factorisation (the plectoneme's 181 nodes: 27.7 s on 2 ranks, 23 s on one)
+            parts.append(f"every rank factors the whole matrix: {self.mesh.n_nodes} nodes are "
+                         f"too few to share it over {size} ranks (one rank may be as fast)")
         if rod.kernel == "auto" and self.problem.elastic.kernel != "compiled":
             parts.append("elastic kernel in numpy, 10-20 x slower: the compiled one is not built "
                          "or older than its source (make install)")

@@ -585,3 +585,14 @@ def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
         b2, _ = _smooth(A)
         y3 = _solve(A, b2, bad)
         assert not bad.failed and _backward(A, b2, y3) <= stable
+
+
+@pytest.mark.mpi
+def test_the_header_says_when_the_ranks_cannot_share_the_factorisation():
+    """A rod below the condensation's size on several ranks: the run's first line says that
+    every rank factors the whole matrix; on one rank, or long enough, it says nothing of it."""
+    from conftest import build_run
+    short = build_run("mattiasson", rod_nelem=8).header()
+    said = "every rank factors the whole matrix" in short
+    assert said == (PETSc.COMM_WORLD.getSize() > 1)
+    assert "too few to share" not in build_run("mattiasson", rod_nelem=2000).header()
