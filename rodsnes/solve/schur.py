@@ -420,7 +420,7 @@ class RankSchur:
                 lu, tail = k["chain"], k["tail"] = found
                 k["tail_rows"] = _unknowns(np.sort(lu.order_position(np.arange(tail, lu.n))), bs)
                 k["near_in_tail"] = np.searchsorted(k["tail_rows"], k["Npos"])
-                k["work"] = np.zeros(ni)    # zero but on the tail while a substitution runs
+                k["work"] = np.zeros(ni)    # the tail's substitutions: zero off the tail
                 return
         k["isolate"] = []
         if len(k["G"]):
@@ -548,18 +548,23 @@ class RankSchur:
         ok = ok and bool(np.isfinite(W).all())
         self._share(ASS, -(k["asn"] @ W[k["Npos"]]) if ok else None, ok, comm)
 
-    def _tail_solve(self, values, first, last):
+    def _tail_solve(self, t, first, last):
         """The chain LU's substitutions restricted to its tail (``first``, ``last``: chain.
-        ChainLU.solve) on a vector zero but for ``values`` on the near rows; returns the
-        result on the tail's rows (tail_rows).  The work vector is zero outside the tail (no
-        other row is ever written) and its tail is cleared first: a substitution interrupted
-        before the clearing leaves nothing behind."""
+        ChainLU.solve) on the vector that is ``t`` on the tail's rows (tail_rows) and zero
+        elsewhere; returns the result on the tail's rows.  The work vector is zero off the
+        tail: no other row of it is ever written."""
         k = self.kept
         w, rows = k["work"], k["tail_rows"]
-        w[rows] = 0.0
-        w[k["Npos"]] = values
+        w[rows] = t
         k["chain"].solve(w, first, last)
         return w[rows].copy()
+
+    def _on_tail(self, near):
+        """The tail vector that is ``near`` on the near rows, zero on the tail's others."""
+        k = self.kept
+        t = np.zeros(len(k["tail_rows"]))
+        t[k["near_in_tail"]] = near
+        return t
 
     def _factor_chain(self, ANS, ASS, comm):
         """The stretch's LU without fill (chain.py) and its part of S from the inverse's
@@ -579,7 +584,8 @@ class RankSchur:
         if ok:
             WN = np.empty_like(ANS)
             for c in range(ANS.shape[1]):
-                WN[:, c] = self._tail_solve(ANS[:, c], tail, tail)[k["near_in_tail"]]
+                WN[:, c] = self._tail_solve(self._on_tail(ANS[:, c]), tail, tail)[
+                    k["near_in_tail"]]
             part = -(k["asn"] @ WN)
             ok = bool(np.isfinite(part).all())
         k["ANS"] = ANS
@@ -594,14 +600,12 @@ class RankSchur:
         z = b.copy()
         z[k["G"]] = 0.0
         lu.solve(z, 0, lu.n)                                    # z = L^-1 b_I
-        w, rows = k["work"], k["tail_rows"]
-        w[rows] = z[rows]
-        lu.solve(w, lu.n, tail)                                 # (A_II^-1 b_I) on the tail
-        g = -(k["asn"] @ w[k["Npos"]])
-        w[rows] = 0.0
+        rows = k["tail_rows"]
+        yT = self._tail_solve(z[rows], lu.n, tail)              # (A_II^-1 b_I) on the tail
+        g = -(k["asn"] @ yT[k["near_in_tail"]])
         g[k["Gpos"]] += b[k["G"]]
         xg = sla.lu_solve(k["S"], comm.allreduce(g), check_finite=False)
-        z[rows] -= self._tail_solve(k["ANS"] @ xg, tail, lu.n)
+        z[rows] -= self._tail_solve(self._on_tail(k["ANS"] @ xg), tail, lu.n)
         lu.solve(z, lu.n, 0)                                    # x_I = U^-1 (z - L^-1 A_IG x_G)
         out = y.getArray()
         out[:] = z
