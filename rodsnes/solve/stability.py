@@ -153,15 +153,22 @@ class Inertia:
         self.whole = None               # the redundant factorisation's gathered H, IS, scatter
         self.chain = None               # the ChainCount where the chain LDL^T applies
         self.by_chain = False           # the last factorisation was the chain's
-        self.fallback = None            # H's AIJ copy for a count handed to MUMPS
-        # the condensation cannot count by its stretches (a ring, a long middle stretch): the
-        # kept SBAIJ MUMPS LDL^T from the next assembly on
-        self.chain_structural = False
+        self.fallback = None            # H's AIJ copy for the counts handed to MUMPS
         self.diagonal = None
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
         self.chain_counts = 0            # counts made by the chain LDL^T
-        self.backward = None             # the backward error of its last factors
+
+    @property
+    def backward(self):
+        """The backward error of the chain's last factors (ChainCount), None without them."""
+        return None if self.chain is None else self.chain.backward
+
+    @property
+    def chain_structural(self):
+        """The condensation cannot count by its stretches (a ring, a long middle stretch):
+        the kept SBAIJ MUMPS LDL^T from the next assembly on."""
+        return self.chain is not None and self.chain.structural
 
     def _matrix(self, patterns, symmetric=True):
         """The SBAIJ matrix the Hessian goes into (the problem's layout); BAIJ for the chain
@@ -196,14 +203,6 @@ class Inertia:
         self.builds += 1
         return True
 
-    def _chain_count(self, H, tau):
-        """The chain LDL^T's count of H's negative eigenvalues, or None (MUMPS then;
-        ``chain_structural`` where the condensation cannot count by its stretches at all)."""
-        n = self.chain.count(H, self.CHAIN_BACKWARD * tau)
-        self.backward = self.chain.backward
-        self.chain_structural = self.chain.structural
-        return n
-
     def _view(self):
         """What the Hessian is assembled through (None: H itself, Dirichlet rows masked)."""
         return None
@@ -215,21 +214,10 @@ class Inertia:
             return
         self._build_mumps(patterns)
 
-    def _build_mumps(self, patterns, H=None):
-        """H as SBAIJ (or ``H``, the chain's BAIJ, as an AIJ copy flagged symmetric: the
-        hand-over of one count) with MUMPS's LDL^T."""
+    def _mumps_pc(self, whole):
+        """MUMPS's LDL^T under the prefix, with rodsnes' defaults (sequential where ``whole``:
+        every rank factors the gathered H)."""
         p = self.problem
-        if H is None:
-            self.H = self._matrix(patterns)
-        else:
-            A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
-            A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-            self.fallback = A
-        n = self.H.getSize()[0]
-        whole = H is None and p.layout.comm.getSize() > 1 and n <= self.REDUNDANT_MAX
-        if whole:
-            self.whole = {"is": PETSc.IS().createStride(n, 0, 1, comm=PETSc.COMM_SELF),
-                          "H": None, "scatter": None}
         pc = PETSc.PC().create(comm=PETSc.COMM_SELF if whole else p.layout.comm)
         pc.setOptionsPrefix(self.prefix)
         pc.setType(PETSc.PC.Type.CHOLESKY)
@@ -238,10 +226,30 @@ class Inertia:
         mumps_fill_room(p, self.prefix)
         mumps_ordering(p, self.prefix)
         pc.setFromOptions()
-        self.pc = pc
-        if H is None:
-            self.patterns = patterns
-            self.builds += 1
+        return pc
+
+    def _build_mumps(self, patterns):
+        """H as SBAIJ with MUMPS's LDL^T, kept while the pattern stays."""
+        p = self.problem
+        self.H = self._matrix(patterns)
+        n = self.H.getSize()[0]
+        whole = p.layout.comm.getSize() > 1 and n <= self.REDUNDANT_MAX
+        if whole:
+            self.whole = {"is": PETSc.IS().createStride(n, 0, 1, comm=PETSc.COMM_SELF),
+                          "H": None, "scatter": None}
+        self.pc = self._mumps_pc(whole)
+        self.patterns = patterns
+        self.builds += 1
+
+    def _handed_over(self, H):
+        """H, the chain's BAIJ, as an AIJ copy flagged symmetric for MUMPS's LDL^T (a count the
+        chain could not take); the copy and the PC are kept for the next hand-over of the same
+        pattern (refilled in place, a numeric factorisation)."""
+        self.fallback = H.convert(PETSc.Mat.Type.AIJ, self.fallback or PETSc.Mat())
+        self.fallback.setOption(PETSc.Mat.Option.SYMMETRIC, True)
+        if self.pc is None:
+            self.pc = self._mumps_pc(False)
+        return self.fallback
 
     def assemble(self, patterns=None):
         """The symmetric Hessian of the problem's current state into H (kept; a new matrix and
@@ -277,17 +285,13 @@ class Inertia:
         self.counts += 1
         self.by_chain = False
         if self.chain is not None:
-            n = self._chain_count(H, zero_shift(H))
+            n = self.chain.count(H, self.CHAIN_BACKWARD * zero_shift(H))
             if n is not None:
                 self.by_chain = True
                 self.chain_counts += 1
                 return n
-            # a singular or small pivot block: this count by MUMPS (pivoting) on an AIJ copy
-            if self.pc is not None:
-                self.pc.destroy()
-                self.fallback.destroy()
-            self._build_mumps(self.patterns, H=H)
-            A = self.fallback
+            # a singular or growing pivot block: this count by MUMPS (pivoting) on an AIJ copy
+            A = self._handed_over(H)
         else:
             A = self._gathered(H) if self.whole is not None else H
         self.pc.setOperators(A)
@@ -347,7 +351,7 @@ class Inertia:
             if obj is not None:
                 obj.destroy()
         self.pc = self.H = self.whole = self.diagonal = self.chain = self.fallback = None
-        self.by_chain = self.chain_structural = False
+        self.by_chain = False
 
 
 def negative_eigenvalues(problem):
