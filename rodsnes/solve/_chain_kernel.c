@@ -76,25 +76,15 @@ int64_t rodsnes_chain_plan(int n, const int *ai, const int *aj, int dir, int *di
 
 /* ---- bs x bs blocks, column by column: element (r, c) at r + c bs ------------------------- */
 
-/* C = A B */
-static inline void block_mul(const int BS, const double *A, const double *B, double *C)
+/* C = A B (sign 0) or C -= A B (sign 1) */
+static inline void block_mul(const int BS, const double *A, const double *B, double *C,
+                             const int sub)
 {
     for (int c = 0; c < BS; c++)
         for (int r = 0; r < BS; r++) {
             double s = 0.0;
             for (int m = 0; m < BS; m++) s += A[r + m * BS] * B[m + c * BS];
-            C[r + c * BS] = s;
-        }
-}
-
-/* C -= A B */
-static inline void block_mulsub(const int BS, const double *A, const double *B, double *C)
-{
-    for (int c = 0; c < BS; c++)
-        for (int r = 0; r < BS; r++) {
-            double s = 0.0;
-            for (int m = 0; m < BS; m++) s += A[r + m * BS] * B[m + c * BS];
-            C[r + c * BS] -= s;
+            if (sub) C[r + c * BS] -= s; else C[r + c * BS] = s;
         }
 }
 
@@ -133,6 +123,13 @@ static inline int block_invert(const int BS, double *A)
     return 0;
 }
 
+/* Rows and columns p and q of the symmetric S exchanged (a congruence by a permutation). */
+static inline void sym_swap(const int BS, double S[8][8], int p, int q)
+{
+    for (int j = 0; j < BS; j++) { double t = S[q][j]; S[q][j] = S[p][j]; S[p][j] = t; }
+    for (int j = 0; j < BS; j++) { double t = S[j][q]; S[j][q] = S[j][p]; S[j][p] = t; }
+}
+
 /* The negative eigenvalues of the symmetric part of the block A (column by column): its
  * LDL^T with Bunch-Kaufman pivoting (1 x 1 and 2 x 2 pivots, alpha = (1 + sqrt 17) / 8), a
  * congruence, the negative eigenvalues counted on D; an exactly zero column counts as not
@@ -162,16 +159,10 @@ static int block_inertia(const int BS, const double *A)
             if (akk * sigma >= alpha * lam * lam) {
                 /* 1 x 1 at k */
             } else if (fabs(S[r][r]) >= alpha * sigma) {
-                int p = r;          /* 1 x 1 at r: swap k and r */
-                for (int j = 0; j < BS; j++) { double t = S[k][j]; S[k][j] = S[p][j]; S[p][j] = t; }
-                for (int j = 0; j < BS; j++) { double t = S[j][k]; S[j][k] = S[j][p]; S[j][p] = t; }
+                sym_swap(BS, S, k, r);      /* 1 x 1 at r: swap k and r */
             } else {
-                two = 1;            /* 2 x 2 at (k, r): swap k + 1 and r */
-                int p = r, q = k + 1;
-                if (p != q) {
-                    for (int j = 0; j < BS; j++) { double t = S[q][j]; S[q][j] = S[p][j]; S[p][j] = t; }
-                    for (int j = 0; j < BS; j++) { double t = S[j][q]; S[j][q] = S[j][p]; S[j][p] = t; }
-                }
+                two = 1;                    /* 2 x 2 at (k, r): swap k + 1 and r */
+                if (r != k + 1) sym_swap(BS, S, k + 1, r);
             }
         }
         if (!two) {
@@ -225,13 +216,13 @@ static inline int factor_bs(const int BS, int n, const int *ai, const int *aj, c
         lower_range(dir, ai, diag, i, &p0, &p1, &step);
         for (int p = p0; p != p1; p += step) {
             int k = aj[p], q0, q1;
-            block_mul(BS, V + (int64_t)p * B2, V + (int64_t)diag[k] * B2, L);
+            block_mul(BS, V + (int64_t)p * B2, V + (int64_t)diag[k] * B2, L, 0);
             memcpy(V + (int64_t)p * B2, L, sizeof(double) * B2);
             upper_range(dir, ai, diag, k, &q0, &q1);
             for (int q = q0; q < q1; q++) {
                 double *C = V + (int64_t)target[t++] * B2, U[64];
                 memcpy(U, V + (int64_t)q * B2, sizeof(double) * B2);
-                block_mulsub(BS, L, U, C);
+                block_mul(BS, L, U, C, 1);
             }
         }
         if (neg != NULL)         /* the pivot block's inertia, before it is inverted */
