@@ -54,6 +54,13 @@ def available():
     return bool(_load())
 
 
+def factorable(mat):
+    """Whether ChainLU can factor ``mat``: a SeqBAIJ matrix whose value array is reachable
+    (petsc_lib.values_of), the kernel built (whether its pattern fills is plan's to say)."""
+    return (mat.getType() == PETSc.Mat.Type.SEQBAIJ and available()
+            and petsc_lib.has_value_array(mat))
+
+
 class ChainLU:
     """The LU without fill of a SeqBAIJ matrix of block CSR (ai, aj) and block size bs,
     eliminated in the natural order (direction +1) or the reversed one (-1).  Made by

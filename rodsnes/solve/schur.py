@@ -235,8 +235,7 @@ def _chain_lu(D, sepb, nearb):
     direction of elimination whose near rows come last, ``tail`` the order position of the
     first of them.  None where the pattern fills in that direction or the near rows lie deeper
     than CHAIN_TAIL_MAX (or the kernel is not built)."""
-    if (D.getType() != PETSc.Mat.Type.SEQBAIJ or not chain.available()
-            or not petsc_lib.has_value_array(D)):
+    if not chain.factorable(D):
         return None
     ai, aj = D.getRowIJ(compressed=True)
     n = len(ai) - 1

@@ -48,15 +48,17 @@ class ChainCount:
     def make(cls, H, problem):
         """The ChainCount of H (None for a matrix other than BAIJ, -mat_type aij say, and on one
         rank where its pattern fills in the node order)."""
-        if H.getType() not in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
-            return None
         if H.getComm().getSize() > 1:
+            if H.getType() != PETSc.Mat.Type.MPIBAIJ:
+                return None     # each rank's diagonal block is RankSchur's to check (_chain_lu)
             pc = PETSc.PC().create(comm=H.getComm())
             pc.setType(PETSc.PC.Type.PYTHON)
             ctx = schur.RankSchur(problem)
             ctx.inertia = True
             pc.setPythonContext(ctx)
             return cls(pc=pc)
+        if not chain.factorable(H):
+            return None
         ai, aj = H.getRowIJ(compressed=True)
         lu = chain.ChainLU.plan(ai, aj, H.getBlockSize(), 1)
         return None if lu is None else cls(lu=lu)
