@@ -177,7 +177,7 @@ def test_foreign_calls_check_arrays_before_the_call_and_let_signals_through():
     import ctypes
 
     from rodsnes import compiled
-    energy = elastic_compiled._load()[1]
+    energy = elastic_compiled._load().energy
     rng = np.random.default_rng(2)
     rod, qe, xe = make_rod(2, 3, 5, rng, bound=False)
     args, (ne, nn, nq) = elastic_compiled._inputs(rod, qe, xe, None)

@@ -36,6 +36,7 @@ C entry point:
     int rodsnes_elastic_node_energy(... the same but node_vec ..., double *energy);
                          (the energy, the elements' nodes gathered in C: the line searches)
 """
+import collections
 import ctypes
 
 import numpy as np
@@ -48,6 +49,11 @@ _MAX_NODES = 8          # MAXNN in _elastic_kernel.c
 def library_path():
     """Path of the built shared library (the extension module file), or None."""
     return compiled.library_path("rodsnes.model._elastic_kernel")
+
+
+# the kernel's C entries by name (compiled.Foreign each)
+Kernel = collections.namedtuple(
+    "Kernel", "terms energy plane_tangent strains node_residual node_energy")
 
 
 def _declare(lib):
@@ -64,7 +70,7 @@ def _declare(lib):
                           [c_int, c_int, c_int, f64, f64, f64, f64, f64], c_int)
     nr = compiled.Foreign(lib.rodsnes_elastic_node_residual, nodes + [f64, f64], c_int)
     ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy, nodes + [f64], c_int)
-    return fn, en, pl, st, nr, ne_
+    return Kernel(fn, en, pl, st, nr, ne_)
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -136,7 +142,7 @@ def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None,
         energy = np.empty(ne)
         vec = np.empty((ne, nn, 6))
         H = np.empty((ne, nc * nn, nc * nn)) if tangent else None
-    info = _load()[0](ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)),
+    info = _load().terms(ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)),
                       None if cut is None else cut.ctypes.data, nc, energy, vec, H)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_terms failed ({info})")
@@ -148,7 +154,7 @@ def element_energy(rod, qe, xe, e0=None):
     derivatives: the same as rod.element_terms(...)[0] to round-off."""
     args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
     energy = np.empty(ne)
-    info = _load()[1](ne, nn, nq, *args, energy)
+    info = _load().energy(ne, nn, nq, *args, energy)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_energy failed ({info})")
     return energy
@@ -170,7 +176,7 @@ def plane_tangents(rod, qe, xe, axis, e0=None, out=None):
         out = np.empty((ne, 3 * nn, 3 * nn))
     elif out.shape != (ne, 3 * nn, 3 * nn) or not out.flags.c_contiguous:
         raise ValueError("out does not match the elements")
-    info = _load()[2](ne, nn, nq, *args, int(axis), out)
+    info = _load().plane_tangent(ne, nn, nq, *args, int(axis), out)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_plane_tangent failed ({info})")
     return out
@@ -192,7 +198,7 @@ def strains(N, dN, qe, xe):
     qe = np.asarray(qe)
     ne = qe.shape[0]
     out = np.empty((ne, nq, 6))
-    info = _load()[3](ne, nn, nq, N, dN, _f64(qe, (ne, nn, 4), "qe"), _f64(xe, (ne, nn, 3), "xe"),
+    info = _load().strains(ne, nn, nq, N, dN, _f64(qe, (ne, nn, 4), "qe"), _f64(xe, (ne, nn, 3), "xe"),
                       out)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_strains failed ({info})")
@@ -221,7 +227,7 @@ def node_energy(rod, qn, xn, conn, e0=None):
     the gathered arrays (the line searches' trials)."""
     args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
     energy = np.empty(ne)
-    info = _load()[5](ne, nn, nq, *args, qn, xn, conn, e0, energy)
+    info = _load().node_energy(ne, nn, nq, *args, qn, xn, conn, e0, energy)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_node_energy failed ({info})")
     return energy
@@ -236,7 +242,7 @@ def node_residual(rod, qn, xn, conn, e0=None):
     args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
     n = len(qn)
     energy, node_vec = np.empty(ne), np.zeros((n, 6))
-    info = _load()[4](ne, nn, nq, *args, qn, xn, conn, e0, energy, node_vec)
+    info = _load().node_residual(ne, nn, nq, *args, qn, xn, conn, e0, energy, node_vec)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_node_residual failed ({info})")
     return energy, node_vec

@@ -18,6 +18,7 @@ A_II^-1 on T is U_TT^-1 L_TT^-1, so its N block takes substitutions over T alone
 matrix give its inertia: H = L D L^T is a congruence, so H's negative eigenvalues are those
 of the pivot blocks D (stability.Inertia on one rank).
 """
+import collections
 import ctypes
 
 import numpy as np
@@ -29,6 +30,10 @@ from rodsnes.profiling import logged
 I32 = np.dtype(np.int32)
 I8 = np.dtype(np.int8)
 MAX_BS = 8                  # the kernel's largest block size
+
+
+# the kernel's C entries by name (compiled.Foreign each)
+Kernel = collections.namedtuple("Kernel", "plan factor solve")
 
 
 def _declare(lib):
@@ -43,7 +48,7 @@ def _declare(lib):
                                f64, ctypes.c_void_p], c_int)
     solve = compiled.Foreign(lib.rodsnes_chain_solve,
                              [c_int, c_int, i32, i32, i32, c_int, f64, c_int, c_int, f64], c_int)
-    return plan, factor, solve
+    return Kernel(plan, factor, solve)
 
 
 _load = compiled.loader("rodsnes.solve._chain_kernel", _declare)
@@ -90,7 +95,7 @@ class ChainLU:
         fns = _load()
         if not fns or not 1 <= bs <= MAX_BS:
             return None
-        plan = fns[0]
+        plan = fns.plan
         ai = np.ascontiguousarray(ai, dtype=I32)
         aj = np.ascontiguousarray(aj, dtype=I32)
         n = len(ai) - 1
@@ -130,7 +135,7 @@ class ChainLU:
         count = ctypes.addressof(neg) if inertia else None
 
         def run(source):
-            return fns[1](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.target,
+            return fns.factor(self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.target,
                           source, self.kind, self.values, count)
         if mat is not None:
             with petsc_lib.values_of(mat) as ptr:
@@ -149,6 +154,6 @@ class ChainLU:
         """x <- A^-1 x in place (x: n bs values, contiguous), restricted: the forward
         substitution over the order positions first..n-1, the backward one over n-1..last
         (first = n: none; last = n: none)."""
-        _load()[2](self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.values,
+        _load().solve(self.n, self.bs, self.ai, self.aj, self.diag, self.dir, self.values,
                    int(first), int(last), x)
         return x
