@@ -22,10 +22,8 @@ PYTEST := $(PY) -m pytest -q -p no:cacheprovider --color=no
 
 install: $(VENV)/.installed
 
-$(VENV)/.installed: setup.py tools/install_system.sh rodsnes/model/_elastic_kernel.c \
-		rodsnes/contact/_potential_kernel.c rodsnes/model/_topology_kernel.c \
-		rodsnes/model/_rotation_kernel.c rodsnes/model/_assembly_kernel.c \
-		rodsnes/contact/_search_kernel.c
+# every compiled kernel's source (setup.py's KERNELS): an edited kernel is rebuilt
+$(VENV)/.installed: setup.py tools/install_system.sh $(wildcard rodsnes/*/_*_kernel.c)
 	tools/install_system.sh
 	test -x $(PY) || $(SYS_PYTHON) -m venv --system-site-packages $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e .

@@ -34,12 +34,14 @@ def test_counts_match_the_run(mattiasson_run):
     ev = log["events"]
     p = bs.iteration_parts(log)
     its = sum(step["newton_iterations"] for step in s["steps"])
-    # every Newton iteration: one Jacobian, one numeric LU, one solve; no failed tries here;
-    # plus the factorisation of the linear solver's check before the run (cli.py) and the
-    # LUs of the node graph that measure the pattern's fill (linear.pattern_fill, once per
-    # ordering: one pattern, AMD and the natural order of linear.chain_ordering)
+    # every Newton iteration: one Jacobian, one numeric LU (the chain's, linear.use_chain_lu),
+    # one solve; no failed tries here; plus the factorisation of the linear solver's check
+    # before the run (cli.py) and the LUs of the node graph that measure the pattern's fill
+    # (linear.pattern_fill, once per ordering: one pattern, AMD and the natural order of
+    # linear.chain_ordering), PETSc's
     assert p["iterations"] == ev["SNESJacobianEval"]["count"] == its == s["newton_iterations"]
-    assert p["factorisations"] == its + 3 and ev["MatSolve"]["count"] == its
+    assert ev["ChainFactor"]["count"] == ev["ChainSolve"]["count"] == its
+    assert p["factorisations"] == its + 3 == its + ev["MatLUFactorNum"]["count"]
     assert p["snes_solves"] == s["load_steps"] == ev["SNESSolve"]["count"]
     # basic line search: one residual per iteration, plus the first of each solve
     assert p["residual_evals"] == its + s["load_steps"]
@@ -114,8 +116,9 @@ def test_parse_rejects_other_text():
 def test_lu_with_much_fill_hands_over_to_mumps():
     """solve/linear.py: PETSc's LU factors the rod's Jacobian; where contact couples much of
     the rod (the bench coil, fill 2.95 at 200 elements with AMD) the pattern's fill exceeds
-    FILL_MUMPS and MUMPS factors from the first Newton step on, ordered by AMD; a chain (Mattiasson, fill 1.1)
-    stays with PETSc's LU, ordered by AMD; a package the user chose is never changed."""
+    FILL_MUMPS and MUMPS factors from the first Newton step on, ordered by AMD; a chain
+    (Mattiasson, no fill) stays with rodsnes' own LU of the chain, and with PETSc's LU under the
+    user's ordering; a package the user chose is never changed."""
     from conftest import run_case
     from petsc4py import PETSc
     from rodsnes.solve.linear import FILL_MUMPS, ORDERING, pattern_fill
@@ -131,11 +134,17 @@ def test_lu_with_much_fill_hands_over_to_mumps():
     chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
                      rod_planar="off")
     pc = chain.solver.snes.getKSP().getPC()
+    # no fill at all: rodsnes' own LU of the chain (linear.use_chain_lu: its plan refuses
+    # fill), still rodsnes' choice; the default ordering left the options database with the
+    # run (linear.take_back_defaults)
+    assert pattern_fill(chain.problem, ORDERING) == 1.0 < FILL_MUMPS and chain.solver.lu.auto
+    assert pc.getType() == "python" and type(pc.getPythonContext()).__name__ == "ChainPC"
+    assert not PETSc.Options().hasName("pc_factor_mat_ordering_type")
+    # with the user's AMD ordering PETSc's LU, whose fill is as predicted
+    chain = run_case("mattiasson", rod_nelem=200, load_path="newton", rod_error_estimate="off",
+                     rod_planar="off", pc_factor_mat_ordering_type=ORDERING)
+    pc = chain.solver.snes.getKSP().getPC()
     assert pc.getFactorSolverType() == "petsc" and chain.solver.lu.auto
-    assert pc.getFactorMatrix().getInfo()["fill_ratio_needed"] < FILL_MUMPS    # as predicted
-    # ordered by AMD (the fill is AMD's, not nested dissection's); the default ordering was
-    # rodsnes' and left the options database with the run (linear.take_back_defaults)
-    assert ORDERING == "amd" and not PETSc.Options().hasName("pc_factor_mat_ordering_type")
     fill = pc.getFactorMatrix().getInfo()["fill_ratio_needed"]
     assert fill == pytest.approx(pattern_fill(chain.problem, "amd"), rel=1e-12)
     assert fill != pytest.approx(pattern_fill(chain.problem, "nd"), rel=1e-3)
@@ -196,8 +205,8 @@ def test_several_ranks_hand_a_filled_pattern_to_mumps(monkeypatch):
         # 601 nodes: too short for the condensation to pay (schur.MIN_NODES_PER_RANK), the
         # whole matrix on every rank
         assert pc.getType() == "redundant"
-    else:
-        assert pc.getType() == "lu"
+    else:                   # one rank: rodsnes' own LU of the chain (linear.use_chain_lu)
+        assert pc.getType() == "python" and type(pc.getPythonContext()).__name__ == "ChainPC"
 
 
 def test_fastest_keeps_the_least_time_and_the_spread():

@@ -2,6 +2,8 @@
 random chains of cubic elements, block sizes 3 and 6, both directions of elimination; the
 substitutions over the last rows give the inverse's trailing block; a pattern that fills, a
 singular block, the separator taken out."""
+import types
+
 import numpy as np
 import pytest
 from petsc4py import PETSc
@@ -243,3 +245,67 @@ def test_a_block_needing_every_row_exchange_is_inverted(bs):
         b = rng.standard_normal(bs)
         assert lu.factor(values=M.T.ravel())
         assert np.allclose(lu.solve(b.copy()), np.linalg.solve(M, b), rtol=1e-10, atol=1e-12)
+
+
+_NO_PROBLEM = types.SimpleNamespace(stats={})     # no new patterns counted: matrices alone
+
+
+def _ksp_with(pc_context, A):
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    ksp.setType("preonly")
+    ksp.getPC().setType("python")
+    ksp.getPC().setPythonContext(pc_context)
+    ksp.setOperators(A)
+    return ksp
+
+
+def test_the_chain_pc_solves_as_dense_lu_and_follows_new_values_and_patterns():
+    """chain.ChainPC, the Newton step's PC on one rank: a KSP solve equals the dense solve;
+    new values in the same matrix are factored again (the KSP sees the matrix's state); a
+    matrix of another pattern is planned anew; one that fills (a ring) goes to PETSc's LU."""
+    A, dense = _chain_matrix(9, 3, seed=31)
+    ctx = chain.ChainPC(_NO_PROBLEM)
+    ksp = _ksp_with(ctx, A)
+    b = A.createVecLeft()
+    b.setArray(np.random.default_rng(2).standard_normal(dense.shape[0]))
+    x = b.duplicate()
+    ksp.solve(b, x)
+    assert np.allclose(x.getArray(), np.linalg.solve(dense, b.getArray()), rtol=1e-11, atol=1e-13)
+    first = ctx.lu
+    A.scale(2.0)                                    # new values: solved with them
+    ksp.solve(b, x)
+    assert ctx.lu is first and ctx.fallback is None
+    assert np.allclose(x.getArray(), np.linalg.solve(2.0 * dense, b.getArray()), rtol=1e-11,
+                       atol=1e-13)
+    B, dense_b = _chain_matrix(27, 3, order=1, seed=32)     # another chain: planned anew
+    ksp.setOperators(B)
+    b2, x2 = B.createVecLeft(), B.createVecLeft()
+    b2.setArray(np.arange(dense_b.shape[0], dtype=float))
+    ksp.solve(b2, x2)
+    assert ctx.lu is not first and ctx.lu.n == 28 and ctx.lu.aj.size == 28 + 2 * 27
+    assert np.allclose(x2.getArray(), np.linalg.solve(dense_b, b2.getArray()), rtol=1e-11,
+                       atol=1e-13)
+    R, dense_r = _chain_matrix(28, 3, order=1, seed=33, closed=True)    # a ring fills: PETSc's LU
+    ksp.setOperators(R)
+    b3, x3 = R.createVecLeft(), R.createVecLeft()
+    b3.setArray(np.ones(dense_r.shape[0]))
+    ksp.solve(b3, x3)
+    assert ctx.lu is None and ctx.fallback is not None
+    assert np.allclose(x3.getArray(), np.linalg.solve(dense_r, b3.getArray()), rtol=1e-11,
+                       atol=1e-13)
+    ksp.destroy()
+
+
+def test_a_singular_block_makes_the_chain_pcs_solution_nan():
+    """A zero node (its rows and columns): the factorisation fails and the application is NaN,
+    which fails the Newton step (PETSc's LU stops at its zero pivot)."""
+    A, dense = _chain_matrix(4, 3, seed=7)
+    rows = np.arange(5 * 3, 6 * 3).astype(PETSc.IntType)
+    A.zeroRowsColumns(rows, diag=0.0)
+    ksp = _ksp_with(chain.ChainPC(_NO_PROBLEM), A)
+    b = A.createVecLeft()
+    b.set(1.0)
+    x = b.duplicate()
+    ksp.solve(b, x)
+    assert np.all(np.isnan(x.getArray()))
+    ksp.destroy()

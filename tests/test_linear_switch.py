@@ -120,3 +120,54 @@ def test_the_natural_order_is_the_matrix_order(nelem):
     assert chose == along, (owners, linear.pattern_fill(p, "natural"))
     assert (linear.pattern_fill(p, "natural") == 1.0) == along
     linear.take_back_defaults()
+
+
+@pytest.mark.parametrize("extra, chained", [
+    ({}, True),                                             # the planar step's KSP
+    ({"rod_planar": "off"}, True),                          # the 3-D step's
+    ({"rod_planar": "off", "pc_factor_mat_ordering_type": "natural"}, False),    # the user's
+    ({"rod_planar": "off", "pc_factor_mat_solver_type": "mumps"}, False),
+])
+def test_an_open_chain_is_factored_by_the_chain_lu_on_one_rank(extra, chained):
+    """linear.use_chain_lu: on one rank the Newton steps of an open rod without contact factor
+    by chain.ChainPC where PETSc's LU in the rod's order is rodsnes' default (not where the
+    user chose the ordering or the package), and the run is PETSc's LU's to round-off: the
+    same iterations, the same state (the user's natural ordering is that LU)."""
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank: the chain LU of the whole matrix")
+    from rodsnes.solve import chain
+    run = run_case("mattiasson", rod_nelem=40, load_steps=3, rod_error_estimate="off", **extra)
+    assert run.ok
+    planar = run.problem.planar
+    ksp = planar.ksp if planar is not None and planar.active else run.solver.minimizer.ksp
+    pc = ksp.getPC()
+    is_chain = pc.getType() == "python" and isinstance(pc.getPythonContext(), chain.ChainPC)
+    assert is_chain == chained
+    if extra.get("pc_factor_mat_ordering_type") == "natural":
+        ref = run_case("mattiasson", rod_nelem=40, load_steps=3, rod_error_estimate="off",
+                       rod_planar="off")
+        assert ref.solver.total_its == run.solver.total_its
+        x, y = ref.problem.state.X.getArray(), run.problem.state.X.getArray()
+        assert np.abs(x - y).max() <= 1e-9 * np.abs(x).max()
+
+
+@pytest.mark.parametrize("case, extra", [
+    ("michell", {"rod_nelem": 12}),                         # a ring: its closing element fills
+    ("plectoneme", {"load_steps": 1, "snes_max_it": 3}),    # contact: the pattern moves
+])
+def test_rings_and_contact_keep_petscs_lu(case, extra):
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank")
+    from rodsnes.solve import linear
+    run = build_run(case, **extra)
+    p = run.problem
+    ksp = PETSc.KSP().create(PETSc.COMM_SELF)
+    linear.lu_defaults(p.layout.comm, "")
+    linear.chain_ordering(p, "")
+    ksp.setFromOptions()
+    p.jacobian(None, p.state.X, p.J, p.J)
+    ksp.setOperators(p.J)
+    assert not linear.use_chain_lu(ksp, p)
+    assert ksp.getPC().getType() == "lu"
+    ksp.destroy()
+    linear.take_back_defaults()

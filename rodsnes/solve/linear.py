@@ -22,7 +22,9 @@ strands the minimum-degree ordering fills far less (plectoneme at 8.5 turns, 60 
 fill 1.13 against 1.56, 1.7 against 3.6 ms; over the run from 8.5 to 8.8 turns the
 factorisations took 10.5 s against 21.5 s).  An open rod without contact is factored in its own
 node order instead (chain_ordering: no more fill, the blocks in memory order, 13-21 % less
-time a factorisation).
+time a factorisation), and on one rank by rodsnes' own LU of that chain (use_chain_lu,
+chain.ChainPC: the same block arithmetic without PETSc's general sparse machinery, 2.8 against
+5.2 ms a factorisation of the planar cantilever's in-plane Jacobian at 10^4 elements).
 
 PETSc's LU is not supernodal: its time grows with the fill far faster than MUMPS's, whose
 dense fronts run on BLAS 3.  Where contact couples much of the rod (a coil whose turns touch
@@ -47,7 +49,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.model.partition import group_pairs
-from rodsnes.solve import schur
+from rodsnes.solve import chain, schur
 
 FILL_MUMPS = 2.5        # above this fill of PETSc's LU, MUMPS factors faster (module docstring)
 ORDERING = "amd"        # PETSc's LU: approximate minimum degree (module docstring)
@@ -320,10 +322,31 @@ def use_rank_schur(ksp, problem):
     return True
 
 
+def use_chain_lu(ksp, problem):
+    """On one rank, where the KSP factors by PETSc's LU in the rod's own node order
+    (chain_ordering's default, not the user's) and the matrix is a chain that order
+    eliminates without fill (an open rod without contact), its PC becomes chain.ChainPC:
+    rodsnes' own LU of the chain, the same arithmetic block by block without PETSc's symbolic
+    factorisation and row lookups (the planar cantilever at 10^4 elements: 2.8 against 5.2 ms
+    a factorisation, the solve alike; docs/speed.md).  Returns True when it switched."""
+    pc = ksp.getPC()
+    if problem.layout.comm.getSize() > 1 or pc.getType() != PETSc.PC.Type.LU:
+        return False
+    prefix = ksp.getOptionsPrefix() or ""
+    key = native_lu_ordering_key(prefix)
+    if key is None or not is_default(key) or lu_ordering(prefix) != "natural":
+        return False
+    context = chain.ChainPC(problem, ksp.getOperators()[1])
+    if context.lu is None:
+        return False
+    _retype(pc, PETSc.PC.Type.PYTHON, lambda pc: pc.setPythonContext(context))
+    return True
+
+
 class LUChoice:
     """The LU package of one KSP while it is rodsnes' choice (``auto``, lu_defaults): every new
-    pattern's matrix is checked once (use_mumps_when_filled, else on several ranks
-    use_rank_schur); after a hand-over to MUMPS, or when the user chose, nothing more is
+    pattern's matrix is checked once (use_mumps_when_filled, else on one rank use_chain_lu,
+    on several use_rank_schur); after a hand-over to MUMPS, or when the user chose, nothing more is
     checked."""
 
     def __init__(self, auto):
@@ -336,5 +359,5 @@ class LUChoice:
             self._checked = problem.J
             if use_mumps_when_filled(ksp, problem):
                 self.auto = False       # contact couples much of the rod: MUMPS from now
-            else:
+            elif not use_chain_lu(ksp, problem):
                 use_rank_schur(ksp, problem)
