@@ -701,6 +701,9 @@ def main(argv=None):
                   "-load_stagnation_its", "0"]
     sizes = [100, 1000] if args.quick else _ints(args.sizes)
     ranks = _ints(args.ranks)
+    # the runs' own output directories go below it, and the runs' working directory is the
+    # repository: a relative --out is the caller's, made absolute here
+    args.out = os.path.abspath(args.out)
     os.makedirs(args.out, exist_ok=True)
     csv_path = os.path.join(args.out, "bench_scaling.csv")
     if args.report:
