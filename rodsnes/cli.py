@@ -455,8 +455,29 @@ class _signals:
 
 
 # --------------------------------------------------------------------------- main
+def small_pages_for_numpy():
+    """numpy asks the kernel for transparent huge pages for every large array
+    (madvise(MADV_HUGEPAGE)); under the kernels' usual setting (transparent_hugepage/defrag
+    "madvise") each first touch of such an array may then wait for the kernel to compact
+    memory into 2 MB pages.  A run makes large arrays once per pattern (the chain LU's factors,
+    the element tangents' chunks, the error estimate's enriched problem): the cantilever's
+    default run at 10^4 elements took 3.37-3.43 s with them and 3.06-3.17 s without (the first
+    factorisation of the estimate's matrix 217 against 56 ms), the Newton iterations no
+    slower (25.6-26.1 against 26.2-29.3 ms; docs/speed.md).  So the run's process gives 4 kB
+    pages to numpy, unless NUMPY_MADVISE_HUGEPAGE is set (numpy's own switch, then
+    followed)."""
+    if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
+        return
+    import numpy
+    core = getattr(numpy, "_core", None) or getattr(numpy, "core", None)
+    setter = getattr(getattr(core, "multiarray", None), "_set_madvise_hugepage", None)
+    if setter is not None:
+        setter(False)
+
+
 def main(argv=None):
     argv = list(sys.argv if argv is None else argv)
+    small_pages_for_numpy()
     rank = _rank_from_env()
     problems = options_file_problems(argv)
     if problems:

@@ -6,6 +6,7 @@ import sys
 
 import h5py
 import numpy as np
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -68,3 +69,24 @@ def test_log_view_prints_the_profile_and_a_converged_run_exits_0(tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     assert "ElasticKernel" in p.stdout and "MinStep" in p.stdout
     assert "PETSC ERROR" not in p.stderr
+
+
+@pytest.mark.parametrize("env, want", [(None, False), ("1", True), ("0", False)])
+def test_a_run_gives_numpy_small_pages_unless_numpy_madvise_hugepage_says(monkeypatch, env, want):
+    """cli.small_pages_for_numpy: numpy's huge-page requests off for the run's process (first
+    touches waited for the kernel's compaction), numpy's own NUMPY_MADVISE_HUGEPAGE followed
+    where set (numpy reads it at import: here the setting it left stays)."""
+    from rodsnes import cli
+    core = getattr(np, "_core", None) or np.core
+    get, set_ = core.multiarray._get_madvise_hugepage, core.multiarray._set_madvise_hugepage
+    before = get()
+    try:
+        set_(want if env is not None else True)         # as numpy's import left it
+        if env is None:
+            monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+        else:
+            monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", env)
+        cli.small_pages_for_numpy()
+        assert get() is want
+    finally:
+        set_(before)
