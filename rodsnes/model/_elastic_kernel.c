@@ -811,29 +811,39 @@ static ALWAYS_INLINE void plane_element(const int NN, const Setup *st, const dou
             }
         for (int i = 0; i < 6; i++)
             for (int j = 0; j < i; j++) Wyy[i][j] = Wyy[j][i];
-        /* chain to the nodes: U_b = W_yy J_b (6 x 3), K_ab = w J_a^T U_b (b >= a) */
-        double t[MAXNN][4];
+        /* chain to the nodes, K_ab = w J_a^T W_yy J_b (b >= a): J_a's columns are dN_a e_4,
+         * dN_a e_5 (r_P, r_Q) and t_a (theta, in y_0..y_3), so with u4_b = W_4,0:4 t_b,
+         * u5_b = W_5,0:4 t_b and v_b = W_0:4,0:4 t_b (per node, not per pair)
+         *   K_ab = w [[dN_a dN_b W_44, dN_a dN_b W_45, dN_a u4_b],
+         *             [dN_a dN_b W_45, dN_a dN_b W_55, dN_a u5_b],
+         *             [dN_b u4_a,      dN_b u5_a,      t_a . v_b]] */
+        double t[MAXNN][4], u4[MAXNN], u5[MAXNN], v[MAXNN][4];
         for (int a = 0; a < NN; a++) {
             t[a][0] = -0.5 * N[a] * z[a][1];  t[a][1] = 0.5 * N[a] * z[a][0];
             t[a][2] = -0.5 * dN[a] * z[a][1]; t[a][3] = 0.5 * dN[a] * z[a][0];
+            const double *ta = t[a];
+            u4[a] = Wyy[4][0] * ta[0] + Wyy[4][1] * ta[1] + Wyy[4][2] * ta[2] + Wyy[4][3] * ta[3];
+            u5[a] = Wyy[5][0] * ta[0] + Wyy[5][1] * ta[1] + Wyy[5][2] * ta[2] + Wyy[5][3] * ta[3];
+            for (int k = 0; k < 4; k++)
+                v[a][k] = Wyy[k][0] * ta[0] + Wyy[k][1] * ta[1] + Wyy[k][2] * ta[2]
+                        + Wyy[k][3] * ta[3];
         }
+        const double W44 = w * Wyy[4][4], W45 = w * Wyy[4][5], W55 = w * Wyy[5][5];
         for (int b = 0; b < NN; b++) {
-            double U[6][3];
-            for (int i = 0; i < 6; i++) {
-                U[i][0] = dN[b] * Wyy[i][4];
-                U[i][1] = dN[b] * Wyy[i][5];
-                U[i][2] = Wyy[i][0] * t[b][0] + Wyy[i][1] * t[b][1] + Wyy[i][2] * t[b][2]
-                        + Wyy[i][3] * t[b][3];
-            }
+            const double wdb = w * dN[b];
             for (int a = 0; a <= b; a++) {
                 double *Hab = H + (3 * a) * ld + 3 * b;
-                const double wd = w * dN[a];
-                for (int j = 0; j < 3; j++) {
-                    Hab[j] += wd * U[4][j];
-                    Hab[ld + j] += wd * U[5][j];
-                    Hab[2 * ld + j] += w * (t[a][0] * U[0][j] + t[a][1] * U[1][j]
-                                            + t[a][2] * U[2][j] + t[a][3] * U[3][j]);
-                }
+                const double da = dN[a], dd = da * dN[b], wda = w * da;
+                Hab[0] += dd * W44;
+                Hab[1] += dd * W45;
+                Hab[2] += wda * u4[b];
+                Hab[ld] += dd * W45;
+                Hab[ld + 1] += dd * W55;
+                Hab[ld + 2] += wda * u5[b];
+                Hab[2 * ld] += wdb * u4[a];
+                Hab[2 * ld + 1] += wdb * u5[a];
+                Hab[2 * ld + 2] += w * (t[a][0] * v[b][0] + t[a][1] * v[b][1]
+                                        + t[a][2] * v[b][2] + t[a][3] * v[b][3]);
             }
         }
         for (int a = 0; a < NN; a++)
