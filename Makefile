@@ -22,8 +22,8 @@ PYTEST := $(PY) -m pytest -q -p no:cacheprovider --color=no
 
 install: $(VENV)/.installed
 
-# every compiled kernel's source (setup.py's KERNELS): an edited kernel is rebuilt
-$(VENV)/.installed: setup.py tools/install_system.sh $(wildcard rodsnes/*/_*_kernel.c)
+# every compiled kernel's source and header (setup.py's KERNELS): an edited kernel is rebuilt
+$(VENV)/.installed: setup.py tools/install_system.sh $(wildcard rodsnes/*/_*.c rodsnes/*/_*.h)
 	tools/install_system.sh
 	test -x $(PY) || $(SYS_PYTHON) -m venv --system-site-packages $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e .

@@ -1,19 +1,23 @@
 from setuptools import Extension, setup, find_packages
 
 
-def kernel(module, exact=False):
+def kernel(module, exact=False, headers=()):
     """A compiled kernel: plain C99, no Python API, loaded with ctypes by its Python module;
     pip install -e . builds it in place next to the package.  ``exact``: no fused multiply-adds,
-    so that its arithmetic is the numpy path's bit for bit."""
+    so that its arithmetic is the numpy path's bit for bit.  ``headers``: the files it
+    includes (next to it), which rebuild it when they change."""
+    folder = module.rsplit(".", 1)[0].replace(".", "/")
     return Extension(module, sources=[module.replace(".", "/") + ".c"],
+                     depends=[f"{folder}/{h}" for h in headers],
                      extra_compile_args=["-O3", "-std=c99"]
                      + (["-ffp-contract=off"] if exact else []),
                      libraries=["m"])
 
 
 KERNELS = [
-    # the fused elastic element kernel (rodsnes/model/elastic_compiled.py)
-    kernel("rodsnes.model._elastic_kernel"),
+    # the fused elastic element kernel (rodsnes/model/elastic_compiled.py); its in-plane tangent
+    # on 2 or 4 elements at once (_elastic_plane.h)
+    kernel("rodsnes.model._elastic_kernel", headers=["_elastic_plane.h"]),
     # the pair-potential contact kernel (rodsnes/contact/potential_compiled.py)
     kernel("rodsnes.contact._potential_kernel", exact=True),
     # the Gauss double integral of writhe and link (rodsnes/model/topology.py): O(N^2) segment

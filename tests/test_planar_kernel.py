@@ -186,3 +186,23 @@ def test_planar_jacobian_through_the_plane_kernel(monkeypatch):
     assert sum(calls) == 4 * ne
     H = dense(pl.inertia.block.H)
     assert np.abs(H - cut[True]).max() < 1e-12 * np.abs(cut[True]).max()
+
+
+@pytest.mark.parametrize("bound", [False, True], ids=["free", "curvature_bound"])
+@pytest.mark.parametrize("p,nq,ne", [(1, 1, 6), (2, 2, 5), (3, 3, 30), (3, 3, 7), (4, 4, 6),
+                                     (7, 6, 9)])
+def test_two_and_four_lanes_give_the_same_numbers(p, nq, ne, bound):
+    """The kernel runs 2 elements at once (SSE2) or 4 (AVX2, where the processor has it): the
+    same arithmetic lane by lane, so the same numbers bit for bit, for element counts that fill
+    the last group or not; the widest the processor runs is the default."""
+    rng = np.random.default_rng(7 * p + nq + ne + bound)
+    rod, qe, xe = make_rod(p, nq, ne, 1, rng, bound)
+    two = elastic_compiled.plane_tangents(rod, qe, xe, 1, lanes=2)
+    assert np.array_equal(elastic_compiled.plane_tangents(rod, qe, xe, 1), two)
+    try:
+        four = elastic_compiled.plane_tangents(rod, qe, xe, 1, lanes=4)
+    except ValueError:
+        pytest.skip("no AVX2: two lanes only")
+    assert np.array_equal(four, two)
+    with pytest.raises(RuntimeError):
+        elastic_compiled.plane_tangents(rod, qe, xe, 1, lanes=3)

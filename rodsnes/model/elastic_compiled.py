@@ -21,8 +21,8 @@ C entry point:
                               double *energy, double *vec, double *H);
     int rodsnes_elastic_energy(int ne, int nn, int nq, ... the same ..., const double *e0,
                                double *energy);          (the energy alone: line searches)
-    int rodsnes_elastic_plane_tangent(int ne, int nn, int nq, ... the same ..., const double *e0,
-                                      int axis, double *H);
+    int rodsnes_elastic_plane_tangent_lanes(int ne, int nn, int nq, ... the same ...,
+                                            const double *e0, int axis, int lanes, double *H);
                          (the in-plane tangent of a planar state: planar.PlanarSystem)
     int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const double *dN,
                                 const double *qe, const double *xe, double *strain);
@@ -65,7 +65,8 @@ def _declare(lib):
     fn = compiled.Foreign(lib.rodsnes_elastic_terms,
                           common + [c_int, c_int, ctypes.c_void_p, c_int, f64, f64, f64], c_int)
     en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
-    pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent, common + [c_int, f64], c_int)
+    pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent_lanes, common + [c_int, c_int, f64],
+                          c_int)
     st = compiled.Foreign(lib.rodsnes_elastic_strains,
                           [c_int, c_int, c_int, f64, f64, f64, f64, f64], c_int)
     nr = compiled.Foreign(lib.rodsnes_elastic_node_residual, nodes + [f64, f64], c_int)
@@ -160,15 +161,16 @@ def element_energy(rod, qe, xe, e0=None):
     return energy
 
 
-def plane_tangents(rod, qe, xe, axis, e0=None, out=None):
+def plane_tangents(rod, qe, xe, axis, e0=None, out=None, lanes=0):
     """The in-plane tangents (ne, 3(p+1), 3(p+1)) of ElasticRod rod at a state in the plane
     normal to e_axis, rows and columns (node, (r_P, r_Q, theta_axis)), P < Q the other axes:
     element_terms(..., comps=(P, Q, 3 + axis)) at such a state (the consistent tangent and the
     Hessian are equal there), made from the six in-plane strain variables instead of the 3-D
-    tangent (_elastic_kernel.c, rodsnes_elastic_plane_tangent; quaternions of any norm, as
+    tangent (_elastic_kernel.c, rodsnes_elastic_plane_tangent_lanes; quaternions of any norm, as
     element_terms).  The out-of-plane parts of the state are taken as zero: for planar states
     only (planar.PlanarSystem, whose guard sees the others).  ``out``: an array of that shape
-    to write into."""
+    to write into.  ``lanes``: elements at once, 2 or 4 (AVX2), 0 the most the processor runs
+    (the same numbers bit for bit; ValueError for 4 without AVX2)."""
     args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
     if axis not in (0, 1, 2):
         raise ValueError(f"axis {axis}: 0, 1 or 2")
@@ -176,9 +178,11 @@ def plane_tangents(rod, qe, xe, axis, e0=None, out=None):
         out = np.empty((ne, 3 * nn, 3 * nn))
     elif out.shape != (ne, 3 * nn, 3 * nn) or not out.flags.c_contiguous:
         raise ValueError("out does not match the elements")
-    info = _load().plane_tangent(ne, nn, nq, *args, int(axis), out)
+    info = _load().plane_tangent(ne, nn, nq, *args, int(axis), int(lanes), out)
+    if info == -2:
+        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
     if info != 0:
-        raise RuntimeError(f"rodsnes_elastic_plane_tangent failed ({info})")
+        raise RuntimeError(f"rodsnes_elastic_plane_tangent_lanes failed ({info})")
     return out
 
 
