@@ -296,10 +296,12 @@ def test_the_chain_pc_solves_as_dense_lu_and_follows_new_values_and_patterns():
     ksp.destroy()
 
 
-def test_a_singular_block_makes_the_chain_pcs_solution_nan():
-    """A zero node (its rows and columns): the factorisation fails and the application is NaN,
-    which fails the Newton step (PETSc's LU stops at its zero pivot)."""
+def test_a_singular_block_fails_the_chain_pc():
+    """A zero node (its rows and columns): the factorisation fails, the KSP says its PC failed
+    (as at PETSc's LU's zero pivot) and the solution is not finite; the next good values solve
+    again (the failed reason cleared)."""
     A, dense = _chain_matrix(4, 3, seed=7)
+    good = A.copy()
     rows = np.arange(5 * 3, 6 * 3).astype(PETSc.IntType)
     A.zeroRowsColumns(rows, diag=0.0)
     ksp = _ksp_with(chain.ChainPC(_NO_PROBLEM), A)
@@ -307,5 +309,34 @@ def test_a_singular_block_makes_the_chain_pcs_solution_nan():
     b.set(1.0)
     x = b.duplicate()
     ksp.solve(b, x)
-    assert np.all(np.isnan(x.getArray()))
+    assert ksp.getConvergedReason() == PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED  # -11
+    assert not np.isfinite(x.getArray()).any()       # the KSP's Inf over the PC's NaN
+    good.copy(A)                                    # the same pattern, good values
+    ksp.solve(b, x)
+    assert ksp.getConvergedReason() > 0
+    assert np.allclose(x.getArray(), np.linalg.solve(dense, b.getArray()), rtol=1e-11, atol=1e-13)
+    ksp.destroy()
+
+
+def test_a_pattern_changed_in_place_is_planned_anew():
+    """A block added to the same matrix (the same handle; node 7 coupled to node 5, which
+    makes no fill) makes a new plan, never the old one's places (ChainLU.factor sees another
+    count of blocks; PETSc 3.18's BAIJ keeps its nonzero state there)."""
+    A, dense = _chain_matrix(6, 3, seed=9)
+    ctx = chain.ChainPC(_NO_PROBLEM)
+    ksp = _ksp_with(ctx, A)
+    b = A.createVecLeft()
+    b.set(1.0)
+    x = b.duplicate()
+    ksp.solve(b, x)
+    first = ctx.lu
+    A.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)
+    A.setValuesBlocked([7], [5], np.full(9, 0.01), addv=PETSc.InsertMode.ADD)
+    A.assemble()
+    dense[21:24, 15:18] += 0.01
+    ksp.solve(b, x)
+    assert ctx.lu is not first and ctx.lu is not None and ctx.fallback is None
+    assert np.allclose(x.getArray(), np.linalg.solve(dense, b.getArray()), rtol=1e-11, atol=1e-13)
+    ksp.reset()                                     # nothing of the old matrices kept
+    assert ctx.lu is None and ctx.fallback is None
     ksp.destroy()

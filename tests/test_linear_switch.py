@@ -127,6 +127,7 @@ def test_the_natural_order_is_the_matrix_order(nelem):
     ({"rod_planar": "off"}, True),                          # the 3-D step's
     ({"rod_planar": "off", "pc_factor_mat_ordering_type": "natural"}, False),    # the user's
     ({"rod_planar": "off", "pc_factor_mat_solver_type": "mumps"}, False),
+    ({"rod_planar": "off", "pc_factor_shift_type": "nonzero"}, False),  # PETSc's LU's option
 ])
 def test_an_open_chain_is_factored_by_the_chain_lu_on_one_rank(extra, chained):
     """linear.use_chain_lu: on one rank the Newton steps of an open rod without contact factor

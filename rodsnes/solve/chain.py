@@ -202,15 +202,18 @@ class ChainPC:
     same order (the blocks' arithmetic alike, no pivoting between blocks), the planar
     cantilever's in-plane Jacobian at 10^4 cubic elements: 2.8 against 5.2 ms a
     factorisation, 0.67 ms a solve either way; at 10^5 31 against 55 ms.  A singular pivot
-    block (PETSc's LU would stop at its zero pivot) makes the application NaN, which fails
-    the Newton step (schur.RankSchur does the same: a python PC cannot set a failed reason
-    in petsc4py 3.18).  A matrix of another pattern is planned anew; one whose elimination
-    would fill (never an open rod's without contact) is factored by PETSc's LU instead."""
+    block fails the PC as PETSc's LU at its zero pivot does (PCSetFailedReason through ctypes,
+    which petsc4py 3.18 lacks: the KSP says DIVERGED_PC_FAILED, -11, and its solution is Inf)
+    and makes the application NaN.  A matrix of another pattern is planned anew; one whose
+    elimination would fill (never an open rod's without contact) is factored by PETSc's LU
+    instead."""
+
+    ZERO_PIVOT = 2          # PCFailedReason PC_FACTOR_NUMERIC_ZEROPIVOT (PETSc's petscpctypes.h)
 
     def __init__(self, problem, A=None):
-        """For the matrices of ``problem`` (its count of new patterns), planned for A if given
-        (``lu`` None: A is no chain)."""
-        self.problem = problem
+        """For the matrices of ``problem`` (its count of new patterns: its stats, not the
+        problem, kept), planned for A if given (``lu`` None: A is no chain)."""
+        self.stats = problem.stats
         self.lu = None if A is None else self.planned(A)
         self.key = None if A is None else self.matrix_key(A)    # the matrix lu was planned for
         self.fallback = None            # PETSc's LU, AMD-ordered (a pattern that fills)
@@ -221,14 +224,21 @@ class ChainPC:
 
     def destroy(self, pc):
         petsc_exit.gone(pc)
-        if self.fallback is not None:
-            self.fallback.destroy()
-            self.fallback = None
+        self.reset(pc)
 
     def matrix_key(self, A):
         """What makes a plan stale: the problem's count of new patterns (a new matrix may sit at
-        a freed one's address) and the matrix's handle."""
-        return (self.problem.stats.get("pattern_refreshes", 0), A.handle)
+        a freed one's address), the matrix's handle and PETSc's nonzero state (a pattern
+        changed in place)."""
+        return (self.stats.get("pattern_refreshes", 0), A.handle, petsc_lib.nonzero_state(A))
+
+    def reset(self, pc):
+        """KSPReset / PCReset: nothing of the old matrices kept."""
+        if self.fallback is not None:
+            self.fallback.destroy()
+            self.fallback = None
+        self.lu = self.key = None
+        self.failed = False
 
     @staticmethod
     def planned(A):
@@ -241,8 +251,10 @@ class ChainPC:
 
     def setUp(self, pc):
         A = pc.getOperators()[1]
-        if self.fallback is None and (self.lu is None or self.key != self.matrix_key(A)):
-            self.lu, self.key = self.planned(A), self.matrix_key(A)
+        key = self.matrix_key(A)
+        if key != self.key:             # another matrix or pattern: planned anew
+            self.reset(pc)
+            self.lu, self.key = self.planned(A), key
         if self.lu is None:
             if self.fallback is None:
                 self.fallback = PETSc.PC().create(comm=A.getComm())
@@ -254,10 +266,20 @@ class ChainPC:
             return
         ok = self.lu.factor(A)
         if self.lu.stale:               # blocks inserted since: plan anew
-            self.lu, self.key = self.planned(A), self.matrix_key(A)
+            self.key = None
             self.setUp(pc)
             return
         self.failed = not ok
+        self._say_failed(pc)
+
+    def _say_failed(self, pc):
+        """The PC's failed reason: a zero pivot, or none (it stays set until changed)."""
+        try:
+            petsc_lib.call("PCSetFailedReason", ctypes.c_void_p(pc.handle),
+                           ctypes.c_int(self.ZERO_PIVOT if self.failed else 0),
+                           argtypes=[ctypes.c_void_p, ctypes.c_int])
+        except RuntimeError:
+            pass                        # unreachable: the NaN alone fails the step
 
     def apply(self, pc, x, y):
         if self.fallback is not None:

@@ -325,7 +325,8 @@ def use_rank_schur(ksp, problem):
 def use_chain_lu(ksp, problem):
     """On one rank, where the KSP factors by PETSc's LU in the rod's own node order
     (chain_ordering's default, not the user's) and the matrix is a chain that order
-    eliminates without fill (an open rod without contact), its PC becomes chain.ChainPC:
+    eliminates without fill (an open rod without contact), and the user gave no option of
+    PETSc's LU (-pc_factor_shift_type ...: they would be ignored), its PC becomes chain.ChainPC:
     rodsnes' own LU of the chain, the same arithmetic block by block without PETSc's symbolic
     factorisation and row lookups (the planar cantilever at 10^4 elements: 2.8 against 5.2 ms
     a factorisation, the solve alike; docs/speed.md).  Returns True when it switched."""
@@ -336,6 +337,9 @@ def use_chain_lu(ksp, problem):
     key = native_lu_ordering_key(prefix)
     if key is None or not is_default(key) or lu_ordering(prefix) != "natural":
         return False
+    if any(user_chose(prefix + name) for name in PETSc.Options(prefix).getAll()
+           if name.startswith("pc_factor_")):
+        return False            # the user's options of PETSc's LU (a shift, a pivot ...)
     context = chain.ChainPC(problem, ksp.getOperators()[1])
     if context.lu is None:
         return False
