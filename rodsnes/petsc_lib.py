@@ -106,3 +106,19 @@ def nonzero_state(mat):
     state = ctypes.c_int64()
     call("MatGetNonzeroState", mat.handle, ctypes.byref(state))
     return state.value
+
+
+PC_FACTOR_NUMERIC_ZEROPIVOT = 2     # PCFailedReason (PETSc's petscpctypes.h)
+
+
+def set_pc_failed(pc, failed):
+    """PCSetFailedReason(pc, a zero pivot if ``failed``, else none), which petsc4py 3.18
+    lacks: a python PC's failed factorisation then fails its KSP (DIVERGED_PCSETUP_FAILED,
+    -11, the solution Inf) as PETSc's LU's zero pivot does; the reason stays until set again.
+    Where the C function cannot be reached nothing happens (the PC's NaN fails the step)."""
+    try:
+        call("PCSetFailedReason", ctypes.c_void_p(pc.handle),
+             ctypes.c_int(PC_FACTOR_NUMERIC_ZEROPIVOT if failed else 0),
+             argtypes=[ctypes.c_void_p, ctypes.c_int])
+    except RuntimeError:
+        pass

@@ -239,3 +239,25 @@ def test_newton_path_stability_count_from_the_two_blocks():
     counts = [h["negative_eigenvalues"] for h in a.history]
     assert counts == [h["negative_eigenvalues"] for h in b.history] == [0, 0, 0, 2]
     assert np.max(np.abs(gathered_positions(a) - gathered_positions(b))) <= 1e-8
+
+
+def test_a_failed_in_plane_solve_fails_the_newton_step(monkeypatch):
+    """The planar Newton path's PC whose in-plane LU fails (a zero pivot): the SNES's linear
+    solve fails (SNES_DIVERGED_LINEAR_SOLVE), not a NaN step taken into the line search; the
+    next solve that succeeds goes on (the PC's failed reason cleared)."""
+    from petsc4py import PETSc
+    from rodsnes.solve import planar
+    run = build_run("mattiasson", rod_nelem=8, load_path="newton", load_steps=1,
+                    rod_error_estimate="off")
+    fail = [True]
+    real = planar.PlanarSystem.solve_block
+
+    def solve_block(self, b, x):
+        return False if fail[0] else real(self, b, x)
+    monkeypatch.setattr(planar.PlanarSystem, "solve_block", solve_block)
+    solver = run.solver
+    res = solver.solve_at(0.5)
+    assert not res.converged
+    assert solver.snes.getConvergedReason() == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
+    fail[0] = False
+    assert solver.solve_at(0.5).converged

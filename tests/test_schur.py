@@ -253,9 +253,10 @@ def test_the_planar_cantilever_by_condensation_is_the_serial_run(monkeypatch):
 @pytest.mark.mpi
 @pytest.mark.parametrize("tail_max", [schur.CHAIN_TAIL_MAX, -1])
 def test_a_failed_interior_fails_on_every_rank(tail_max, monkeypatch):
-    """An interior factorisation that fails on one rank (a NaN in its block): the solution is
-    NaN on every rank (the Newton step fails as a failed LU does), and no rank waits for
-    another.  By the chain LU and by PETSc's LU (CHAIN_TAIL_MAX < 0)."""
+    """An interior factorisation that fails on one rank (a NaN in its block): the KSP fails on
+    every rank as at a failed LU (DIVERGED_PCSETUP_FAILED, the solution not finite: the Newton
+    step fails), and no rank waits for another.  By the chain LU and by PETSc's LU
+    (CHAIN_TAIL_MAX < 0)."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("several ranks only (make test-mpi)")
     monkeypatch.setattr(schur, "MIN_NODES_PER_RANK", 0)
@@ -267,10 +268,13 @@ def test_a_failed_interior_fails_on_every_rank(tail_max, monkeypatch):
         A.setValue(lo + 12, lo + 12, np.nan, addv=PETSc.InsertMode.INSERT_VALUES)
     A.assemble()
     ctx = schur.RankSchur(run.problem)
-    y = _solve(A, b, ctx)
+    ksp = _ksp(A, ctx)
+    y = b.duplicate()
+    ksp.solve(b, y)
     assert ctx.failed
+    assert ksp.getConvergedReason() == PETSc.KSP.ConvergedReason.DIVERGED_PCSETUP_FAILED
     with y as a:
-        assert np.isnan(a).all()
+        assert not np.isfinite(a).any()
 
 
 # -- the interior takes new values (RankSchur._factor_interior) --------------------------
@@ -565,7 +569,8 @@ def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
     y2 = _solve(A, b, ctx)
     assert ctx.setups["schur"] == 2 and _backward(A, b, y2) <= stable
     # rank 0's interior singular (a zero row: MUMPS's INFOG(1) < 0, no error raised) or NaN:
-    # NaN everywhere, no rank waiting; the next sane Jacobian is solved by the same PC
+    # the solve fails everywhere (not finite), no rank waiting; the next sane Jacobian is
+    # solved by the same PC
     p = run.problem
     lo, _ = A.getOwnershipRange()
     bad = schur.RankSchur(p, package="mumps")
@@ -580,7 +585,7 @@ def test_mumps_interiors_condense_a_contact_filled_pattern(monkeypatch):
         yb = _solve(A, b, bad)
         assert bad.failed, (spoil, bad.mode)
         with yb as a:
-            assert np.isnan(a).all()
+            assert not np.isfinite(a).any()
         p.jacobian(None, p.state.X, p.J, p.J)
         b2, _ = _smooth(A)
         y3 = _solve(A, b2, bad)

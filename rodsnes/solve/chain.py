@@ -202,13 +202,10 @@ class ChainPC:
     same order (the blocks' arithmetic alike, no pivoting between blocks), the planar
     cantilever's in-plane Jacobian at 10^4 cubic elements: 2.8 against 5.2 ms a
     factorisation, 0.67 ms a solve either way; at 10^5 31 against 55 ms.  A singular pivot
-    block fails the PC as PETSc's LU at its zero pivot does (PCSetFailedReason through ctypes,
-    which petsc4py 3.18 lacks: the KSP says DIVERGED_PC_FAILED, -11, and its solution is Inf)
-    and makes the application NaN.  A matrix of another pattern is planned anew; one whose
+    block fails the PC as PETSc's LU at its zero pivot does (petsc_lib.set_pc_failed: the KSP
+    says DIVERGED_PCSETUP_FAILED and its solution is Inf) and makes the application NaN.  A matrix of another pattern is planned anew; one whose
     elimination would fill (never an open rod's without contact) is factored by PETSc's LU
     instead."""
-
-    ZERO_PIVOT = 2          # PCFailedReason PC_FACTOR_NUMERIC_ZEROPIVOT (PETSc's petscpctypes.h)
 
     def __init__(self, problem, A=None):
         """For the matrices of ``problem`` (its count of new patterns: its stats, not the
@@ -270,16 +267,7 @@ class ChainPC:
             self.setUp(pc)
             return
         self.failed = not ok
-        self._say_failed(pc)
-
-    def _say_failed(self, pc):
-        """The PC's failed reason: a zero pivot, or none (it stays set until changed)."""
-        try:
-            petsc_lib.call("PCSetFailedReason", ctypes.c_void_p(pc.handle),
-                           ctypes.c_int(self.ZERO_PIVOT if self.failed else 0),
-                           argtypes=[ctypes.c_void_p, ctypes.c_int])
-        except RuntimeError:
-            pass                        # unreachable: the NaN alone fails the step
+        petsc_lib.set_pc_failed(pc, self.failed)
 
     def apply(self, pc, x, y):
         if self.fallback is not None:

@@ -37,6 +37,7 @@ from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, is_default, option_default
+from rodsnes import petsc_lib
 from rodsnes.solve import petsc_exit
 from rodsnes.solve.stability import Inertia
 
@@ -422,7 +423,8 @@ class _Operator:
 class _PlanarPC:
     """The SNES's PC of the planar Newton path: y = J_ii^-1 x_i on the in-plane components
     (after the guard on x, the residual), or the full solve once the run left the plane.  A
-    failed factorisation returns NaN, which fails the Newton step (and cuts the load back)."""
+    failed factorisation fails the PC (petsc_lib.set_pc_failed: the SNES's linear solve fails,
+    SNES_DIVERGED_LINEAR_SOLVE, and the load is cut back) and returns NaN."""
 
     def __init__(self, planar):
         self.planar = planar
@@ -442,5 +444,6 @@ class _PlanarPC:
             p = pl.problem
             p.jacobian(None, p.state.X, p.J, p.J)     # this iterate's, in 3-D
         ok = pl.solve_block(x, y) if pl.active else pl.full_solve(x, y)
+        petsc_lib.set_pc_failed(pc, not ok)
         if not ok:
             y.set(np.nan)

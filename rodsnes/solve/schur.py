@@ -59,8 +59,9 @@ PCREDUNDANT with PETSc's LU on every rank (the previous default), or MUMPS over 
 The couplings' rows, the interior's symbolic factorisation and the index sets are kept while
 the matrix and its separator stay (decided on all ranks together: every branch here is
 collective).  A failed factorisation on
-any rank makes the solution NaN on every rank (a python PC cannot set a failed reason in
-petsc4py 3.18), which fails the Newton step as the planar solve's failure does (planar.py).
+any rank fails the PC on every rank as PETSc's LU's zero pivot does (petsc_lib.set_pc_failed:
+the KSP says DIVERGED_PCSETUP_FAILED, its solution Inf; the application NaN), which fails the
+Newton step.
 """
 import ctypes
 import functools
@@ -328,6 +329,7 @@ class RankSchur:
             self.kept = None
             self._whole(A).setUp()
             self.failed = False
+            petsc_lib.set_pc_failed(pc, False)
             self.negative = None
             self.structural = True
             return
@@ -337,6 +339,7 @@ class RankSchur:
         else:
             self._condense(A, key, sep, mine, near)
         self._factor(A, comm)
+        petsc_lib.set_pc_failed(pc, self.failed)        # the same on every rank (_factor)
         self.negative = self._count(comm) if self.inertia else None
 
     def _count(self, comm):
