@@ -190,7 +190,7 @@ def test_planar_jacobian_through_the_plane_kernel(monkeypatch):
 
 @pytest.mark.parametrize("bound", [False, True], ids=["free", "curvature_bound"])
 @pytest.mark.parametrize("p,nq,ne", [(1, 1, 6), (2, 2, 5), (3, 3, 30), (3, 3, 7), (4, 4, 6),
-                                     (7, 6, 9)])
+                                     (7, 6, 9), (3, 3, 1), (3, 3, 2), (3, 3, 3)])
 def test_two_and_four_lanes_give_the_same_numbers(p, nq, ne, bound):
     """The kernel runs 2 elements at once (SSE2) or 4 (AVX2, where the processor has it): the
     same arithmetic lane by lane, so the same numbers bit for bit, for element counts that fill
@@ -206,3 +206,12 @@ def test_two_and_four_lanes_give_the_same_numbers(p, nq, ne, bound):
     assert np.array_equal(four, two)
     with pytest.raises(RuntimeError):
         elastic_compiled.plane_tangents(rod, qe, xe, 1, lanes=3)
+
+
+def test_no_elements_no_tangents():
+    """A rank without elements (a group of lanes never starts): an empty result, either width."""
+    rng = np.random.default_rng(3)
+    rod, qe, xe = make_rod(3, 3, 4, 1, rng, False)
+    for lanes in (0, 2):
+        out = elastic_compiled.plane_tangents(rod, qe[:0], xe[:0], 1, e0=rod.e0[:0], lanes=lanes)
+        assert out.shape == (0, 12, 12)

@@ -691,11 +691,6 @@ static ALWAYS_INLINE void plane_angles(const int NN, double q[MAXNN][4], int axi
  * the processor has AVX2 (the planar cantilever's in-plane tangents of 10^4 cubic elements:
  * 5.6 ms one element at a time, 4.8 ms two, 3.2 ms four; the same numbers bit for bit): one
  * source, _elastic_plane.h, built for each width. */
-#if defined(__GNUC__) && !defined(__clang__)
-/* plane2_law returns a vector: always inlined, GCC's note that this changes the ABI without
- * AVX does not apply */
-#pragma GCC diagnostic ignored "-Wpsabi"
-#endif
 #define LANES 2
 #define VD plane_v2
 #define VI plane_i2

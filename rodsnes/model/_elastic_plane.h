@@ -4,10 +4,21 @@
  * (the in-plane tangent of a planar state) is a vector of the LANES elements' values (GCC's
  * vector extension: the same arithmetic lane by lane, in SIMD registers, bit for bit the
  * scalar formulas'); the element constants come from the scalar helpers lane by lane, the
- * tangents go out lane by lane. */
+ * tangents go out transposed in registers, each element's entries a vector at a time. */
 
 typedef double VD __attribute__((vector_size(8 * LANES)));
+/* the vector (a[i], a[j]) of two 2-lane vectors' entries (b's from 2): the transpose of the
+ * 2-lane tangents (GCC's __builtin_shuffle, clang's __builtin_shufflevector) */
+#if LANES == 2
+#if defined(__clang__)
+#define PAIR(a, b, i, j) __builtin_shufflevector((a), (b), i, j)
+#else
+typedef int64_t VI __attribute__((vector_size(8 * LANES)));
+#define PAIR(a, b, i, j) __builtin_shuffle((a), (b), (VI){i, j})
+#endif
+#else
 typedef int64_t VI __attribute__((vector_size(8 * LANES)));     /* __builtin_shuffle's masks */
+#endif
 #define SPLAT(x) ((VD){0.0} + (x))
 
 
@@ -241,9 +252,7 @@ static ALWAYS_INLINE void PLANE(elements)(const int NN, const Setup *st, const d
 #else
     const int n4 = (ld * ld) & ~1;
     for (int i = 0; i < n4; i += 2) {
-        const VI lo = {0, 2}, hi = {1, 3};
-        const VD c[LANES] = {__builtin_shuffle(Hv[i], Hv[i + 1], lo),
-                             __builtin_shuffle(Hv[i], Hv[i + 1], hi)};
+        const VD c[LANES] = {PAIR(Hv[i], Hv[i + 1], 0, 2), PAIR(Hv[i], Hv[i + 1], 1, 3)};
         for (int l = 0; l < LANES; l++)
             if (H[l] != NULL) memcpy(H[l] + i, &c[l], sizeof(VD));
     }
@@ -253,8 +262,8 @@ static ALWAYS_INLINE void PLANE(elements)(const int NN, const Setup *st, const d
             if (H[l] != NULL) H[l][i] = Hv[i][l];
 }
 
-/* The in-plane tangents of elements 0..ne-1 (rodsnes_elastic_plane_tangent's arguments) in groups
- * of LANES; the last group's lanes beyond ne repeat element ne - 1 and write nothing. */
+/* The in-plane tangents of elements 0..ne-1 (rodsnes_elastic_plane_tangent_lanes' arguments) in
+ * groups of LANES; the last group's lanes beyond ne repeat element ne - 1 and write nothing. */
 static void PLANE(tangents)(int ne, int nn, const Setup *st, const double *qe, const double *xe,
                             const double *e0, int axis, double *H)
 {
@@ -277,3 +286,4 @@ static void PLANE(tangents)(int ne, int nn, const Setup *st, const double *qe, c
 }
 
 #undef SPLAT
+#undef PAIR
