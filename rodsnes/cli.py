@@ -27,6 +27,9 @@ import sys
 import tempfile
 import time
 
+from rodsnes import interrupts
+from rodsnes.interrupts import Interrupted
+
 # Nothing here imports petsc4py.PETSc at module level, and neither may any rodsnes module this
 # file imports at its top: PETSc has to start with the command line's options (_start_petsc),
 # or options read only at PetscInitialize (-log_view: "Must use -log_view ... before calling
@@ -67,15 +70,6 @@ NUMERIC_SUFFIXES = ("_rtol", "_atol", "_stol", "_dtol", "_max_it", "_max_funcs",
                     "_divergence_tolerance", "_gmres_restart", "_asm_overlap", "_damping",
                     "_factor_levels", "_lag_jacobian", "_lag_preconditioner", "_mg_levels")
 NUMERIC_PATTERN = re.compile(r"mat_mumps_i?cntl_\d+$")
-
-
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM during a run (raised by the handler _signals installs)."""
-
-    def __init__(self, signum):
-        super().__init__(signum)
-        self.signum = signum
-        self.name = signal.Signals(signum).name
 
 
 def _rank_from_env():
@@ -430,20 +424,16 @@ def _load_path(scene):
 
 # --------------------------------------------------------------------------- signals
 class _signals:
-    """SIGINT and SIGTERM raise Interrupted while the run is on; the old handlers come back
-    after it."""
+    """SIGINT and SIGTERM raise Interrupted while the run is on (interrupts.handler: not inside
+    the writing of the output, interrupts.deferred); the old handlers come back after it."""
 
     NAMES = (signal.SIGINT, signal.SIGTERM)
 
     def __enter__(self):
         self.old = {}
-
-        def handler(signum, frame):
-            raise Interrupted(signum)
-
         try:
             for s in self.NAMES:
-                self.old[s] = signal.signal(s, handler)
+                self.old[s] = signal.signal(s, interrupts.handler)
         except ValueError:          # not the main thread: leave signals alone
             pass
         return self
@@ -571,7 +561,8 @@ def _interrupted(run, sig):
     """A run stopped by SIGINT/SIGTERM: summary.json marked interrupted (by whichever rank
     gets here: not collective), one line, exit 128 + signal (every rank, under MPI)."""
     try:
-        run.record_interruption(sig.name)
+        with interrupts.deferred(keep=False):   # a second signal: the run is ending already
+            run.record_interruption(sig.name)
     except Exception as exc:  # noqa: BLE001 - the exit must happen whatever the disk says
         print(f"rodsnes: warning: summary.json not marked interrupted: {exc}", file=sys.stderr)
     _say(run.rank, "error", f"interrupted by {sig.name}; the steps written stay in "

@@ -17,6 +17,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes import interrupts
 from rodsnes.model import fe, mesh as rodmesh
 from rodsnes.io import results as output
 from rodsnes.model import partition
@@ -344,16 +345,19 @@ class Run:
         ld = self.scene.loads
 
         def on_step(res):
-            self.step += 1
-            energy = self._write(res)
-            self.history.append({"load": res.lam, **self._step_record(res)})
-            self._log(res, energy)
-            # made after every step (collective, ~0.3 ms), written when due: an interruption
-            # writes the last one made (record_interruption cannot make one: not collective)
-            self._last_summary = self.summary(converged=False)
-            if self._summary_due():
-                with self._summary_budget.spent():
-                    output.write_summary(self.outdir, self.mpi, self._last_summary)
+            # the step written and recorded whole: a signal meanwhile waits (interrupts.py)
+            with interrupts.deferred():
+                self.step += 1
+                energy = self._write(res)
+                self.history.append({"load": res.lam, **self._step_record(res)})
+                self._log(res, energy)
+                # made after every step (collective, ~0.3 ms), written when due: an
+                # interruption writes the last one made (record_interruption cannot make one:
+                # not collective)
+                self._last_summary = self.summary(converged=False)
+                if self._summary_due():
+                    with self._summary_budget.spent():
+                        output.write_summary(self.outdir, self.mpi, self._last_summary)
 
         def on_fail(res, dlam):
             if not self.quiet and self.rank == 0:
@@ -381,8 +385,10 @@ class Run:
                                  f"UNSTABLE equilibrium ({nneg} negative eigenvalues of the energy "
                                  f"Hessian): -load_path minimize ends on stable ones; "
                                  f"-load_arclength traces unstable branches on purpose")
-        output.write_summary(self.outdir, self.mpi, self.summary(converged=ok, failed_reason=reason))
-        self.writer.close()
+        with interrupts.deferred():
+            output.write_summary(self.outdir, self.mpi,
+                                 self.summary(converged=ok, failed_reason=reason))
+            self.writer.close()
         if self.rank == 0 and not self.quiet:
             if not ok:
                 last = "FAILED: " + reason

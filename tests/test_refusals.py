@@ -631,3 +631,52 @@ def test_petscs_lu_is_ordered_by_amd_and_no_other_preconditioner_is():
         clear()
         for n, v in saved.items():
             opts[n] = v
+
+
+def test_a_signal_inside_the_writing_of_a_step_waits_for_it(capsys, tmp_path, monkeypatch):
+    """A SIGTERM that arrives while result.h5 commits a step (inside h5py's attribute
+    creation, where it had cut h5py's own clean-up: a KeyError, a traceback and exit 1 in a CI
+    run) is raised when the step is written: the step committed, the run's message, exit 128 +
+    SIGTERM (interrupts.deferred)."""
+    import os
+    from rodsnes.io import results as out_mod
+    cls = out_mod.ResultWriter
+    real = cls._commit
+
+    def commit(self, f, step):
+        if step == 3:
+            os.kill(os.getpid(), signal.SIGTERM)    # delivered at the next bytecode: inside
+        return real(self, f, step)
+    monkeypatch.setattr(cls, "_commit", commit)
+    d = tmp_path / "out"
+    rc, _, err = rodsnes(capsys, *MATT, "-load_path", "newton", "-load_steps", "10", out=d)
+    assert rc == 128 + signal.SIGTERM, err
+    assert "interrupted by SIGTERM" in err and "Traceback" not in err
+    last = output.read_step(str(d), -1)
+    assert last["step"] == 3                        # written whole, then the interruption
+    assert summary(d)["load_steps"] == 3
+
+
+def test_deferred_keeps_a_signal_until_its_section_ends():
+    """interrupts.deferred: nothing raised inside, Interrupted at the end of the outermost
+    section; dropped with keep=False; outside a section at once."""
+    import os
+    from rodsnes import interrupts
+    old = signal.signal(signal.SIGTERM, interrupts.handler)
+    try:
+        reached = []
+        with pytest.raises(interrupts.Interrupted) as info:
+            with interrupts.deferred():
+                with interrupts.deferred():
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    reached.append("inner")
+                reached.append("outer")
+        assert reached == ["inner", "outer"] and info.value.signum == signal.SIGTERM
+        with interrupts.deferred(keep=False):
+            os.kill(os.getpid(), signal.SIGTERM)
+        with pytest.raises(interrupts.Interrupted):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):                   # the handler runs between bytecodes
+                pass
+    finally:
+        signal.signal(signal.SIGTERM, old)
