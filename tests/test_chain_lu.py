@@ -340,3 +340,19 @@ def test_a_pattern_changed_in_place_is_planned_anew():
     ksp.reset()                                     # nothing of the old matrices kept
     assert ctx.lu is None and ctx.fallback is None
     ksp.destroy()
+
+
+def test_the_chain_pc_says_what_it_is_in_ksp_view(tmp_path):
+    """-ksp_view names the chain LU, its size and order."""
+    A, _ = _chain_matrix(5, 3, seed=40)
+    ksp = _ksp_with(chain.ChainPC(_NO_PROBLEM), A)
+    b = A.createVecLeft()
+    b.set(1.0)
+    ksp.solve(b, b.duplicate())
+    path = str(tmp_path / "view.txt")
+    viewer = PETSc.Viewer().createASCII(path, comm=PETSc.COMM_SELF)
+    ksp.view(viewer)
+    viewer.destroy()
+    text = open(path).read()
+    assert "rodsnes' chain LU" in text and "16 block rows of size 3" in text
+    ksp.destroy()

@@ -269,6 +269,16 @@ class ChainPC:
         self.failed = not ok
         petsc_lib.set_pc_failed(pc, self.failed)
 
+    def view(self, pc, viewer):
+        """What -ksp_view prints for this PC."""
+        if self.fallback is not None:
+            viewer.printfASCII("  rodsnes' chain LU: the pattern fills, PETSc's LU instead\n")
+            self.fallback.view(viewer)
+        elif self.lu is not None:
+            viewer.printfASCII(f"  rodsnes' chain LU (rodsnes/solve/chain.py): {self.lu.n} block "
+                               f"rows of size {self.lu.bs}, the rod's node order, no fill"
+                               f"{', FAILED at a singular pivot block' if self.failed else ''}\n")
+
     def apply(self, pc, x, y):
         if self.fallback is not None:
             self.fallback.apply(x, y)
