@@ -15,9 +15,9 @@ def kernel(module, exact=False, headers=()):
 
 
 KERNELS = [
-    # the fused elastic element kernel (rodsnes/model/elastic_compiled.py); its in-plane tangent
-    # on 2 or 4 elements at once (_elastic_plane.h)
-    kernel("rodsnes.model._elastic_kernel", headers=["_elastic_plane.h"]),
+    # the fused elastic element kernel (rodsnes/model/elastic_compiled.py): the 3-D element
+    # (_elastic_lanes.h) and the in-plane tangent (_elastic_plane.h) on 1, 2 or 4 elements at once
+    kernel("rodsnes.model._elastic_kernel", headers=["_elastic_lanes.h", "_elastic_plane.h"]),
     # the pair-potential contact kernel (rodsnes/contact/potential_compiled.py)
     kernel("rodsnes.contact._potential_kernel", exact=True),
     # the Gauss double integral of writhe and link (rodsnes/model/topology.py): O(N^2) segment

@@ -297,3 +297,31 @@ def test_node_energy_equals_the_gathered_elements_energy(p):
     rod_np.set_reference(rod.e0)
     rod_np.set_curvature_limit(rod.kappa_max, rod.mu_kappa)
     assert abs(rod_np.node_energy(qn, xn, conn) - E) <= 1e-12 * abs(E)
+
+
+@pytest.mark.parametrize("bound", [False, True], ids=["free", "curvature_bound"])
+@pytest.mark.parametrize("p,nq,ne", [(1, 1, 6), (2, 2, 5), (3, 3, 37), (3, 4, 3), (4, 4, 2),
+                                     (7, 6, 9), (3, 3, 1)])
+def test_one_two_and_four_lanes_give_the_same_terms(p, nq, ne, bound):
+    """The 3-D element one at a time, 2 at once (SSE2) or 4 (AVX2, where the processor has it):
+    one source (_elastic_lanes.h), the same arithmetic lane by lane, so the same energies,
+    residuals and tangents bit for bit - full and cut (comps), consistent and symmetric, element
+    counts that fill the last group or not; the default is the widest."""
+    rng = np.random.default_rng(11 * p + nq + ne + bound)
+    rod, qe, xe = make_rod(p, nq, ne, rng, bound)
+    for symmetric in (False, True):
+        for comps in (None, (0, 1, 5)):
+            kw = dict(tangent=True, symmetric=symmetric, comps=comps)
+            one = elastic_compiled.element_terms(rod, qe, xe, rod.e0, lanes=1, **kw)
+            for a, b in zip(elastic_compiled.element_terms(rod, qe, xe, rod.e0, **kw), one):
+                assert np.array_equal(a, b)
+            for lanes in (2, 4):
+                try:
+                    got = elastic_compiled.element_terms(rod, qe, xe, rod.e0, lanes=lanes, **kw)
+                except ValueError:
+                    assert lanes == 4           # no AVX2 here
+                    continue
+                for a, b in zip(got, one):
+                    assert np.array_equal(a, b), (lanes, symmetric, comps)
+    with pytest.raises(RuntimeError):
+        elastic_compiled.element_terms(rod, qe, xe, rod.e0, lanes=3)

@@ -6,46 +6,8 @@
  * scalar formulas'); the element constants come from the scalar helpers lane by lane, the
  * tangents go out transposed in registers, each element's entries a vector at a time. */
 
-typedef double VD __attribute__((vector_size(8 * LANES)));
-/* the vector (a[i], a[j]) of two 2-lane vectors' entries (b's from 2): the transpose of the
- * 2-lane tangents (GCC's __builtin_shuffle, clang's __builtin_shufflevector) */
-#if LANES == 2
-#if defined(__clang__)
-#define PAIR(a, b, i, j) __builtin_shufflevector((a), (b), i, j)
-#else
-typedef int64_t VI __attribute__((vector_size(8 * LANES)));
-#define PAIR(a, b, i, j) __builtin_shuffle((a), (b), (VI){i, j})
-#endif
-#else
-typedef int64_t VI __attribute__((vector_size(8 * LANES)));     /* __builtin_shuffle's masks */
-#endif
-#define SPLAT(x) ((VD){0.0} + (x))
-
-
-/* The law of plane_elements' strains e (constitutive_law in every lane, without the energy):
- * S, and with the curvature bound its tangent Cb where it is active; returns 1 in the lanes
- * where it is, 0 in the others. */
-static ALWAYS_INLINE VD PLANE(law)(const Setup *st, const VD *e, const VD *e0, VD *S, VD *Cb)
-{
-    VD bound = SPLAT(0.0);
-    for (int k = 0; k < 6; k++) S[k] = st->C[k] * (e[k] - e0[k]);
-    for (int i = 0; i < 4; i++) Cb[i] = SPLAT(0.0);
-    if (!st->limit) return bound;
-    for (int l = 0; l < LANES; l++) {
-        const double kappa = sqrt(e[3][l] * e[3][l] + e[4][l] * e[4][l]);
-        const double over = kappa - st->kappa_max;
-        if (!(over > 0.0)) continue;
-        const double n[2] = {e[3][l] / kappa, e[4][l] / kappa};
-        const double mu = st->mu_kappa, ratio = st->kappa_max / kappa;
-        S[3][l] += mu * over * n[0];
-        S[4][l] += mu * over * n[1];
-        for (int i = 0; i < 2; i++)
-            for (int j = 0; j < 2; j++)
-                Cb[2 * i + j][l] = mu * (((i == j) ? 1.0 - ratio : 0.0) + ratio * n[i] * n[j]);
-        bound[l] = 1.0;
-    }
-    return bound;
-}
+/* VD, SPLAT, LANE and the transpose out: _elastic_lanes.h's, included just before for the same
+ * width. */
 
 /* The in-plane tangents of the elements at qin[l], xin[l], e0in[l] (l < LANES) into H[l] (those
  * not NULL). */
@@ -116,7 +78,8 @@ static ALWAYS_INLINE void PLANE(elements)(const int NN, const Setup *st, const d
                 for (int l = 0; l < LANES; l++) lanes[i][l] = e0in[l][6 * g + i];
             memcpy(e0, lanes, sizeof(lanes));
         }
-        const VD bound = PLANE(law)(st, e, e0, S, Cb);
+        VD W;                           /* (the energy density: not needed here) */
+        const VD bound = L(constitutive_law)(st, e, e0, S, &W, Cb);
         VD f[3];
         for (int i = 0; i < 3; i++)
             f[i] = R0t[0][i] * S[0] + R0t[1][i] * S[1] + R0t[2][i] * S[2];
@@ -234,32 +197,7 @@ static ALWAYS_INLINE void PLANE(elements)(const int NN, const Setup *st, const d
             for (int i = 0; i < 3; i++)
                 for (int j = 0; j < 3; j++)
                     Hv[(3 * b + j) * ld + 3 * a + i] = Hv[(3 * a + i) * ld + 3 * b + j];
-    /* out lane by lane: four entries at a time transposed in registers (reading Hv's vectors
-     * whole: a lane read back from a vector just stored waits for the store to complete) */
-#if LANES == 4
-    const int n4 = (ld * ld) & ~3;
-    for (int i = 0; i < n4; i += 4) {
-        const VI lo = {0, 4, 2, 6}, hi = {1, 5, 3, 7}, first = {0, 1, 4, 5}, last = {2, 3, 6, 7};
-        const VD t0 = __builtin_shuffle(Hv[i], Hv[i + 1], lo);
-        const VD t1 = __builtin_shuffle(Hv[i], Hv[i + 1], hi);
-        const VD t2 = __builtin_shuffle(Hv[i + 2], Hv[i + 3], lo);
-        const VD t3 = __builtin_shuffle(Hv[i + 2], Hv[i + 3], hi);
-        const VD c[LANES] = {__builtin_shuffle(t0, t2, first), __builtin_shuffle(t1, t3, first),
-                             __builtin_shuffle(t0, t2, last), __builtin_shuffle(t1, t3, last)};
-        for (int l = 0; l < LANES; l++)
-            if (H[l] != NULL) memcpy(H[l] + i, &c[l], sizeof(VD));
-    }
-#else
-    const int n4 = (ld * ld) & ~1;
-    for (int i = 0; i < n4; i += 2) {
-        const VD c[LANES] = {PAIR(Hv[i], Hv[i + 1], 0, 2), PAIR(Hv[i], Hv[i + 1], 1, 3)};
-        for (int l = 0; l < LANES; l++)
-            if (H[l] != NULL) memcpy(H[l] + i, &c[l], sizeof(VD));
-    }
-#endif
-    for (int i = n4; i < ld * ld; i++)
-        for (int l = 0; l < LANES; l++)
-            if (H[l] != NULL) H[l][i] = Hv[i][l];
+    L(transpose_out)(Hv, ld * ld, H);
 }
 
 /* The in-plane tangents of elements 0..ne-1 (rodsnes_elastic_plane_tangent_lanes' arguments) in
@@ -285,5 +223,13 @@ static void PLANE(tangents)(int ne, int nn, const Setup *st, const double *qe, c
 #undef PLANE_GROUPS
 }
 
+/* the end of this width: its macros (the includer's LANES, VD, VI, L, PLANE and
+ * _elastic_lanes.h's SPLAT, LANE, PAIR) go */
+#undef LANES
+#undef VD
+#undef VI
+#undef L
+#undef PLANE
 #undef SPLAT
+#undef LANE
 #undef PAIR

@@ -13,12 +13,13 @@ round-off (tests/test_elastic_compiled.py).
 
 C entry point:
 
-    int rodsnes_elastic_terms(int ne, int nn, int nq,
+    int rodsnes_elastic_terms_lanes(int ne, int nn, int nq,
                               const double *N, const double *dN, const double *wJ,
                               const double *C, int limit, double kappa_max, double mu_kappa,
                               const double *qe, const double *xe, const double *e0,
                               int tangent, int symmetric, const int *comps, int ncomp,
-                              double *energy, double *vec, double *H);
+                              int lanes, double *energy, double *vec, double *H);
+                         (lanes: elements at once, 1, 2 or 4 (AVX2), 0 the most it runs)
     int rodsnes_elastic_energy(int ne, int nn, int nq, ... the same ..., const double *e0,
                                double *energy);          (the energy alone: line searches)
     int rodsnes_elastic_plane_tangent_lanes(int ne, int nn, int nq, ... the same ...,
@@ -62,8 +63,9 @@ def _declare(lib):
     rod = [c_int, c_int, c_int, f64, f64, f64, f64, c_int, c_dbl, c_dbl]     # ne .. mu_kappa
     common = rod + [f64, f64, f64]                          # qe, xe, e0
     nodes = rod + [f64, f64, compiled.I64, f64]             # qn, xn, conn, e0
-    fn = compiled.Foreign(lib.rodsnes_elastic_terms,
-                          common + [c_int, c_int, ctypes.c_void_p, c_int, f64, f64, f64], c_int)
+    fn = compiled.Foreign(lib.rodsnes_elastic_terms_lanes,
+                          common + [c_int, c_int, ctypes.c_void_p, c_int, c_int, f64, f64, f64],
+                          c_int)
     en = compiled.Foreign(lib.rodsnes_elastic_energy, common + [f64], c_int)
     pl = compiled.Foreign(lib.rodsnes_elastic_plane_tangent_lanes, common + [c_int, c_int, f64],
                           c_int)
@@ -119,13 +121,15 @@ def _inputs(rod, qe, xe, e0):
     return args + (qe, xe, e0), (ne, nn, nq)
 
 
-def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None, comps=None):
+def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None, comps=None,
+                  lanes=0):
     """(energy (ne,), vec (ne, p+1, 6), H (ne, 6(p+1), 6(p+1)) or None) of ElasticRod rod:
     the same as rod.element_terms(qe, xe, e0, tangent, symmetric), computed in C; ``out``:
     (energy, vec, H or None) arrays of those shapes to write into.  ``comps``: the tangent cut
     in C to these components of every node, H (ne, c(p+1), c(p+1)) with c = len(comps), rows
     and columns (node, component) (planar.ComponentView's block, without the 6 x 6 tangents
-    written out and gathered)."""
+    written out and gathered).  ``lanes``: elements at once, 1, 2 or 4 (AVX2), 0 the most the
+    processor runs (the same numbers bit for bit; ValueError for 4 without AVX2)."""
     args, (ne, nn, nq) = _inputs(rod, qe, xe, e0)
     nc = 6 if comps is None else len(comps)
     cut = None
@@ -144,9 +148,11 @@ def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None,
         vec = np.empty((ne, nn, 6))
         H = np.empty((ne, nc * nn, nc * nn)) if tangent else None
     info = _load().terms(ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)),
-                      None if cut is None else cut.ctypes.data, nc, energy, vec, H)
+                         None if cut is None else cut.ctypes.data, nc, int(lanes), energy, vec, H)
+    if info == -2:
+        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
     if info != 0:
-        raise RuntimeError(f"rodsnes_elastic_terms failed ({info})")
+        raise RuntimeError(f"rodsnes_elastic_terms_lanes failed ({info})")
     return energy, vec, H
 
 
