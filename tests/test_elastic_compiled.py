@@ -252,8 +252,8 @@ def test_node_residual_equals_the_summed_element_rows(p, closed):
     """ElasticRod.node_residual (the kernel gathering the elements' nodes and summing their
     rows per node) equals element_terms of the gathered elements with the rows summed per node
     in the elements' order (np.add.at), bit for bit, on a chain of elements sharing end nodes
-    (a ring: the last element ends at node 0), nodes held in shuffled rows; the numpy kernel's
-    form the same to round-off."""
+    (a ring: the last element ends at node 0), nodes held in shuffled rows, at every lane width
+    (7 elements: the last group padded); the numpy kernel's form the same to round-off."""
     rng = np.random.default_rng(30 + p + 10 * closed)
     ne, nq = 7, p + 1
     qe, xe, e0 = deformed_elements(p, nq, ne, rng)
@@ -271,6 +271,13 @@ def test_node_residual_equals_the_summed_element_rows(p, closed):
     np.add.at(ref, conn.ravel(), vec.reshape(-1, 6))
     assert np.array_equal(F, ref) and np.array_equal(energy, e_ref)
     assert np.abs(F).max() > 0.1 and not F[np.setdiff1d(np.arange(n + 3), rows)].any()
+    for lanes in (1, 2, 4):     # one element at a time, 2 or 4 at once: the same bits
+        try:
+            e_l, F_l = elastic_compiled.node_residual(rod, qn, xn, conn, lanes=lanes)
+        except ValueError:
+            assert lanes == 4       # no AVX2 here
+            continue
+        assert np.array_equal(F_l, F) and np.array_equal(e_l, energy), lanes
     rod_np = elastic.ElasticRod(p, nq, 0.3, STIFF, kernel="numpy")
     rod_np.set_reference(e0)
     e_np, F_np = rod_np.node_residual(qn, xn, conn)

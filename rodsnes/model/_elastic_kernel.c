@@ -145,6 +145,17 @@ static ALWAYS_INLINE void cut_tangent(const int NN, const double *H, const int *
         }
 }
 
+/* Element e's nodes ce[a] (rows of the node arrays qn (nodes, 4), xn (nodes, 3)) copied into
+ * the element arrays qb (NN, 4), xb (NN, 3) that the element passes read. */
+static ALWAYS_INLINE void gather_element(const int NN, const int64_t *ce, const double *qn,
+                                         const double *xn, double *qb, double *xb)
+{
+    for (int a = 0; a < NN; a++) {
+        for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];
+        for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];
+    }
+}
+
 /* The element's arithmetic on 2 elements at once (SSE2, every x86-64), and on 4 where the
  * processor has AVX2: the 3-D element (_elastic_lanes.h; its 24 x 24 tangents of 10^4 cubic
  * elements: 21.3 ms one element at a time, 16.7 ms two, 14.6 ms four) and the in-plane tangent
@@ -265,16 +276,6 @@ int rodsnes_elastic_strains(int ne, int nn, int nq, const double *N, const doubl
     return 0;
 }
 
-/* Element e's nodes ce[a] (rows of the node arrays qn (nodes, 4), xn (nodes, 3)) copied into
- * the element arrays qb (NN, 4), xb (NN, 3) that the element passes read. */
-static ALWAYS_INLINE void gather_element(const int NN, const int64_t *ce, const double *qn,
-                                         const double *xn, double *qb, double *xb)
-{
-    for (int a = 0; a < NN; a++) {
-        for (int k = 0; k < 4; k++) qb[4 * a + k] = qn[4 * ce[a] + k];
-        for (int k = 0; k < 3; k++) xb[3 * a + k] = xn[3 * ce[a] + k];
-    }
-}
 
 /* The residual summed per node: element e's nodes conn[e nn + a] gathered (gather_element),
  * its residual rows added to node_vec (nodes, 6, zero on entry) in the order of the elements
@@ -290,16 +291,34 @@ static ALWAYS_INLINE void gather_element(const int NN, const int64_t *ce, const 
     }
 
 /* Arguments as rodsnes_elastic_terms but the nodes' qn, xn and the elements' conn (ne, nn) of
- * rows in them; outputs energy (ne) and node_vec (nodes, 6), added to.  Returns 0, or -1. */
-int rodsnes_elastic_node_residual(int ne, int nn, int nq, const double *N, const double *dN,
-                                  const double *wJ, const double *C, int limit,
-                                  double kappa_max, double mu_kappa, const double *qn,
-                                  const double *xn, const int64_t *conn, const double *e0,
-                                  double *energy, double *node_vec)
+ * rows in them; outputs energy (ne) and node_vec (nodes, 6), added to; lanes as
+ * rodsnes_elastic_terms_lanes (the sums in the elements' order at every width: the same numbers
+ * bit for bit).  Returns 0, -1 for bad arguments, -2 for lanes the processor cannot run. */
+int rodsnes_elastic_node_residual_lanes(int ne, int nn, int nq, const double *N,
+                                        const double *dN, const double *wJ, const double *C,
+                                        int limit, double kappa_max, double mu_kappa,
+                                        const double *qn, const double *xn, const int64_t *conn,
+                                        const double *e0, int lanes, double *energy,
+                                        double *node_vec)
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
+    if (lanes != 0 && lanes != 1 && lanes != 2 && lanes != 4) return -1;
+    const int widest = widest_lanes();
+    if (lanes > widest) return -2;
+    if (lanes == 0) lanes = nq <= MAXQ ? widest : 1;
+    if (lanes > 1 && nq > MAXQ) return -1;
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
-    BY_NODE_COUNT(NODE_LOOP)
+    if (lanes == 1) {
+        BY_NODE_COUNT(NODE_LOOP)
+        return 0;
+    }
+#ifdef LANES_AVX2
+    if (lanes == 4) {
+        node_residual_4(ne, nn, &st, qn, xn, conn, e0, energy, node_vec);
+        return 0;
+    }
+#endif
+    node_residual_2(ne, nn, &st, qn, xn, conn, e0, energy, node_vec);
     return 0;
 }
 

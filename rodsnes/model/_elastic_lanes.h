@@ -543,4 +543,36 @@ static void L(terms)(int ne, int nn, const Setup *st, const double *qe, const do
     BY_NODE_COUNT(ELEMENT_GROUPS)
 #undef ELEMENT_GROUPS
 }
+
+/* rodsnes_elastic_node_residual_lanes' work LANES elements at a time: each element's nodes
+ * gathered (gather_element), its residual rows added to node_vec in the elements' order. */
+static void L(node_residual)(int ne, int nn, const Setup *st, const double *qn,
+                             const double *xn, const int64_t *conn, const double *e0,
+                             double *energy, double *node_vec)
+{
+    const int nq = st->nq;
+#define NODE_GROUPS(NN)                                                                    \
+    for (int e = 0; e < ne; e += LANES) {                                                  \
+        double qb[LANES][4 * MAXNN], xb[LANES][3 * MAXNN], vb[LANES][6 * MAXNN];           \
+        const double *qg[LANES], *xg[LANES], *eg[LANES];                                   \
+        double *Eg[LANES], *vg[LANES];                                                     \
+        for (int l = 0; l < LANES; l++) {                                                  \
+            const int ok = e + l < ne, el = ok ? e + l : ne - 1;                           \
+            gather_element(NN, conn + (long)el * (NN), qn, xn, qb[l], xb[l]);              \
+            qg[l] = qb[l];                                                                 \
+            xg[l] = xb[l];                                                                 \
+            eg[l] = e0 + (long)el * 6 * nq;                                                \
+            Eg[l] = energy + el;                                                           \
+            vg[l] = ok ? vb[l] : NULL;                                                     \
+        }                                                                                  \
+        L(elements)(NN, st, qg, xg, eg, 0, Eg, vg, NULL);                                  \
+        for (int l = 0; l < LANES && e + l < ne; l++) {                                    \
+            const int64_t *ce = conn + (long)(e + l) * (NN);                               \
+            for (int a = 0; a < (NN); a++)                                                 \
+                for (int k = 0; k < 6; k++) node_vec[6 * ce[a] + k] += vb[l][6 * a + k];   \
+        }                                                                                  \
+    }
+    BY_NODE_COUNT(NODE_GROUPS)
+#undef NODE_GROUPS
+}
 #endif

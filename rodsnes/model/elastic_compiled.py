@@ -29,9 +29,10 @@ C entry point:
                                 const double *qe, const double *xe, double *strain);
                          (the strains at the points of N, dN: ElasticRod.strains,
                           strains_at_nodes)
-    int rodsnes_elastic_node_residual(int ne, int nn, int nq, ... the same ...,
+    int rodsnes_elastic_node_residual_lanes(int ne, int nn, int nq, ... the same ...,
                                       const double *qn, const double *xn, const int64_t *conn,
-                                      const double *e0, double *energy, double *node_vec);
+                                      const double *e0, int lanes, double *energy,
+                                      double *node_vec);
                          (the residual summed per node, the elements' nodes gathered in C:
                           RodProblem.residual)
     int rodsnes_elastic_node_energy(... the same but node_vec ..., double *energy);
@@ -71,7 +72,8 @@ def _declare(lib):
                           c_int)
     st = compiled.Foreign(lib.rodsnes_elastic_strains,
                           [c_int, c_int, c_int, f64, f64, f64, f64, f64], c_int)
-    nr = compiled.Foreign(lib.rodsnes_elastic_node_residual, nodes + [f64, f64], c_int)
+    nr = compiled.Foreign(lib.rodsnes_elastic_node_residual_lanes, nodes + [c_int, f64, f64],
+                          c_int)
     ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy, nodes + [f64], c_int)
     return Kernel(fn, en, pl, st, nr, ne_)
 
@@ -243,16 +245,20 @@ def node_energy(rod, qn, xn, conn, e0=None):
     return energy
 
 
-def node_residual(rod, qn, xn, conn, e0=None):
+def node_residual(rod, qn, xn, conn, e0=None, lanes=0):
     """(energy (ne,), the residual summed per node (nodes, 6)) of ElasticRod rod at the nodes'
     quaternions qn (nodes, 4) and positions xn (nodes, 3), its elements' nodes conn (ne, nn)
     (rows of them): element_terms(qn[conn], xn[conn], tangent=False) with its element rows
     summed per node in the elements' order, without the gathered element arrays and the
-    sparse row sum (0.7 ms of a 4.5 ms residual at 10^4 cubic elements)."""
+    sparse row sum (0.7 ms of a 4.5 ms residual at 10^4 cubic elements).  ``lanes``: elements
+    at once, as element_terms (the same numbers bit for bit)."""
     args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
     n = len(qn)
     energy, node_vec = np.empty(ne), np.zeros((n, 6))
-    info = _load().node_residual(ne, nn, nq, *args, qn, xn, conn, e0, energy, node_vec)
+    info = _load().node_residual(ne, nn, nq, *args, qn, xn, conn, e0, int(lanes), energy,
+                                 node_vec)
+    if info == -2:
+        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
     if info != 0:
-        raise RuntimeError(f"rodsnes_elastic_node_residual failed ({info})")
+        raise RuntimeError(f"rodsnes_elastic_node_residual_lanes failed ({info})")
     return energy, node_vec
