@@ -78,15 +78,23 @@ static ALWAYS_INLINE void align_signs(const int NN, const double *qin, double q[
     }
 }
 
+/* The element's nodes as element() and interpolate() take them: q from qin (NN, 4) with
+ * aligned signs, x from xin (NN, 3). */
+static ALWAYS_INLINE void element_nodes(const int NN, const double *qin, const double *xin,
+                                        double q[MAXNN][4], double x[MAXNN][3])
+{
+    align_signs(NN, qin, q);
+    for (int a = 0; a < NN; a++)
+        for (int i = 0; i < 3; i++) x[a][i] = xin[3 * a + i];
+}
+
 /* element() of the element at qin (NN, 4; any signs), xin (NN, 3). */
 static ALWAYS_INLINE void element_at(const int NN, const Setup *st, const double *qin,
                                      const double *xin, const double *e0, int symmetric,
                                      double *energy, double *vec, double *H)
 {
     double q[MAXNN][4], x[MAXNN][3];
-    align_signs(NN, qin, q);
-    for (int a = 0; a < NN; a++)
-        for (int i = 0; i < 3; i++) x[a][i] = xin[3 * a + i];
+    element_nodes(NN, qin, xin, q, x);
     element(NN, st, q, x, e0, symmetric, energy, vec, H);
 }
 
@@ -192,6 +200,18 @@ static int widest_lanes(void)
     return 2;
 }
 
+/* The width of the 3-D entries for the caller's ``lanes`` (0: the widest, one element at a
+ * time beyond MAXQ points; 1, 2 or 4 as asked) and nq points: 1, 2 or 4, -1 for bad arguments,
+ * -2 for a width the processor cannot run. */
+static int chosen_lanes(int lanes, int nq)
+{
+    if (lanes != 0 && lanes != 1 && lanes != 2 && lanes != 4) return -1;
+    const int widest = widest_lanes();
+    if (lanes > widest) return -2;
+    if (lanes == 0) return nq <= MAXQ ? widest : 1;
+    return lanes > 1 && nq > MAXQ ? -1 : lanes;
+}
+
 
 
 /* One element into the outputs; with comps its tangent through a buffer, cut (cut_tangent). */
@@ -223,11 +243,8 @@ int rodsnes_elastic_terms_lanes(int ne, int nn, int nq, const double *N, const d
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
     if (comps && (ncomp < 1 || ncomp > 6)) return -1;
-    if (lanes != 0 && lanes != 1 && lanes != 2 && lanes != 4) return -1;
-    const int widest = widest_lanes();
-    if (lanes > widest) return -2;
-    if (lanes == 0) lanes = nq <= MAXQ ? widest : 1;
-    if (lanes > 1 && nq > MAXQ) return -1;
+    lanes = chosen_lanes(lanes, nq);
+    if (lanes < 0) return lanes;
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
     if (lanes == 1) {
         double Hbuf[36 * MAXNN * MAXNN];
@@ -249,9 +266,7 @@ static ALWAYS_INLINE void element_strains(const int NN, int nq, const double *N,
                                           const double *qin, const double *xin, double *e)
 {
     double q[MAXNN][4], x[MAXNN][3];
-    align_signs(NN, qin, q);
-    for (int a = 0; a < NN; a++)
-        for (int i = 0; i < 3; i++) x[a][i] = xin[3 * a + i];
+    element_nodes(NN, qin, xin, q, x);
     for (int g = 0; g < nq; g++) {
         double p[4], dp[4], dr[3], Rt[3][3], Nz[6];
         interpolate(NN, N + g * NN, dN + g * NN, q, x, p, dp, dr);
@@ -302,11 +317,8 @@ int rodsnes_elastic_node_residual_lanes(int ne, int nn, int nq, const double *N,
                                         double *node_vec)
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0) return -1;
-    if (lanes != 0 && lanes != 1 && lanes != 2 && lanes != 4) return -1;
-    const int widest = widest_lanes();
-    if (lanes > widest) return -2;
-    if (lanes == 0) lanes = nq <= MAXQ ? widest : 1;
-    if (lanes > 1 && nq > MAXQ) return -1;
+    lanes = chosen_lanes(lanes, nq);
+    if (lanes < 0) return lanes;
     const Setup st = {nq, N, dN, wJ, C, limit, kappa_max, mu_kappa};
     if (lanes == 1) {
         BY_NODE_COUNT(NODE_LOOP)
@@ -328,9 +340,7 @@ static ALWAYS_INLINE double element_energy(const int NN, const Setup *st, const 
                                            const double *xin, const double *e0)
 {
     double q[MAXNN][4], x[MAXNN][3];
-    align_signs(NN, qin, q);
-    for (int a = 0; a < NN; a++)
-        for (int i = 0; i < 3; i++) x[a][i] = xin[3 * a + i];
+    element_nodes(NN, qin, xin, q, x);
     double E = 0.0;
     for (int g = 0; g < st->nq; g++) {
         double p[4], dp[4], dr[3], Rt[3][3], Nz[6], e[6], S[6], Cb[4], W;

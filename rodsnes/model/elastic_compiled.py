@@ -123,6 +123,15 @@ def _inputs(rod, qe, xe, e0):
     return args + (qe, xe, e0), (ne, nn, nq)
 
 
+def _lanes_info(info, entry, lanes):
+    """The error of a lane entry's return code: ValueError for a width the processor cannot
+    run (-2), RuntimeError for any other failure."""
+    if info == -2:
+        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
+    if info != 0:
+        raise RuntimeError(f"{entry} failed ({info})")
+
+
 def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None, comps=None,
                   lanes=0):
     """(energy (ne,), vec (ne, p+1, 6), H (ne, 6(p+1), 6(p+1)) or None) of ElasticRod rod:
@@ -151,10 +160,7 @@ def element_terms(rod, qe, xe, e0=None, tangent=True, symmetric=False, out=None,
         H = np.empty((ne, nc * nn, nc * nn)) if tangent else None
     info = _load().terms(ne, nn, nq, *args, int(bool(tangent)), int(bool(symmetric)),
                          None if cut is None else cut.ctypes.data, nc, int(lanes), energy, vec, H)
-    if info == -2:
-        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
-    if info != 0:
-        raise RuntimeError(f"rodsnes_elastic_terms_lanes failed ({info})")
+    _lanes_info(info, "rodsnes_elastic_terms_lanes", lanes)
     return energy, vec, H
 
 
@@ -187,10 +193,7 @@ def plane_tangents(rod, qe, xe, axis, e0=None, out=None, lanes=0):
     elif out.shape != (ne, 3 * nn, 3 * nn) or not out.flags.c_contiguous:
         raise ValueError("out does not match the elements")
     info = _load().plane_tangent(ne, nn, nq, *args, int(axis), int(lanes), out)
-    if info == -2:
-        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
-    if info != 0:
-        raise RuntimeError(f"rodsnes_elastic_plane_tangent_lanes failed ({info})")
+    _lanes_info(info, "rodsnes_elastic_plane_tangent_lanes", lanes)
     return out
 
 
@@ -210,8 +213,8 @@ def strains(N, dN, qe, xe):
     qe = np.asarray(qe)
     ne = qe.shape[0]
     out = np.empty((ne, nq, 6))
-    info = _load().strains(ne, nn, nq, N, dN, _f64(qe, (ne, nn, 4), "qe"), _f64(xe, (ne, nn, 3), "xe"),
-                      out)
+    info = _load().strains(ne, nn, nq, N, dN, _f64(qe, (ne, nn, 4), "qe"),
+                           _f64(xe, (ne, nn, 3), "xe"), out)
     if info != 0:
         raise RuntimeError(f"rodsnes_elastic_strains failed ({info})")
     return out
@@ -257,8 +260,5 @@ def node_residual(rod, qn, xn, conn, e0=None, lanes=0):
     energy, node_vec = np.empty(ne), np.zeros((n, 6))
     info = _load().node_residual(ne, nn, nq, *args, qn, xn, conn, e0, int(lanes), energy,
                                  node_vec)
-    if info == -2:
-        raise ValueError(f"lanes={lanes}: this processor has no AVX2")
-    if info != 0:
-        raise RuntimeError(f"rodsnes_elastic_node_residual_lanes failed ({info})")
+    _lanes_info(info, "rodsnes_elastic_node_residual_lanes", lanes)
     return energy, node_vec

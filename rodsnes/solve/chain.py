@@ -99,6 +99,15 @@ def _streams(ai, aj, diag, direction):
     return as32(place), as32(col), as32(lofs), as32(uofs)
 
 
+def plan_of(mat, direction=1, out=()):
+    """ChainLU.plan for the SeqBAIJ ``mat``'s block pattern, or None where the kernel cannot
+    read it (factorable) or the elimination would fill."""
+    if not factorable(mat):
+        return None
+    ai, aj = mat.getRowIJ(compressed=True)
+    return ChainLU.plan(ai, aj, mat.getBlockSize(), direction, out)
+
+
 class ChainLU:
     """The LU without fill of a SeqBAIJ matrix of block CSR (ai, aj) and block size bs,
     eliminated in the natural order (direction +1) or the reversed one (-1).  Made by
@@ -203,15 +212,15 @@ class ChainPC:
     cantilever's in-plane Jacobian at 10^4 cubic elements: 2.8 against 5.2 ms a
     factorisation, 0.67 ms a solve either way; at 10^5 31 against 55 ms.  A singular pivot
     block fails the PC as PETSc's LU at its zero pivot does (petsc_lib.set_pc_failed: the KSP
-    says DIVERGED_PCSETUP_FAILED and its solution is Inf) and makes the application NaN.  A matrix of another pattern is planned anew; one whose
-    elimination would fill (never an open rod's without contact) is factored by PETSc's LU
-    instead."""
+    says DIVERGED_PCSETUP_FAILED and its solution is Inf) and makes the application NaN.  A
+    matrix of another pattern is planned anew; one whose elimination would fill (never an open
+    rod's without contact) is factored by PETSc's LU instead."""
 
     def __init__(self, problem, A=None):
         """For the matrices of ``problem`` (its count of new patterns: its stats, not the
         problem, kept), planned for A if given (``lu`` None: A is no chain)."""
         self.stats = problem.stats
-        self.lu = None if A is None else self.planned(A)
+        self.lu = None if A is None else plan_of(A)
         self.key = None if A is None else self.matrix_key(A)    # the matrix lu was planned for
         self.fallback = None            # PETSc's LU, AMD-ordered (a pattern that fills)
         self.failed = False
@@ -237,21 +246,12 @@ class ChainPC:
         self.lu = self.key = None
         self.failed = False
 
-    @staticmethod
-    def planned(A):
-        """The ChainLU of the SeqBAIJ A in its natural order, or None (not factorable, or the
-        elimination would fill)."""
-        if not factorable(A):
-            return None
-        ai, aj = A.getRowIJ(compressed=True)
-        return ChainLU.plan(ai, aj, A.getBlockSize(), 1)
-
     def setUp(self, pc):
         A = pc.getOperators()[1]
         key = self.matrix_key(A)
         if key != self.key:             # another matrix or pattern: planned anew
             self.reset(pc)
-            self.lu, self.key = self.planned(A), key
+            self.lu, self.key = plan_of(A), key
         if self.lu is None:
             if self.fallback is None:
                 self.fallback = PETSc.PC().create(comm=A.getComm())

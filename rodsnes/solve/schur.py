@@ -236,10 +236,7 @@ def _chain_lu(D, sepb, nearb):
     direction of elimination whose near rows come last, ``tail`` the order position of the
     first of them.  None where the pattern fills in that direction or the near rows lie deeper
     than CHAIN_TAIL_MAX (or the kernel is not built)."""
-    if not chain.factorable(D):
-        return None
-    ai, aj = D.getRowIJ(compressed=True)
-    n = len(ai) - 1
+    n = D.getSize()[0] // D.getBlockSize()
     best = None
     for direction in (1, -1):
         pos = nearb if direction > 0 else n - 1 - nearb
@@ -248,7 +245,7 @@ def _chain_lu(D, sepb, nearb):
             best = (direction, tail)
     if best is None:
         return None
-    lu = chain.ChainLU.plan(ai, aj, D.getBlockSize(), best[0], out=sepb)
+    lu = chain.plan_of(D, best[0], out=sepb)
     return None if lu is None else (lu, best[1])
 
 

@@ -57,10 +57,7 @@ class ChainCount:
             ctx.inertia = True
             pc.setPythonContext(ctx)
             return cls(pc=pc)
-        if not chain.factorable(H):
-            return None
-        ai, aj = H.getRowIJ(compressed=True)
-        lu = chain.ChainLU.plan(ai, aj, H.getBlockSize(), 1)
+        lu = chain.plan_of(H)
         return None if lu is None else cls(lu=lu)
 
     def count(self, H, bound):
