@@ -17,7 +17,8 @@ def kernel(module, exact=False, headers=()):
 KERNELS = [
     # the fused elastic element kernel (rodsnes/model/elastic_compiled.py): the 3-D element
     # (_elastic_lanes.h) and the in-plane tangent (_elastic_plane.h) on 1, 2 or 4 elements at once
-    kernel("rodsnes.model._elastic_kernel", headers=["_elastic_lanes.h", "_elastic_plane.h"]),
+    kernel("rodsnes.model._elastic_kernel",
+           headers=["_elastic_lanes.h", "_elastic_plane.h", "_element_blocks.h"]),
     # the pair-potential contact kernel (rodsnes/contact/potential_compiled.py)
     kernel("rodsnes.contact._potential_kernel", exact=True),
     # the Gauss double integral of writhe and link (rodsnes/model/topology.py): O(N^2) segment
@@ -28,7 +29,7 @@ KERNELS = [
     kernel("rodsnes.model._rotation_kernel", exact=True),
     # element tangents added straight into a block matrix's values (rodsnes/model/assembly.py):
     # the places of the blocks found once per pattern, no search per insertion
-    kernel("rodsnes.model._assembly_kernel"),
+    kernel("rodsnes.model._assembly_kernel", headers=["_element_blocks.h"]),
     # the contact search's element bounds and segment distances (search_compiled.py)
     kernel("rodsnes.contact._search_kernel", exact=True),
     # a rank's stretch of a rod factored without fill, its inverse's trailing block without a

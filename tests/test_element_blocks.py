@@ -17,16 +17,26 @@ ADD = PETSc.InsertMode.ADD
 
 
 def counted(monkeypatch):
-    """Spy on ElementBlocks.add: the groups it wrote straight (direct) and handed back (rest)."""
+    """Spy on ElementBlocks.add and on the compiled kernel's ElasticRod.tangents_into: the
+    groups written straight (direct) and handed back to the matrix's insertion (rest)."""
+    from rodsnes.model.elastic import ElasticRod
     seen = {"direct": 0, "rest": 0}
-    add = assembly.ElementBlocks.add
+    add, into = assembly.ElementBlocks.add, ElasticRod.tangents_into
 
     def spy(self, a, b, V, insert):
         handed = []
         add(self, a, b, V, lambda i: (handed.append(len(i)), insert(i)))
         seen["rest"] += sum(handed)
         seen["direct"] += b - a - sum(handed)
+
+    def spy_into(rod, q, r, conn, blocks, *args, **kw):
+        done = into(rod, q, r, conn, blocks, *args, **kw)
+        if done:
+            seen["rest"] += len(blocks.rest)
+            seen["direct"] += len(conn) - len(blocks.rest)
+        return done
     monkeypatch.setattr(assembly.ElementBlocks, "add", spy)
+    monkeypatch.setattr(ElasticRod, "tangents_into", spy_into)
     return seen
 
 
@@ -247,3 +257,32 @@ def test_the_kept_places_survive_the_garbage_collector():
     gc.collect(0)
     gc.collect(1)
     assert A.getAttr("marker") is True and A.getAttr(assembly.ATTR) is not None
+
+
+@pytest.mark.mpi
+def test_views_kept_for_a_matrix_are_not_those_of_a_freed_one():
+    """The Jacobian's Dirichlet view and the planar step's component view are kept between
+    Jacobians of one matrix (partition.kept), keyed by the matrix's petsc_lib.token: a matrix
+    destroyed through the wrapper the view holds and another made (often at the freed one's
+    address: a key by handle took the dead view, a segmentation fault) gets views of its own;
+    every Hessian made so equals the first."""
+    from rodsnes import petsc_lib
+    from rodsnes.solve.stability import hessian
+    run = perturbed(build_run("mattiasson", rod_nelem=12))
+    p = run.problem
+    first = owned_dense(hessian(p))
+    for _ in range(4):
+        H = p.layout.create_matrix(p.node_groups(p.patterns))
+        p.jacobian(None, p.state.X, H, H, symmetric=True)
+        assert np.array_equal(owned_dense(H), first)
+        token = petsc_lib.token(H)
+        assert petsc_lib.token(H) is token
+        H.destroy()
+    pl = p.planar
+    for _ in range(3):
+        pl.assemble_tangent()
+        J = owned_dense(pl.J)
+        pl.J.destroy()                  # the next assemble_tangent makes it anew
+        pl.J = None
+        pl.assemble_tangent()
+        assert np.array_equal(owned_dense(pl.J), J)

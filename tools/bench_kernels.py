@@ -15,6 +15,10 @@ the plane by a smooth field, so that no strain is zero); one rank.  Each row is 
     3-D tangent               the 24 x 24 tangents of every element (element_terms)
     residual                  the residual summed per node (node_residual)
     energy                    the energy (node_energy: the line searches' trials)
+    plane tangents into J     the same tangents added into the in-plane Jacobian's values as
+                              they are made (ElasticRod.tangents_into: the Newton step's way)
+    in-plane Jacobian         the whole Jacobian of the planar Newton step (its zeroing, the
+                              tangents into it, the elements at the clamp, the assembly)
     chain LU factor / solve   rodsnes' LU of the in-plane Jacobian (chain.ChainLU), one rank
     PETSc LU factor / solve   PETSc's LU of the same matrix in the same (natural) order
 
@@ -99,6 +103,24 @@ def kernel_rows(p, repeat):
     return rows
 
 
+def jacobian_rows(p, repeat):
+    """(name, fastest, median) of the in-plane tangents added into the planar step's Jacobian
+    and of that whole Jacobian."""
+    from rodsnes.model import assembly
+    from rodsnes.solve.planar import component_view
+    pl = p.planar
+    pl.assemble_tangent()
+    view = component_view(pl, pl.J, pl.plane.inplane, p.constraints, pl.plane)
+    r, q = p.state.local_config()
+    r, q = np.ascontiguousarray(r), np.ascontiguousarray(q)
+    blocks = assembly.element_blocks(pl.J, view.dirichlet, p._gconn, 3)
+    rod = p.elastic
+    return [("plane tangents into J", *best_of(
+                lambda: rod.tangents_into(q, r, p.lconn, blocks, rod.e0, plane=pl.plane),
+                repeat)),
+            ("in-plane Jacobian", *best_of(pl.assemble_tangent, repeat))]
+
+
 def lu_rows(p, repeat):
     """(name, fastest, median) of the chain LU and PETSc's LU of the in-plane Jacobian."""
     from petsc4py import PETSc
@@ -148,7 +170,9 @@ def main(argv=None):
     print(f"| {'kernel':28s} | N | fastest | median |\n|---|---:|---:|---:|")
     for n in (int(v) for v in args.sizes.split(",")):
         run, p = scene_problem(n)
-        for name, fast, med in kernel_rows(p, args.repeat) + lu_rows(p, args.repeat):
+        rows = kernel_rows(p, args.repeat) + jacobian_rows(p, args.repeat) + \
+            lu_rows(p, args.repeat)
+        for name, fast, med in rows:
             print(f"| {name:28s} | {n} | {1e3 * fast:.3f} | {1e3 * med:.3f} |", flush=True)
     return 0
 

@@ -9,37 +9,10 @@
  * values a[pos bs^2 ...], bs x bs column by column, PETSc's storage), or -1: not added here.
  * Adds V's blocks there (ADD_VALUES).  Returns 1 for a block size it is not made for.
  */
-#include <stdint.h>
-
-#define ADD_BLOCKS(BS)                                                                     \
-    for (int64_t e = 0; e < ne; e++) {                                                     \
-        const int64_t ld = (int64_t)k * BS;                     /* V's row length */       \
-        const double *Ve = V + e * ld * ld;                                                \
-        const int32_t *pe = pos + e * (int64_t)k * k;                                      \
-        for (int i = 0; i < k; i++)                                                        \
-            for (int j = 0; j < k; j++) {                                                  \
-                const int64_t p = pe[i * k + j];                                           \
-                if (p < 0)                                                                 \
-                    continue;                                                              \
-                double *blk = a + p * (BS * BS);                                           \
-                const double *v = Ve + (int64_t)i * BS * ld + (int64_t)j * BS;             \
-                for (int c = 0; c < BS; c++)                                               \
-                    for (int r = 0; r < BS; r++)                                           \
-                        blk[c * BS + r] += v[r * ld + c];                                  \
-            }                                                                              \
-    }
+#include "_element_blocks.h"
 
 int rodsnes_add_element_blocks(double *a, const int32_t *pos, const double *V, int64_t ne, int k,
                        int bs)
 {
-    switch (bs) {
-    case 3:
-        ADD_BLOCKS(3)
-        return 0;
-    case 6:
-        ADD_BLOCKS(6)
-        return 0;
-    default:
-        return 1;
-    }
+    return add_element_blocks(a, pos, V, ne, k, bs);
 }

@@ -414,3 +414,60 @@ int rodsnes_elastic_plane_tangent_lanes(int ne, int nn, int nq, const double *N,
     plane2_tangents(ne, nn, &st, qe, xe, e0, axis, H);
     return 0;
 }
+
+/* ---- the tangents added into a block matrix as they are made -------------------------- */
+#include <stdlib.h>
+#include "_element_blocks.h"
+
+/* Elements made at a time before they are added: their tangents (INTO_CHUNK x 144 doubles of
+ * cubic in-plane elements, 9 kB; 4 x that in 3-D) still in the first-level cache when they
+ * are added.  The in-plane tangents of 10^4 cubic elements made and added: 3.0-3.2 ms with
+ * 8 a time, 3.2-3.4 with 4 or 16, 3.5-3.8 with 32 (as many numbers; -DINTO_CHUNK=n). */
+#ifndef INTO_CHUNK
+#define INTO_CHUNK 8
+#endif
+
+/* The tangents of ne elements, their nodes gathered from the node arrays qn (nodes, 4), xn
+ * (nodes, 3) by conn (ne, nn), e0 (ne, nq, 6): the in-plane tangent of the plane normal to
+ * e_axis (axis >= 0: rodsnes_elastic_plane_tangent_lanes), or the 3-D one (axis < 0:
+ * rodsnes_elastic_terms_lanes with symmetric, comps), added into the value array a of a block
+ * matrix at the blocks' places pos (ne, k, k) (_element_blocks.h; -1: not added here), k
+ * blocks of bs unknowns an element (k bs = the tangent's rows).  The same numbers as those
+ * entries, INTO_CHUNK elements at a time.  Returns 0, -1 for bad arguments, -2 for lanes the
+ * processor cannot run, -3 when no work memory could be had. */
+int rodsnes_elastic_tangents_into(int ne, int nn, int nq, const double *N, const double *dN,
+                                  const double *wJ, const double *C, int limit,
+                                  double kappa_max, double mu_kappa, const double *qn,
+                                  const double *xn, const int64_t *conn, const double *e0,
+                                  int axis, int symmetric, const int *comps, int ncomp,
+                                  int lanes, const int32_t *pos, int k, int bs, double *a)
+{
+    if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0 || axis > 2) return -1;
+    const int nc = axis >= 0 ? 3 : comps ? ncomp : 6;
+    if (nc < 1 || nc > 6 || nc * nn != k * bs || (bs != 3 && bs != 6)) return -1;
+    const int64_t hsize = (int64_t)(nc * nn) * (nc * nn);
+    double *work = malloc(sizeof(double) * INTO_CHUNK * (7 * nn + hsize + 1 + 6 * nn));
+    if (!work) return -3;
+    double *qe = work, *xe = qe + INTO_CHUNK * 4 * nn, *H = xe + INTO_CHUNK * 3 * nn;
+    double *energy = H + INTO_CHUNK * hsize, *vec = energy + INTO_CHUNK;
+    int info = 0;
+    for (int e = 0; e < ne && !info; e += INTO_CHUNK) {
+        const int m = ne - e < INTO_CHUNK ? ne - e : INTO_CHUNK;
+        for (int i = 0; i < m; i++)
+            gather_element(nn, conn + (int64_t)(e + i) * nn, qn, xn, qe + 4 * nn * i,
+                           xe + 3 * nn * i);
+        const double *e0c = e0 + (int64_t)e * nq * 6;
+        if (axis >= 0)
+            info = rodsnes_elastic_plane_tangent_lanes(m, nn, nq, N, dN, wJ, C, limit,
+                                                       kappa_max, mu_kappa, qe, xe, e0c, axis,
+                                                       lanes, H);
+        else
+            info = rodsnes_elastic_terms_lanes(m, nn, nq, N, dN, wJ, C, limit, kappa_max,
+                                               mu_kappa, qe, xe, e0c, 1, symmetric, comps,
+                                               ncomp, lanes, energy, vec, H);
+        if (!info)
+            add_element_blocks(a, pos + (int64_t)e * k * k, H, m, k, bs);
+    }
+    free(work);
+    return info;
+}

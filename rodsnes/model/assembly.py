@@ -122,6 +122,11 @@ class ElementBlocks:
         return (state == self.state and groups is self.groups
                 and np.array_equal(touched, self.touched))
 
+    def values(self):
+        """The address of the matrix's value array, as a context (petsc_lib.values_at): for
+        the kernels that add at ``pos`` themselves (elastic_compiled.tangents_into)."""
+        return petsc_lib.values_at(*self.seq)
+
     def add(self, a, b, V, insert):
         """Add the tangents V (b - a, k bs, k bs) of groups a..b - 1: the direct ones into the
         value array, then insert(i) for the others (i: their indices in a..b - 1, minus a)."""

@@ -382,6 +382,22 @@ class ElasticRod:
         out = self._workspace(len(qe), True, 3)[2] if reuse else None
         return elastic_compiled.plane_tangents(self, qe, xe, plane.axis, e0, out=out)
 
+    @logged("ElasticKernel")
+    def tangents_into(self, q, r, conn, blocks, e0=None, plane=None, comps=None,
+                      symmetric=False):
+        """The tangents of the elements ``conn`` (rows of the node arrays q, r) added into the
+        matrix of ``blocks`` (assembly.ElementBlocks: at its places, the elements it adds
+        directly) as the compiled kernel makes them: plane_tangents(..., plane) or
+        element_terms(..., tangent=True, symmetric, comps)'s tangents, the same numbers.
+        Returns False (nothing added) where the kernel is not the compiled one."""
+        if self.kernel != "compiled":
+            return False
+        with blocks.values() as ptr:
+            elastic_compiled.tangents_into(
+                self, q, r, conn, e0, blocks.pos, ptr, blocks.k, blocks.bs,
+                axis=-1 if plane is None else plane.axis, comps=comps, symmetric=symmetric)
+        return True
+
     def _workspace(self, ne, tangent, nc=6):
         """(energy, vec, H or None) arrays kept for ``reuse``: the leading ne elements of arrays
         that only grow (the residual takes all the elements at once, the Jacobian a chunk at a

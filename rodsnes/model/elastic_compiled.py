@@ -37,6 +37,13 @@ C entry point:
                           RodProblem.residual)
     int rodsnes_elastic_node_energy(... the same but node_vec ..., double *energy);
                          (the energy, the elements' nodes gathered in C: the line searches)
+    int rodsnes_elastic_tangents_into(int ne, int nn, int nq, ... the same ...,
+                                      const double *qn, const double *xn, const int64_t *conn,
+                                      const double *e0, int axis, int symmetric,
+                                      const int *comps, int ncomp, int lanes,
+                                      const int32_t *pos, int k, int bs, double *a);
+                         (the in-plane (axis >= 0) or 3-D tangents added into a block matrix's
+                          values as they are made: RodProblem.jacobian, assembly.py)
 """
 import collections
 import ctypes
@@ -55,7 +62,7 @@ def library_path():
 
 # the kernel's C entries by name (compiled.Foreign each)
 Kernel = collections.namedtuple(
-    "Kernel", "terms energy plane_tangent strains node_residual node_energy")
+    "Kernel", "terms energy plane_tangent strains node_residual node_energy tangents_into")
 
 
 def _declare(lib):
@@ -75,7 +82,10 @@ def _declare(lib):
     nr = compiled.Foreign(lib.rodsnes_elastic_node_residual_lanes, nodes + [c_int, f64, f64],
                           c_int)
     ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy, nodes + [f64], c_int)
-    return Kernel(fn, en, pl, st, nr, ne_)
+    into = compiled.Foreign(lib.rodsnes_elastic_tangents_into,
+                            nodes + [c_int, c_int, ctypes.c_void_p, c_int, c_int, compiled.I32,
+                                     c_int, c_int, ctypes.c_void_p], c_int)
+    return Kernel(fn, en, pl, st, nr, ne_, into)
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -262,3 +272,24 @@ def node_residual(rod, qn, xn, conn, e0=None, lanes=0):
                                  node_vec)
     _lanes_info(info, "rodsnes_elastic_node_residual_lanes", lanes)
     return energy, node_vec
+
+
+def tangents_into(rod, qn, xn, conn, e0, pos, values, k, bs, axis=-1, comps=None,
+                  symmetric=False, lanes=0):
+    """The tangents of ElasticRod rod's elements conn (ne, nn) (rows of the node arrays qn, xn)
+    added into a block matrix's value array (``values``: its address) at the blocks' places
+    ``pos`` (ne, k, k) int32 (assembly.ElementBlocks; -1: not added), k blocks of bs unknowns
+    an element: plane_tangents of the plane normal to e_axis (``axis`` >= 0) or
+    element_terms(..., tangent=True, symmetric, comps)'s tangents, the same numbers, added as
+    they are made (no tangents written out and read back)."""
+    args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
+    nc = 3 if axis >= 0 else 6 if comps is None else len(comps)
+    cut = None if comps is None or axis >= 0 else np.ascontiguousarray(comps, dtype=np.intc)
+    pos = np.ascontiguousarray(pos, dtype=np.int32)
+    if pos.shape != (ne, k, k) or nc * nn != k * bs:
+        raise ValueError(f"places {pos.shape} for {ne} elements of {nn} nodes, {nc} unknowns "
+                         f"a node: ({ne}, {k}, {k}) with k {k} x bs {bs} = {nc * nn} expected")
+    info = _load().tangents_into(ne, nn, nq, *args, qn, xn, conn, e0, int(axis),
+                                 int(bool(symmetric)), None if cut is None else cut.ctypes.data,
+                                 nc, int(lanes), pos, int(k), int(bs), values)
+    _lanes_info(info, "rodsnes_elastic_tangents_into", lanes)

@@ -207,6 +207,19 @@ class Layout:
         return out
 
 
+def kept(owner, attr, key, make):
+    """make(), kept as ``owner.<attr>`` while the tuple ``key`` holds the same objects (by
+    identity: they are held with it, so no other object takes their ids; a matrix stands in it
+    as its petsc_lib.token).  For the Jacobian's views (DirichletRows, planar.ComponentView):
+    their masks and rows are O(global nodes), 0.3 ms a Jacobian at 10^4 elements, on every
+    rank."""
+    old = getattr(owner, attr, None)
+    if old is None or len(old[0]) != len(key) or any(a is not b for a, b in zip(old[0], key)):
+        old = (tuple(key), make())
+        setattr(owner, attr, old)
+    return old[1]
+
+
 class DirichletRows:
     """A matrix seen through Dirichlet rows and columns: every block set through it
     (setValuesBlockedRCV, the one way the terms add their tangents) has the entries of

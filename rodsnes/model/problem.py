@@ -14,8 +14,9 @@ changing the equilibrium (the resultant of the internal forces of a free ring va
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes import petsc_lib
 from rodsnes.model import assembly, elastic, fe, so3
-from rodsnes.model.partition import NDOF, DirichletRows
+from rodsnes.model.partition import NDOF, DirichletRows, kept
 from rodsnes.errors import SceneError
 from rodsnes.model import topology
 from rodsnes.model.term import same_patterns
@@ -510,7 +511,10 @@ class RodProblem:
         block of a planar state, made by ElasticRod.plane_tangents)."""
         r, q = self.state.local_config(X)
         P.zeroEntries()
-        T = view if view is not None else DirichletRows(P, self.constraints.block_mask)
+        mask = self.constraints.block_mask
+        T = view if view is not None else \
+            kept(self, "_dirichlet_view", (petsc_lib.token(P), mask),
+                 lambda: DirichletRows(P, mask))
         comps = getattr(view, "comps", None)
         plane = getattr(view, "plane", None)
         add = T.setValuesBlockedRCV if comps is None else T.add_cut
@@ -519,21 +523,31 @@ class RodProblem:
         nc = NDOF if comps is None else len(comps)
         # the elements' blocks straight into the matrix's values where that applies
         blocks = assembly.element_blocks(P, T if view is None else view.dirichlet, g, nc)
+        # the elements the compiled kernel adds into the matrix's values as it makes their
+        # tangents (assembly.ElementBlocks' places); the others (all, without it) by chunks
+        if blocks is not None and self.elastic.tangents_into(
+                qc, rc, lconn, blocks, e0, plane=plane, comps=comps, symmetric=symmetric):
+            todo = blocks.rest
+            blocks = None
+        else:
+            todo = np.arange(len(g))
         step = (self.TANGENT_CHUNK * NDOF ** 2 // nc ** 2 if self.elastic.kernel == "compiled"
                 else max(len(g), 1))
-        for a in range(0, len(g), step):
+        for a in range(0, len(todo), step):
             # the tangents of a chunk of elements, inserted while they are in cache (ADD_VALUES
-            # in the elements' order: the same sums as one insertion of all of them)
-            b = min(a + step, len(g))
-            la = lconn[a:b]
+            # in the elements' order: the same sums as one insertion of all of them; an entry
+            # gets the tangents of two elements at most, whose sum is the same either way)
+            b = min(a + step, len(todo))
+            ids = todo[a:b]
+            la = lconn[ids]
             qa, xa = np.take(qc, la, axis=0), np.take(rc, la, axis=0)
-            ea = None if e0 is None else e0[a:b]
+            ea = None if e0 is None else e0[ids]
             if plane is not None:
                 H = self.elastic.plane_tangents(qa, xa, plane, ea, reuse=True)
             else:
                 _, _, H = self.elastic.element_terms(qa, xa, ea, tangent=True, symmetric=symmetric,
                                                      reuse=True, comps=comps)
-            ga = g[a:b]
+            ga = g[ids]
             if blocks is None:
                 add(ga, ga, H, addv=PETSc.InsertMode.ADD)
             else:

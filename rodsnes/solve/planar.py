@@ -33,7 +33,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks
+from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks, kept
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, is_default, option_default
@@ -121,6 +121,14 @@ class ComponentView:
         return getattr(self.mat, name)
 
 
+def component_view(owner, mat, comps, constraints, plane=None):
+    """The ComponentView of ``mat``, kept on ``owner`` while the matrix, the components, the
+    constraints and the plane stay (partition.kept)."""
+    return kept(owner, "_component_view",
+                (petsc_lib.token(mat), comps, constraints.block_mask, plane),
+                lambda: ComponentView(mat, comps, constraints, plane))
+
+
 class BlockInertia(Inertia):
     """stability.Inertia on the (comps, comps) block of the energy Hessian: the block assembled
     into an SBAIJ matrix of block size 3 (kept with its MUMPS analysis while the terms'
@@ -136,7 +144,7 @@ class BlockInertia(Inertia):
         return create_block_matrix(self.problem, patterns, symmetric=symmetric)
 
     def _view(self):
-        return ComponentView(self.H, self.comps, self.problem.constraints, self.plane)
+        return component_view(self, self.H, self.comps, self.problem.constraints, self.plane)
 
 
 class PlanarInertia:
@@ -289,7 +297,8 @@ class PlanarSystem:
             if self.ksp is not None:
                 self.ksp.reset()
         p.jacobian(None, p.state.X if X is None else X, self.J, self.J,
-                   view=ComponentView(self.J, self.plane.inplane, p.constraints, self.plane))
+                   view=component_view(self, self.J, self.plane.inplane, p.constraints,
+                                       self.plane))
 
     def _inner_ksp(self):
         if self.ksp is None:
