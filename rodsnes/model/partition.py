@@ -99,8 +99,13 @@ class Layout:
 
     def to_local(self, X):
         """Owned + ghost values of a global vector, as an (n_local, 6) array (a copy)."""
+        return self.local_view(X).copy()
+
+    def local_view(self, X):
+        """Owned + ghost values of a global vector, as an (n_local, 6) read-only view of the
+        layout's local vector: valid until its next scatter (to_local, add_to_global)."""
         self.scatter.scatter(X, self.xlocal, addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-        return self.xlocal.getArray(readonly=True).reshape(-1, NDOF).copy()
+        return self.xlocal.getArray(readonly=True).reshape(-1, NDOF)
 
     def add_to_global(self, local, F):
         """F += sum over ranks of local (n_local, 6) contributions (reverse scatter-add)."""

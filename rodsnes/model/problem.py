@@ -109,12 +109,15 @@ class RodState:
                 a.reshape(-1, NDOF)[:, 3:6] = 0.0
 
     def local_config(self, X=None):
-        """Positions (n_local,3) and rotations q (n_local,4) at the vector X (default: state)."""
-        xl = self.layout.to_local(self.X if X is None else X)
+        """Positions (n_local,3) and rotations q (n_local,4) at the vector X (default: state),
+        both new C-contiguous arrays (the kernels' layout: no copy of the owned and ghost
+        values first and of the positions again)."""
+        xl = self.layout.local_view(self.X if X is None else X)
         th = xl[:, 3:6]
+        r = np.array(xl[:, 0:3])
         if not th.any():            # at a recentred iterate: exp(0) q_ref = q_ref, bit for bit
-            return xl[:, 0:3], self.q_ref.copy()
-        return xl[:, 0:3], so3.rotated(th, self.q_ref)
+            return r, self.q_ref.copy()
+        return r, so3.rotated(th, self.q_ref)
 
 
 class Constraints:
