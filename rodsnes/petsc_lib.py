@@ -123,25 +123,3 @@ def set_pc_failed(pc, failed):
     except RuntimeError:
         pass
 
-
-class _Token:
-    """A PETSc object's own token (``token``)."""
-
-    __slots__ = ()
-
-
-TOKEN_ATTR = "rodsnes_token"
-
-
-def token(obj):
-    """An object that stands for the PETSc object ``obj`` (a matrix) while it lives: composed
-    into it (setAttr; it holds nothing back), so that another object made later at a freed
-    one's address, or reached through another wrapper, is told apart: a key for what is kept
-    for that object elsewhere (partition.kept).  Its handle is no such key: a wrapper that
-    destroys its matrix leaves a cache's copy of that wrapper pointing at nothing, and the next
-    matrix may take the address (a cached view of a destroyed Hessian: a segmentation fault)."""
-    t = obj.getAttr(TOKEN_ATTR)
-    if t is None:
-        t = _Token()
-        obj.setAttr(TOKEN_ATTR, t)
-    return t

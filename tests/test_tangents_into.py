@@ -75,9 +75,21 @@ CASES = {   # name: (block size, symmetric, split, comps, planar)
 @pytest.mark.parametrize("ne", [1, 7, 8, 9, 17, 30])
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_tangents_into_equal_the_tangents_added_after(case, ne):
+    check_case(case, ne, 3, 4)
+
+
+@pytest.mark.parametrize("p,nq", [(1, 1), (2, 3), (4, 5), (3, 17)])
+@pytest.mark.parametrize("case", ["3d", "3d_split", "plane"])
+def test_tangents_into_other_orders_and_points(case, p, nq):
+    """Orders 1, 2, 4 and more points than the lane kernels take (17 > MAXQ: the 3-D tangent
+    one element at a time), the reference strains given explicitly."""
+    check_case(case, 9, p, nq, explicit_e0=True)
+
+
+def check_case(case, ne, p, nq, explicit_e0=False):
     bs, symmetric, split, comps, planar = CASES[case]
-    p, nq, axis = 3, 4, 2
-    rng = np.random.default_rng(ne + 31 * len(case))
+    axis = 2
+    rng = np.random.default_rng(ne + 31 * len(case) + 7 * p + nq)
     if planar:
         rod, qe, xe = planar_test.make_rod(p, nq, ne, axis, rng, bound=True)
     else:
@@ -104,7 +116,8 @@ def test_tangents_into_equal_the_tangents_added_after(case, ne):
     # made and added at once
     blocks = assembly.element_blocks(A, touched, conn, nc)
     with blocks.values() as ptr:
-        elastic_compiled.tangents_into(rod, qn, xn, conn, None, blocks.pos, ptr, blocks.k,
+        elastic_compiled.tangents_into(rod, qn, xn, conn, rod.e0 if explicit_e0 else None,
+                                       blocks.pos, ptr, blocks.k,
                                        blocks.bs, axis=axis if planar else -1, comps=comps,
                                        symmetric=symmetric)
     for M in (A, B):
@@ -118,8 +131,8 @@ def test_tangents_into_equal_the_tangents_added_after(case, ne):
 
 
 def test_tangents_into_refuses_places_of_another_shape():
-    """Places that do not fit the elements (their count, the blocks an element) are refused
-    before the C call."""
+    """Places that do not fit the elements (their count, the blocks an element), components
+    outside 0..5 and an axis beyond 2 are refused before the C call."""
     rng = np.random.default_rng(3)
     rod, qe, xe = compiled_test.make_rod(3, 4, 4, rng, bound=False)
     conn = chain(4, 4)
@@ -130,3 +143,8 @@ def test_tangents_into_refuses_places_of_another_shape():
         with pytest.raises(ValueError):
             elastic_compiled.tangents_into(rod, qn, xn, conn, None, pos,
                                            values.ctypes.data, k, bs)
+    pos = np.zeros((4, 4, 4), dtype=np.int32)
+    for kw in ({"comps": [-7, 0, 1]}, {"comps": [0, 1, 6]}, {"axis": 3}):
+        with pytest.raises(ValueError):
+            elastic_compiled.tangents_into(rod, qn, xn, conn, None, pos, values.ctypes.data,
+                                           4, 3, **kw)

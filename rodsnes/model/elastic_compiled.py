@@ -285,6 +285,9 @@ def tangents_into(rod, qn, xn, conn, e0, pos, values, k, bs, axis=-1, comps=None
     args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
     nc = 3 if axis >= 0 else 6 if comps is None else len(comps)
     cut = None if comps is None or axis >= 0 else np.ascontiguousarray(comps, dtype=np.intc)
+    if axis > 2 or (cut is not None and (not 1 <= nc <= 6 or cut.min() < 0 or cut.max() > 5)):
+        raise ValueError(f"axis {axis}, comps {comps}: an axis 0..2 (or -1), 1 to 6 components "
+                         "in 0..5")
     pos = np.ascontiguousarray(pos, dtype=np.int32)
     if pos.shape != (ne, k, k) or nc * nn != k * bs:
         raise ValueError(f"places {pos.shape} for {ne} elements of {nn} nodes, {nc} unknowns "

@@ -214,10 +214,11 @@ class Layout:
 
 def kept(owner, attr, key, make):
     """make(), kept as ``owner.<attr>`` while the tuple ``key`` holds the same objects (by
-    identity: they are held with it, so no other object takes their ids; a matrix stands in it
-    as its petsc_lib.token).  For the Jacobian's views (DirichletRows, planar.ComponentView):
-    their masks and rows are O(global nodes), 0.3 ms a Jacobian at 10^4 elements, on every
-    rank."""
+    identity: they are held with it, so no other object takes their ids).  For what the
+    Jacobian's views derive from the constraints alone (DirichletRows.touched_of,
+    planar.component_cut: O(global nodes), 0.3 ms a Jacobian at 10^4 elements on every rank);
+    never for a view itself, which holds its matrix: a view kept across Jacobians kept a
+    destroyed matrix alive, or held a wrapper destroyed since (a segmentation fault)."""
     old = getattr(owner, attr, None)
     if old is None or len(old[0]) != len(key) or any(a is not b for a, b in zip(old[0], key)):
         old = (tuple(key), make())
@@ -242,13 +243,20 @@ class DirichletRows:
 
     MAX_RUNS = 32       # more runs of touched groups than this: one masked copy of all of V
 
-    def __init__(self, mat, mask):
+    def __init__(self, mat, mask, touched=None):
         self.split = is_split(mat)
         self.raw = mat
         local = OwnBlocksFirst.wrap(mat)
         self.mat, self.mask = (SplitBlocks(local) if self.split else local), mask
-        self.touched = np.zeros(len(mask), dtype=bool)       # blocks with a constrained dof
-        self.touched[np.flatnonzero(mask.ravel()) // mask.shape[1]] = True
+        # blocks with a constrained dof (touched_of; O(global nodes): the caller may keep it)
+        self.touched = self.touched_of(mask) if touched is None else touched
+
+    @staticmethod
+    def touched_of(mask):
+        """The blocks of ``mask`` (global blocks, dofs) holding a constrained dof."""
+        touched = np.zeros(len(mask), dtype=bool)
+        touched[np.flatnonzero(mask.ravel()) // mask.shape[1]] = True
+        return touched
 
     def add_positions(self, R, V, addv=None):
         """Position-only tangents V (n, 3k, 3k) of the node groups R (n, k) (PETSc node

@@ -14,7 +14,6 @@ changing the equilibrium (the resultant of the internal forces of a free ring va
 import numpy as np
 from petsc4py import PETSc
 
-from rodsnes import petsc_lib
 from rodsnes.model import assembly, elastic, fe, so3
 from rodsnes.model.partition import NDOF, DirichletRows, kept
 from rodsnes.errors import SceneError
@@ -515,9 +514,9 @@ class RodProblem:
         r, q = self.state.local_config(X)
         P.zeroEntries()
         mask = self.constraints.block_mask
-        T = view if view is not None else \
-            kept(self, "_dirichlet_view", (petsc_lib.token(P), mask),
-                 lambda: DirichletRows(P, mask))
+        T = view if view is not None else DirichletRows(
+            P, mask, kept(self, "_dirichlet_touched", (mask,),
+                          lambda: DirichletRows.touched_of(mask)))
         comps = getattr(view, "comps", None)
         plane = getattr(view, "plane", None)
         add = T.setValuesBlockedRCV if comps is None else T.add_cut

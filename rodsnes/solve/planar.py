@@ -78,17 +78,13 @@ class ComponentView:
     applied.  With ``plane`` (the in-plane block at a planar state) the problem's Jacobian
     makes the elastic tangents of that block directly (ElasticRod.plane_tangents)."""
 
-    def __init__(self, mat, comps, constraints, plane=None):
+    def __init__(self, mat, comps, constraints, plane=None, cut=None):
         self.mat, self.comps = mat, np.asarray(comps)
         self.plane = plane                # the Plane whose in-plane block this is, at a planar
         if plane is not None and list(self.comps) != list(plane.inplane):   # state, or None
             raise ValueError("a plane's view has its in-plane components")
-        self.dirichlet = DirichletRows(mat, constraints.block_mask[:, self.comps])
-        where = np.full(NDOF, -1)
-        where[self.comps] = np.arange(3)
-        rows = np.asarray(constraints.rows_global, dtype=np.int64)
-        keep = where[rows % NDOF] >= 0
-        self.rows = 3 * (rows[keep] // NDOF) + where[rows[keep] % NDOF]
+        mask, touched, self.rows = component_cut(self.comps, constraints) if cut is None else cut
+        self.dirichlet = DirichletRows(mat, mask, touched)
         self._cuts = {}
 
     def setValuesBlockedRCV(self, R, C, V, addv=None):
@@ -121,12 +117,26 @@ class ComponentView:
         return getattr(self.mat, name)
 
 
+def component_cut(comps, constraints):
+    """(mask, touched, rows) of the (comps, comps) block under ``constraints``: the Dirichlet
+    mask cut to the components, its blocks holding a constrained dof, and this rank's
+    constrained rows of the block (global indices)."""
+    comps = np.asarray(comps)
+    mask = constraints.block_mask[:, comps]
+    where = np.full(NDOF, -1)
+    where[comps] = np.arange(3)
+    rows = np.asarray(constraints.rows_global, dtype=np.int64)
+    keep = where[rows % NDOF] >= 0
+    return mask, DirichletRows.touched_of(mask), 3 * (rows[keep] // NDOF) + where[rows[keep] % NDOF]
+
+
 def component_view(owner, mat, comps, constraints, plane=None):
-    """The ComponentView of ``mat``, kept on ``owner`` while the matrix, the components, the
-    constraints and the plane stay (partition.kept)."""
-    return kept(owner, "_component_view",
-                (petsc_lib.token(mat), comps, constraints.block_mask, plane),
-                lambda: ComponentView(mat, comps, constraints, plane))
+    """The ComponentView of ``mat``, its cut (component_cut: O(global nodes)) kept on ``owner``
+    while the components and the constraints stay (partition.kept)."""
+    cut = kept(owner, "_component_cut",
+               (comps, constraints.block_mask, constraints.rows_global),
+               lambda: component_cut(comps, constraints))
+    return ComponentView(mat, comps, constraints, plane, cut)
 
 
 class BlockInertia(Inertia):
