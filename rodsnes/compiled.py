@@ -11,6 +11,7 @@ import numpy as np
 F64 = np.dtype(np.float64)
 I64 = np.dtype(np.int64)
 I32 = np.dtype(np.int32)
+I8 = np.dtype(np.int8)
 
 
 def library_path(module):

@@ -5,6 +5,8 @@ tangents made first (element_terms, plane_tangents) and then added at the same p
 3-D tangent (block size 6, cut to components, split into position and rotation blocks,
 symmetric into SBAIJ) and the in-plane one; the groups it does not add (touching a
 constrained node) are left to the caller."""
+import ctypes
+
 import numpy as np
 import pytest
 from petsc4py import PETSc
@@ -120,14 +122,29 @@ def check_case(case, ne, p, nq, explicit_e0=False):
                                        blocks.pos, ptr, blocks.k,
                                        blocks.bs, axis=axis if planar else -1, comps=comps,
                                        symmetric=symmetric)
-    for M in (A, B):
+    # and stored at each block's first addition into a matrix of garbage, zeroed only where no
+    # direct element adds (ElementBlocks.zero_rest)
+    C = chain_matrix(conn, bs, symmetric, split)
+    stored = assembly.element_blocks(C, touched, conn, nc)
+    with stored.values() as ptr:
+        garbage = np.ctypeslib.as_array((ctypes.c_double * (stored.nblocks * bs * bs))
+                                        .from_address(ptr))
+        garbage[:] = rng.normal(size=garbage.shape)
+    assert stored.zero_rest(C)
+    with stored.values() as ptr:
+        elastic_compiled.tangents_into(rod, qn, xn, conn, rod.e0 if explicit_e0 else None,
+                                       stored.pos, ptr, stored.k, stored.bs,
+                                       axis=axis if planar else -1, comps=comps,
+                                       symmetric=symmetric, first=stored.first)
+    for M in (A, B, C):
         M.setValuesBlockedRCV(G[:1], G[:1], H[:1], addv=ADD)
         M.assemble()
-    a = A.convert(PETSc.Mat.Type.AIJ, PETSc.Mat()).getValuesCSR()
-    b = B.convert(PETSc.Mat.Type.AIJ, PETSc.Mat()).getValuesCSR()
+    a, b, c = (M.convert(PETSc.Mat.Type.AIJ, PETSc.Mat()).getValuesCSR() for M in (A, B, C))
     assert np.count_nonzero(b[2]) > 3 * len(b[0])             # something is compared
-    for x, y in zip(a, b):
-        assert np.array_equal(x, y), case
+    for x, y, z in zip(a, b, c):
+        assert np.array_equal(x, y) and np.array_equal(z, y), case
+    # bit for bit, a zero's sign included
+    assert np.array_equal(c[2].view(np.int64), b[2].view(np.int64)), case
 
 
 def test_tangents_into_refuses_places_of_another_shape():

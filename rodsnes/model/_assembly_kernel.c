@@ -14,5 +14,5 @@
 int rodsnes_add_element_blocks(double *a, const int32_t *pos, const double *V, int64_t ne, int k,
                        int bs)
 {
-    return add_element_blocks(a, pos, V, ne, k, bs);
+    return add_element_blocks(a, pos, (const signed char *)0, V, ne, k, bs);
 }

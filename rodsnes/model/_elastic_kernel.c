@@ -431,8 +431,9 @@ int rodsnes_elastic_plane_tangent_lanes(int ne, int nn, int nq, const double *N,
  * (nodes, 3) by conn (ne, nn), e0 (ne, nq, 6): the in-plane tangent of the plane normal to
  * e_axis (axis >= 0: rodsnes_elastic_plane_tangent_lanes), or the 3-D one (axis < 0:
  * rodsnes_elastic_terms_lanes with symmetric, comps), added into the value array a of a block
- * matrix at the blocks' places pos (ne, k, k) (_element_blocks.h; -1: not added here), k
- * blocks of bs unknowns an element (k bs = the tangent's rows).  The same numbers as those
+ * matrix at the blocks' places pos (ne, k, k) (_element_blocks.h; -1: not added here; where
+ * first (ne, k, k), or NULL, is 1 stored instead), k blocks of bs unknowns an element (k bs =
+ * the tangent's rows).  The same numbers as those
  * entries, INTO_CHUNK elements at a time.  Returns 0, -1 for bad arguments, -2 for lanes the
  * processor cannot run, -3 when no work memory could be had. */
 int rodsnes_elastic_tangents_into(int ne, int nn, int nq, const double *N, const double *dN,
@@ -440,7 +441,8 @@ int rodsnes_elastic_tangents_into(int ne, int nn, int nq, const double *N, const
                                   double kappa_max, double mu_kappa, const double *qn,
                                   const double *xn, const int64_t *conn, const double *e0,
                                   int axis, int symmetric, const int *comps, int ncomp,
-                                  int lanes, const int32_t *pos, int k, int bs, double *a)
+                                  int lanes, const int32_t *pos, const signed char *first,
+                                  int k, int bs, double *a)
 {
     if (nn < 1 || nn > MAXNN || nq < 1 || ne < 0 || axis > 2) return -1;
     const int nc = axis >= 0 ? 3 : comps ? ncomp : 6;
@@ -466,7 +468,8 @@ int rodsnes_elastic_tangents_into(int ne, int nn, int nq, const double *N, const
                                                mu_kappa, qe, xe, e0c, 1, symmetric, comps,
                                                ncomp, lanes, energy, vec, H);
         if (!info)
-            add_element_blocks(a, pos + (int64_t)e * k * k, H, m, k, bs);
+            add_element_blocks(a, pos + (int64_t)e * k * k,
+                               first ? first + (int64_t)e * k * k : first, H, m, k, bs);
     }
     free(work);
     return info;

@@ -116,11 +116,46 @@ class ElementBlocks:
         self.pos = np.where(direct[:, None, None], pos, -1).astype(I32)
         self.rest = np.flatnonzero(~direct)
         self.bs, self.k = bs, k
+        # the first addition into each block, in the order (group, row, column) the kernels add
+        # (a store there: zero_rest), and the blocks no direct group holds
+        flat = self.pos.ravel()
+        held = np.flatnonzero(flat >= 0)
+        used, at = np.unique(flat[held], return_index=True)
+        first = np.zeros(flat.shape, dtype=np.int8)
+        first[held[at]] = 1
+        self.first = first.reshape(self.pos.shape)
+        self.untouched = np.setdiff1d(np.arange(len(aj)), used, assume_unique=True)
+        self.nblocks = len(aj)
 
     def fits(self, groups, touched, state):
         """Whether these places hold for ``groups`` and ``touched`` at the pattern ``state``."""
         return (state == self.state and groups is self.groups
                 and np.array_equal(touched, self.touched))
+
+    def zero_rest(self, mat):
+        """Zero what the direct groups' first additions (``first``: stores) do not set: this
+        rank's blocks no direct group holds and, on several ranks, the off-diagonal part; the
+        rest of the matrix is left as it is (its first additions overwrite it): MatZeroEntries
+        without the sweep over every value.  Only with every direct group's tangent added
+        after, by a kernel that stores at ``first`` (ElasticRod.tangents_into).  False (nothing
+        done) where the matrix's type has no such way (the caller zeroes it all)."""
+        kind = mat.getType()
+        if kind not in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.SEQSBAIJ,
+                        PETSc.Mat.Type.MPIBAIJ):
+            return False
+        if kind == PETSc.Mat.Type.MPIBAIJ:
+            diag, off = ctypes.c_void_p(), ctypes.c_void_p()
+            petsc_lib.call("MatMPIBAIJGetSeqBAIJ", mat.handle, ctypes.byref(diag),
+                           ctypes.byref(off), None)
+            if diag.value != self.seq[0]:
+                return False
+            petsc_lib.call("MatZeroEntries", off)
+        b2 = self.bs * self.bs
+        with self.values() as ptr:
+            values = np.ctypeslib.as_array((ctypes.c_double * (self.nblocks * b2))
+                                           .from_address(ptr)).reshape(self.nblocks, b2)
+            values[self.untouched] = 0.0
+        return True
 
     def values(self):
         """The address of the matrix's value array, as a context (petsc_lib.values_at): for

@@ -384,18 +384,21 @@ class ElasticRod:
 
     @logged("ElasticKernel")
     def tangents_into(self, q, r, conn, blocks, e0=None, plane=None, comps=None,
-                      symmetric=False):
+                      symmetric=False, store_first=False):
         """The tangents of the elements ``conn`` (rows of the node arrays q, r) added into the
         matrix of ``blocks`` (assembly.ElementBlocks: at its places, the elements it adds
         directly) as the compiled kernel makes them: plane_tangents(..., plane) or
-        element_terms(..., tangent=True, symmetric, comps)'s tangents, the same numbers.
-        Returns False (nothing added) where the kernel is not the compiled one."""
+        element_terms(..., tangent=True, symmetric, comps)'s tangents, the same numbers;
+        ``store_first``: stored at each block's first addition (ElementBlocks.first, after
+        its zero_rest), not added.  Returns False (nothing added) where the kernel is not the
+        compiled one."""
         if self.kernel != "compiled":
             return False
         with blocks.values() as ptr:
             elastic_compiled.tangents_into(
                 self, q, r, conn, e0, blocks.pos, ptr, blocks.k, blocks.bs,
-                axis=-1 if plane is None else plane.axis, comps=comps, symmetric=symmetric)
+                axis=-1 if plane is None else plane.axis, comps=comps, symmetric=symmetric,
+                first=blocks.first if store_first else None)
         return True
 
     def _workspace(self, ne, tangent, nc=6):

@@ -41,7 +41,8 @@ C entry point:
                                       const double *qn, const double *xn, const int64_t *conn,
                                       const double *e0, int axis, int symmetric,
                                       const int *comps, int ncomp, int lanes,
-                                      const int32_t *pos, int k, int bs, double *a);
+                                      const int32_t *pos, const signed char *first,
+                                      int k, int bs, double *a);
                          (the in-plane (axis >= 0) or 3-D tangents added into a block matrix's
                           values as they are made: RodProblem.jacobian, assembly.py)
 """
@@ -84,7 +85,7 @@ def _declare(lib):
     ne_ = compiled.Foreign(lib.rodsnes_elastic_node_energy, nodes + [f64], c_int)
     into = compiled.Foreign(lib.rodsnes_elastic_tangents_into,
                             nodes + [c_int, c_int, ctypes.c_void_p, c_int, c_int, compiled.I32,
-                                     c_int, c_int, ctypes.c_void_p], c_int)
+                                     compiled.I8, c_int, c_int, ctypes.c_void_p], c_int)
     return Kernel(fn, en, pl, st, nr, ne_, into)
 
 
@@ -275,13 +276,15 @@ def node_residual(rod, qn, xn, conn, e0=None, lanes=0):
 
 
 def tangents_into(rod, qn, xn, conn, e0, pos, values, k, bs, axis=-1, comps=None,
-                  symmetric=False, lanes=0):
+                  symmetric=False, lanes=0, first=None):
     """The tangents of ElasticRod rod's elements conn (ne, nn) (rows of the node arrays qn, xn)
     added into a block matrix's value array (``values``: its address) at the blocks' places
     ``pos`` (ne, k, k) int32 (assembly.ElementBlocks; -1: not added), k blocks of bs unknowns
     an element: plane_tangents of the plane normal to e_axis (``axis`` >= 0) or
     element_terms(..., tangent=True, symmetric, comps)'s tangents, the same numbers, added as
-    they are made (no tangents written out and read back)."""
+    they are made (no tangents written out and read back).  ``first`` (ne, k, k) int8 or None:
+    where 1 the block is stored, not added (assembly.ElementBlocks.first: the matrix not
+    zeroed there)."""
     args, e0, conn, qn, xn, (ne, nn, nq) = _node_inputs(rod, qn, xn, conn, e0)
     nc = 3 if axis >= 0 else 6 if comps is None else len(comps)
     cut = None if comps is None or axis >= 0 else np.ascontiguousarray(comps, dtype=np.intc)
@@ -289,10 +292,13 @@ def tangents_into(rod, qn, xn, conn, e0, pos, values, k, bs, axis=-1, comps=None
         raise ValueError(f"axis {axis}, comps {comps}: an axis 0..2 (or -1), 1 to 6 components "
                          "in 0..5")
     pos = np.ascontiguousarray(pos, dtype=np.int32)
-    if pos.shape != (ne, k, k) or nc * nn != k * bs:
+    if first is not None:
+        first = np.ascontiguousarray(first, dtype=np.int8)
+    if pos.shape != (ne, k, k) or nc * nn != k * bs or \
+            (first is not None and first.shape != pos.shape):
         raise ValueError(f"places {pos.shape} for {ne} elements of {nn} nodes, {nc} unknowns "
                          f"a node: ({ne}, {k}, {k}) with k {k} x bs {bs} = {nc * nn} expected")
     info = _load().tangents_into(ne, nn, nq, *args, qn, xn, conn, e0, int(axis),
                                  int(bool(symmetric)), None if cut is None else cut.ctypes.data,
-                                 nc, int(lanes), pos, int(k), int(bs), values)
+                                 nc, int(lanes), pos, first, int(k), int(bs), values)
     _lanes_info(info, "rodsnes_elastic_tangents_into", lanes)

@@ -512,7 +512,6 @@ class RodProblem:
         from the kernel and go in by its add_cut; with the view's ``plane``, the in-plane
         block of a planar state, made by ElasticRod.plane_tangents)."""
         r, q = self.state.local_config(X)
-        P.zeroEntries()
         mask = self.constraints.block_mask
         T = view if view is not None else DirichletRows(
             P, mask, kept(self, "_dirichlet_touched", (mask,),
@@ -526,9 +525,16 @@ class RodProblem:
         # the elements' blocks straight into the matrix's values where that applies
         blocks = assembly.element_blocks(P, T if view is None else view.dirichlet, g, nc)
         # the elements the compiled kernel adds into the matrix's values as it makes their
-        # tangents (assembly.ElementBlocks' places); the others (all, without it) by chunks
-        if blocks is not None and self.elastic.tangents_into(
-                qc, rc, lconn, blocks, e0, plane=plane, comps=comps, symmetric=symmetric):
+        # tangents (assembly.ElementBlocks' places), storing at each block's first addition
+        # where the matrix is zeroed only elsewhere (zero_rest); the others (all, without it)
+        # by chunks, after
+        fused = blocks is not None and self.elastic.kernel == "compiled"
+        stored = fused and blocks.zero_rest(P)
+        if not stored:
+            P.zeroEntries()
+        if fused and self.elastic.tangents_into(qc, rc, lconn, blocks, e0, plane=plane,
+                                                comps=comps, symmetric=symmetric,
+                                                store_first=stored):
             todo = blocks.rest
             blocks = None
         else:
