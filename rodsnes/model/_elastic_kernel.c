@@ -433,8 +433,7 @@ int rodsnes_elastic_plane_tangent_lanes(int ne, int nn, int nq, const double *N,
  * rodsnes_elastic_terms_lanes with symmetric, comps), added into the value array a of a block
  * matrix at the blocks' places pos (ne, k, k) (_element_blocks.h; -1: not added here; where
  * first (ne, k, k), or NULL, is 1 stored instead), k blocks of bs unknowns an element (k bs =
- * the tangent's rows).  The same numbers as those
- * entries, INTO_CHUNK elements at a time.  Returns 0, -1 for bad arguments, -2 for lanes the
+ * the tangent's rows).  The same numbers as those entries, INTO_CHUNK elements at a time.  Returns 0, -1 for bad arguments, -2 for lanes the
  * processor cannot run, -3 when no work memory could be had. */
 int rodsnes_elastic_tangents_into(int ne, int nn, int nq, const double *N, const double *dN,
                                   const double *wJ, const double *C, int limit,
@@ -469,7 +468,7 @@ int rodsnes_elastic_tangents_into(int ne, int nn, int nq, const double *N, const
                                                ncomp, lanes, energy, vec, H);
         if (!info)
             add_element_blocks(a, pos + (int64_t)e * k * k,
-                               first ? first + (int64_t)e * k * k : first, H, m, k, bs);
+                               first ? first + (int64_t)e * k * k : 0, H, m, k, bs);
     }
     free(work);
     return info;

@@ -26,7 +26,7 @@ from petsc4py import PETSc
 from rodsnes import compiled, petsc_lib
 from rodsnes.model.partition import is_split, split_index
 
-I32 = np.dtype(np.int32)    # the places: block indices of one rank's block CSR
+I32 = compiled.I32           # the places: block indices of one rank's block CSR
 ATTR = "rodsnes_element_blocks"     # the ElementBlocks kept on their matrix (PetscObjectCompose)
 _TYPES = {PETSc.Mat.Type.SEQBAIJ: False, PETSc.Mat.Type.MPIBAIJ: False,
           PETSc.Mat.Type.SEQSBAIJ: True, PETSc.Mat.Type.MPISBAIJ: True}   # type -> upper only

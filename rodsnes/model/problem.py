@@ -532,9 +532,9 @@ class RodProblem:
         stored = fused and blocks.zero_rest(P)
         if not stored:
             P.zeroEntries()
-        if fused and self.elastic.tangents_into(qc, rc, lconn, blocks, e0, plane=plane,
-                                                comps=comps, symmetric=symmetric,
-                                                store_first=stored):
+        if fused:
+            self.elastic.tangents_into(qc, rc, lconn, blocks, e0, plane=plane, comps=comps,
+                                       symmetric=symmetric, store_first=stored)
             todo = blocks.rest
             blocks = None
         else:

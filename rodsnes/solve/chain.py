@@ -29,8 +29,7 @@ from rodsnes import compiled, petsc_lib
 from rodsnes.profiling import logged
 from rodsnes.solve import petsc_exit
 
-I32 = np.dtype(np.int32)
-I8 = np.dtype(np.int8)
+I32, I8 = compiled.I32, compiled.I8
 MAX_BS = 8                  # the kernel's largest block size
 
 

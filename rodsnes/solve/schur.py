@@ -589,6 +589,15 @@ class RankSchur:
         k["ANS"] = ANS
         self._share(rows, WN, ok, comm)
 
+    def _separator_solution(self, comm, b, yN):
+        """x_G = S^-1 (b_G - sum_r A_{G N_r} y_{N_r}), ``yN`` this rank's y_r = A_{I_r I_r}^-1
+        b_{I_r} on its near rows N_r.  Collective."""
+        k = self.kept
+        g = -(k["asn"] @ yN)
+        g[k["Gpos"]] += b[k["G"]]
+        comm.Allreduce(MPI.IN_PLACE, g, op=MPI.SUM)
+        return sla.lu_solve(k["S"], g, check_finite=False)
+
     def _apply_chain(self, comm, b, y):
         """x = A^-1 b through the chain LU: one forward substitution of b_I, the near rows of
         A_II^-1 b_I by the tail's backward one, x_G, the forward substitution of A_IG x_G over
@@ -600,10 +609,7 @@ class RankSchur:
         lu.solve(z, 0, lu.n)                                    # z = L^-1 b_I
         rows = k["tail_rows"]
         yT = self._tail_solve(z[rows], lu.n, tail)              # (A_II^-1 b_I) on the tail
-        g = -(k["asn"] @ yT[k["near_in_tail"]])
-        g[k["Gpos"]] += b[k["G"]]
-        comm.Allreduce(MPI.IN_PLACE, g, op=MPI.SUM)
-        xg = sla.lu_solve(k["S"], g, check_finite=False)
+        xg = self._separator_solution(comm, b, yT[k["near_in_tail"]])
         z[rows] -= self._tail_solve(self._on_tail(k["ANS"] @ xg), tail, lu.n)
         lu.solve(z, lu.n, 0)                                    # x_I = U^-1 (z - L^-1 A_IG x_G)
         out = y.getArray()
@@ -647,17 +653,17 @@ class RankSchur:
         k = self.kept
         ng, nc = k["ng"], rows.shape[1]
         buf = np.zeros(ng * nc + (nc - ng) * ng + 1)
-        buf[:ng * nc] = rows.ravel()
+        # views of the buffer: the separator's rows and every rank's W_N
+        sep_rows, W = buf[:ng * nc].reshape(ng, nc), buf[ng * nc:-1].reshape(nc - ng, ng)
+        sep_rows[:] = rows
         if ok:
-            W = buf[ng * nc:-1].reshape(nc - ng, ng)
             W[k["nearpos"] - ng] = WN
         buf[-1] = 0.0 if ok else 1.0
         comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.SUM)
-        rows = buf[:ng * nc].reshape(ng, nc)
-        k["asn"] = rows[:, k["nearpos"]]
+        k["asn"] = sep_rows[:, k["nearpos"]]
         self.failed = bool(buf[-1] > 0.0)
         if not self.failed:
-            S = k["S_dense"] = rows[:, :ng] - rows[:, ng:] @ buf[ng * nc:-1].reshape(nc - ng, ng)
+            S = k["S_dense"] = sep_rows[:, :ng] - sep_rows[:, ng:] @ W
             k["S"] = _dense_lu(S)
             self.failed = k["S"] is None
 
@@ -681,10 +687,7 @@ class RankSchur:
             a[k["G"]] = 0.0
         k["ksp"].solve(bI, yI)
         yv = yI.getArray(readonly=True)
-        g = -(k["asn"] @ yv[k["Npos"]])
-        g[k["Gpos"]] += b[k["G"]]
-        comm.Allreduce(MPI.IN_PLACE, g, op=MPI.SUM)
-        xg = sla.lu_solve(k["S"], g, check_finite=False)
+        xg = self._separator_solution(comm, b, yv[k["Npos"]])
         if self.package == "mumps":         # x_I = A_II^-1 (b_I - A_IG x_G): a second solve
             with bI as a:
                 a[k["Npos"]] -= k["ANS"] @ xg
