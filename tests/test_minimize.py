@@ -157,7 +157,7 @@ def test_pyelastica_scene_as_posed_ends_on_a_plectoneme():
     """PyElastica's plectoneme scene as it poses it: no end tension, no imperfection.  The
     twisted straight rod stays an equilibrium (a saddle past Greenhill's 1.07 turns): the
     minimiser leaves it along negative curvature and ends on a stable plectoneme with the
-    imposed link: the whole 10 turns, 40 elements, 40 nominal load steps (README, Plectoneme;
+    imposed link: the whole 10 turns, 40 elements, 40 nominal load steps (docs/plectoneme.md;
     75-130 s: with no imperfection round-off picks the path)."""
     s = _check_plectoneme(_plectoneme(10.0, rod_nelem=40, load_steps=40), 10.0, resolved=True)
     assert 3.6 < s["topology"]["writhe"] < 3.9
