@@ -271,3 +271,17 @@ def test_scalar_csr_expands_every_block(bs):
                       for a in range(bs) for b in range(bs))
         got = [(r, c) for r in range(len(I) - 1) for c in J[I[r]:I[r + 1]]]
         assert got == want and len(I) == len(rows) * bs + 1
+
+
+@pytest.mark.parametrize("owners, closed, descends", [
+    ([0, 0, 1, 1], False, [False, True]),       # the second stretch meets the first at its start
+    ([1, 1, 0, 0], False, [True, False]),       # METIS may number the pieces from either end
+    ([0, 0, 1, 1, 2, 2], False, [False, False, True]),   # a middle stretch meets both others
+    ([2, 2, 0, 0, 1, 1], False, [False, True, False]),
+    ([0, 0, 1, 1], True, [False, False]),       # a closed rod: every stretch meets at both ends
+    ([0, 0, 0], False, [False]),
+])
+def test_each_stretch_is_numbered_toward_the_nodes_it_shares(owners, closed, descends):
+    from rodsnes.model.partition import stretch_descends
+    got = stretch_descends(np.asarray(owners), closed, max(owners) + 1)
+    assert got.tolist() == descends

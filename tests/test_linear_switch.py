@@ -105,20 +105,27 @@ def test_chains_are_factored_in_their_own_order(case, extra, natural):
 @pytest.mark.mpi
 @pytest.mark.parametrize("nelem", [12, 100, 400])
 def test_the_natural_order_is_the_matrix_order(nelem):
-    """On several ranks PETSc's natural order is the ranks' stretches in rank order, which a
-    partition need not keep along the rod (METIS may number the pieces from either end): then
-    the rod's ends meet inside the matrix and the natural order fills.  chain_ordering chooses
-    it exactly where the stretches follow the rod (the elements' owners increasing along it),
-    and the fill it measures is that of the matrix's numbering."""
+    """On several ranks PETSc's natural order is the ranks' stretches in rank order, each
+    numbered toward the nodes it shares with the others (partition.stretch_descends), which a
+    partition need not keep along the rod (METIS may number the pieces from either end).
+    chain_ordering chooses it exactly where it does not fill, measured on the matrix's
+    numbering; on two ranks it never does, whichever end METIS numbers first (at 12 elements it
+    gives rank 1 the rod's first half)."""
     from rodsnes.solve import linear
     run = build_run("mattiasson", rod_nelem=nelem, rod_planar="off")
     p, lay = run.problem, run.layout
     linear.lu_defaults(lay.comm, "")
     chose = linear.chain_ordering(p, "")
-    owners = np.asarray(lay.elem_owner)
-    along = bool(np.all(np.diff(owners) >= 0))     # PETSc numbers the ranks' stretches in order
-    assert chose == along, (owners, linear.pattern_fill(p, "natural"))
-    assert (linear.pattern_fill(p, "natural") == 1.0) == along
+    fill = linear.pattern_fill(p, "natural")
+    assert chose == (fill == 1.0), (lay.elem_owner, fill)
+    # each rank's nodes in PETSc's order: along the rod, the last next to the other rank's
+    own = lay.owned_nodes
+    assert np.all(np.diff(own) == 1) or np.all(np.diff(own) == -1)
+    if lay.comm.getSize() == 2:
+        assert fill == 1.0, (lay.elem_owner, fill)
+        other = lay.node_owner != lay.comm.getRank()
+        touching = np.isin(p.mesh.conn, own[-1]).any(axis=1)
+        assert other[p.mesh.conn[touching]].any()
     linear.take_back_defaults()
 
 
