@@ -140,6 +140,37 @@ def test_blocks_are_the_full_matrices_blocks():
 
 
 @pytest.mark.mpi
+@pytest.mark.parametrize("strided", [True, False])
+def test_restrict_expand_and_share_are_the_components(monkeypatch, strided):
+    """The in-plane restriction and expansion and the out-of-plane share of a vector (PETSc's
+    strided functions, or numpy's where they cannot be reached) against its components."""
+    from rodsnes.solve import planar
+    if not strided:
+        monkeypatch.setattr(planar.petsc_lib, "function", lambda *a: None)
+    run = build_run("rollup", rod_error_estimate="off")
+    pl = run.problem.planar
+    comm = PETSc.COMM_WORLD.tompi4py()
+    v = run.problem.F.duplicate()
+    rng = np.random.default_rng(5 + comm.rank)
+    with v as a:
+        a[:] = rng.standard_normal(a.shape)
+    a = v.getArray(readonly=True).reshape(-1, NDOF).copy()
+    vi = pl.restrict(v)
+    assert np.array_equal(vi.getArray(readonly=True).reshape(-1, 3), a[:, pl.plane.inplane])
+    w = v.duplicate()
+    w.set(7.0)
+    pl.expand(vi, w)
+    b = w.getArray(readonly=True).reshape(-1, NDOF)
+    assert np.array_equal(b[:, pl.plane.inplane], a[:, pl.plane.inplane])
+    assert not b[:, pl.plane.outplane].any()
+    go, gn = pl.out_of_plane_share(v)
+    from mpi4py import MPI
+    o2 = comm.allreduce(float((a[:, pl.plane.outplane] ** 2).sum()), op=MPI.SUM)
+    n2 = comm.allreduce(float((a ** 2).sum()), op=MPI.SUM)
+    assert go == pytest.approx(np.sqrt(o2), rel=1e-13) and gn == pytest.approx(np.sqrt(n2), rel=1e-13)
+
+
+@pytest.mark.mpi
 @pytest.mark.parametrize("case", ["mattiasson", "rollup"])
 def test_planar_equals_3d_in_parallel(case):
     """The minimiser's and the Newton path's planar solves on any number of ranks (run under
