@@ -57,11 +57,11 @@ saves), the separator large (contact coupling much of the rod across ranks: more
 SCHUR_MAX unknowns) or some rank has no interior, the PC factors the whole matrix instead:
 PCREDUNDANT with PETSc's LU on every rank (the previous default), or MUMPS over the ranks.
 The couplings' rows, the interior's symbolic factorisation and the index sets are kept while
-the matrix and its separator stay (decided on all ranks together: every branch here is
-collective).  A failed factorisation on
-any rank fails the PC on every rank as PETSc's LU's zero pivot does (petsc_lib.set_pc_failed:
-the KSP says DIVERGED_PCSETUP_FAILED, its solution Inf; the application NaN), which fails the
-Newton step.
+the matrix and its separator stay (each rank's own objects: a rank may make them anew alone);
+condensing or not is decided from global data alike on every rank, without communication.
+A failed factorisation on any rank fails the PC on every rank as PETSc's LU's zero pivot does
+(petsc_lib.set_pc_failed: the KSP says DIVERGED_PCSETUP_FAILED, its solution Inf; the
+application NaN), which fails the Newton step.
 """
 import ctypes
 import functools
@@ -202,13 +202,6 @@ def _unknowns(blocks, size):
     return (np.asarray(blocks)[:, None] * size + np.arange(size)).ravel()
 
 
-def _least(comm, *values):
-    """The least of each integer over the ranks, in one reduction."""
-    buf = np.array(values, dtype=np.int64)
-    comm.Allreduce(MPI.IN_PLACE, buf, op=MPI.MIN)
-    return tuple(int(v) for v in buf)
-
-
 def _dense_lu(M):
     """scipy's LU (lu, piv) of the dense M, or None where it is singular or not finite (no
     warning: the caller fails the solve)."""
@@ -306,10 +299,12 @@ class RankSchur:
         # rank; a handle alone may be a new matrix at a freed one's address)
         key = (A.handle, A.getSize(), self.problem.stats.get("pattern_refreshes", 0))
         k = self.kept
-        # every rank decides alike: the size and the separator are global (the contact pairs
-        # are gathered to every rank), the interiors' least size is reduced; a short rod goes
-        # to the whole matrix before any of it (the separator of a contact-rich pattern costs
-        # 0.7 ms a set-up on the plectoneme)
+        # every rank decides alike, without communication: the size, the separator (the
+        # contact pairs are gathered to every rank) and the ownership ranges are global, and so
+        # is every rank's interior size; a short rod goes to the whole matrix before any of it
+        # (the separator of a contact-rich pattern costs 0.7 ms a set-up on the plectoneme).
+        # Whether a rank condenses anew or refreshes is its own (_condense makes objects of
+        # its own alone): a rank whose factorisation failed condenses anew, the others need not
         condense = pays(self.problem.mesh.n_nodes, comm.Get_size(), self.package)
         if condense:
             if k is not None and k["A"] == key:             # the same matrix: the same pattern
@@ -317,11 +312,10 @@ class RankSchur:
             else:
                 sep, near = separator(self.problem, A)
             mine = sep[(sep >= rs // bs) & (sep < re // bs)]
-            # one reduction: the interiors' least size, and whether every rank has the same
-            # matrix and separator as at its last set-up
             same = k is not None and k["A"] == key and np.array_equal(k["sep"], sep)
-            least, same = _least(comm, (re - rs) // bs - len(mine), int(same))
-            condense = 0 < len(sep) * bs <= SCHUR_MAX and least > 0
+            first = np.asarray(A.getOwnershipRanges()) // bs
+            interior = np.diff(first) - np.diff(np.searchsorted(sep, first))
+            condense = 0 < len(sep) * bs <= SCHUR_MAX and interior.min() > 0
         self.mode = "schur" if condense else "whole"
         self.setups[self.mode] += 1
         if not condense:
