@@ -49,6 +49,54 @@ def _plan(A, direction):
     return chain.ChainLU.plan(ai, aj, A.getBlockSize(), direction)
 
 
+def _numpy_streams(ai, aj, diag, direction):
+    """The factors' two streams (_chain_kernel.c): (place, col, lofs, uofs) - the slot of each
+    block of the CSR, the block column of each slot, and per order position s the first slot
+    of its row's multipliers (lofs, slots 0 .. nL - 1, each row's in its order of
+    elimination: ascending columns for +1, descending for -1) and of its inverted diagonal
+    block, its upper blocks after it in ascending columns (uofs, from nL).  int32 each."""
+    n = len(ai) - 1
+    ai = np.asarray(ai, dtype=np.int64)
+    diag = np.asarray(diag, dtype=np.int64)
+    rows = np.arange(n) if direction > 0 else np.arange(n)[::-1]     # the row at position s
+    start, stop, d = ai[rows], ai[rows + 1], diag[rows]
+    nlow = d - start if direction > 0 else stop - 1 - d
+    lofs = np.concatenate([[0], np.cumsum(nlow)])
+    uofs = lofs[-1] + np.concatenate([[0], np.cumsum(stop - start - nlow)])
+    place = np.empty(int(ai[-1]), dtype=np.int64)
+    length = stop - start
+    s = np.repeat(np.arange(n), length)                 # order position of every block ...
+    p = np.arange(int(length.sum())) - np.repeat(np.cumsum(length) - length, length) \
+        + np.repeat(start, length)                      # ... and its place in the CSR
+    ds, ls, us = d[s], lofs[s], uofs[s]
+    if direction > 0:
+        place[p] = np.where(p < ds, ls + (p - start[s]), us + (p - ds))
+    else:
+        place[p] = np.where(p > ds, ls + (stop[s] - 1 - p), us + np.where(
+            p == ds, 0, 1 + (p - start[s])))
+    col = np.empty_like(place)
+    col[place] = np.asarray(aj, dtype=np.int64)
+    as32 = lambda a: np.ascontiguousarray(a, dtype=np.int32)
+    return as32(place), as32(col), as32(lofs), as32(uofs)
+    # (the layout's reference in numpy: rodsnes_chain_streams does it in C)
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+@pytest.mark.parametrize("order, closed", [(1, False), (3, False), (2, True)])
+def test_the_streams_layout_is_the_numpy_reference(direction, order, closed):
+    """The kernel's layout of the factors' streams (rodsnes_chain_streams) against its
+    reference in numpy, for chains of orders 1 and 3 and a ring (whose pattern the chain LU
+    would refuse: the layout is still defined)."""
+    A, _ = _chain_matrix(5, 3, order=order, closed=closed)
+    ai, aj = (np.ascontiguousarray(a, dtype=np.int32) for a in A.getRowIJ(compressed=True))
+    n = len(ai) - 1
+    diag = np.array([ai[i] + np.flatnonzero(aj[ai[i]:ai[i + 1]] == i)[0] for i in range(n)],
+                    dtype=np.int32)
+    for got, ref in zip(chain._streams(ai, aj, diag, direction),
+                        _numpy_streams(ai, aj, diag, direction)):
+        assert got.dtype == np.int32 and np.array_equal(got, ref)
+
+
 @pytest.mark.parametrize("bs", [3, 6, 2])
 @pytest.mark.parametrize("direction", [1, -1])
 def test_the_chain_lu_solves_as_dense_lu(bs, direction):

@@ -40,6 +40,28 @@ def counted(monkeypatch):
     return seen
 
 
+def places_checked(monkeypatch):
+    """Every ElementBlocks made from now on also checked against numpy's places (the kernel's
+    rodsnes_element_places against ElementBlocks._places_numpy): the same places, first
+    additions, untouched blocks and completeness.  Returns the list of those checked."""
+    made = []
+    init = assembly.ElementBlocks.__init__
+
+    def checked(self, *args):
+        init(self, *args)
+        ref = object.__new__(assembly.ElementBlocks)
+        with monkeypatch.context() as m:
+            m.setattr(assembly, "available", lambda: False)
+            init(ref, *args)
+        for name in ("pos", "first", "untouched"):
+            assert np.array_equal(getattr(self, name), getattr(ref, name)), name
+            assert getattr(self, name).dtype == getattr(ref, name).dtype, name
+        assert self.complete == ref.complete
+        made.append(self)
+    monkeypatch.setattr(assembly.ElementBlocks, "__init__", checked)
+    return made
+
+
 def both_ways(monkeypatch, make, fill):
     """The matrix fill(M) makes in make() straight (A) and by MatSetValuesBlocked (B)."""
     A = make()
@@ -69,6 +91,7 @@ def test_3d_jacobian_and_hessian_straight_into_the_values(monkeypatch, symmetric
     """The 3-D Jacobian (MPIBAIJ, block size 6) and Hessian (SBAIJ, upper blocks) of an open
     clamped rod: every element but those at a constrained node (and, on 2 ranks, the one cut
     by the partition) written straight; the same matrix as the insertion gives."""
+    made = places_checked(monkeypatch)
     seen = counted(monkeypatch)
     run = perturbed(build_run("mattiasson", rod_nelem=40))
     p = run.problem
@@ -84,6 +107,7 @@ def test_3d_jacobian_and_hessian_straight_into_the_values(monkeypatch, symmetric
     direct, rest = _ranks_sum(seen["direct"]), _ranks_sum(seen["rest"])
     assert direct + rest == 40
     assert 1 <= rest <= 1 + (size - 1), (direct, rest)       # the clamped end, the cuts
+    assert made and all(len(b.pos) for b in made)
     A.destroy()
     B.destroy()
 
@@ -93,6 +117,7 @@ def test_3d_jacobian_and_hessian_straight_into_the_values(monkeypatch, symmetric
 def test_planar_block_straight_into_the_values(monkeypatch, symmetric):
     """The planar step's in-plane block (block size 3, through ComponentView and the plane
     kernel) and the in-plane Hessian (SBAIJ): the same matrices."""
+    made = places_checked(monkeypatch)
     seen = counted(monkeypatch)
     run = build_run("mattiasson", rod_nelem=30)
     p = run.problem
@@ -116,6 +141,7 @@ def test_planar_block_straight_into_the_values(monkeypatch, symmetric):
     assert A.getBlockSize() == 3
     assert_same(A, B)
     assert _ranks_sum(seen["direct"]) >= 30 - PETSc.COMM_WORLD.getSize()
+    assert made and all(len(b.pos) for b in made)
     A.destroy()
     B.destroy()
 
@@ -126,6 +152,7 @@ def test_split_contact_matrix_straight_into_the_values(monkeypatch, symmetric):
     """With contact the matrix is split (block size 3, two blocks a node): an element's
     tangent is 2k x 2k blocks of 3, written straight as well; the contact blocks go the
     matrix's way."""
+    made = places_checked(monkeypatch)
     seen = counted(monkeypatch)
     run = coiled_rollup()
     p = run.problem
@@ -140,6 +167,7 @@ def test_split_contact_matrix_straight_into_the_values(monkeypatch, symmetric):
     assert partition.is_split(A) and A.getBlockSize() == 3
     assert_same(A, B)
     assert _ranks_sum(seen["direct"]) >= 12 - 1 - PETSc.COMM_WORLD.getSize()
+    assert made and all(len(b.pos) for b in made)
     A.destroy()
     B.destroy()
 
@@ -208,6 +236,21 @@ def test_kernel_adds_blocks_as_mat_set_values_blocked(bs, symmetric):
     for M in (A, B):
         M.assemble()
     assert np.array_equal(A[:, :], B[:, :])
+
+
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_places_of_groups_outside_the_pattern_or_touched(monkeypatch, symmetric):
+    """The compiled places against numpy's on a chain with touched groups and a group whose
+    block lies outside the pattern (then incomplete: element_blocks gives None)."""
+    made = places_checked(monkeypatch)
+    n = 7
+    G = np.stack([np.arange(n - 1), np.arange(1, n)], axis=1).astype(PETSc.IntType)
+    A = small_baij(3, symmetric)
+    assert assembly.element_blocks(A, Touched(n, hit=[0, 4]), G, 3) is not None
+    far = np.concatenate([G, [[0, 3]]]).astype(PETSc.IntType)      # block (0, 3): none
+    assert assembly.element_blocks(A, Touched(n), far, 3) is None
+    assert len(made) == 2 and made[0].complete and not made[1].complete
+    assert list(made[0].rest) == [0, 3, 4]
 
 
 def test_not_for_aij_nor_without_the_kernel(monkeypatch):

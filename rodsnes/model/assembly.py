@@ -18,6 +18,7 @@ in through the matrix's own insertion as before; an SBAIJ matrix keeps its upper
 (as IGNORE_LOWER_TRIANGULAR does).  Without the compiled kernel and for AIJ matrices nothing
 changes (``element_blocks`` returns None).
 """
+import collections
 import ctypes
 
 import numpy as np
@@ -32,10 +33,19 @@ _TYPES = {PETSc.Mat.Type.SEQBAIJ: False, PETSc.Mat.Type.MPIBAIJ: False,
           PETSc.Mat.Type.SEQSBAIJ: True, PETSc.Mat.Type.MPISBAIJ: True}   # type -> upper only
 
 
+# the kernel's C entries by name (compiled.Foreign each)
+Kernel = collections.namedtuple("Kernel", "add places")
+
+
 def _declare(lib):
-    return compiled.Foreign(lib.rodsnes_add_element_blocks,
-                            [ctypes.c_void_p, I32, compiled.F64, ctypes.c_int64,
-                             ctypes.c_int, ctypes.c_int], ctypes.c_int)
+    add = compiled.Foreign(lib.rodsnes_add_element_blocks,
+                           [ctypes.c_void_p, I32, compiled.F64, ctypes.c_int64,
+                            ctypes.c_int, ctypes.c_int], ctypes.c_int)
+    places = compiled.Foreign(lib.rodsnes_element_places,
+                              [ctypes.c_int64, ctypes.c_int, compiled.I64, compiled.I8,
+                               ctypes.c_int64, I32, I32, ctypes.c_int, I32, compiled.I8,
+                               compiled.I8], ctypes.c_int64)
+    return Kernel(add, places)
 
 
 _load = compiled.loader("rodsnes.model._assembly_kernel", _declare)
@@ -99,25 +109,45 @@ class ElementBlocks:
         B = np.asarray(split_index(G) if split else G, dtype=np.int64)   # the matrix's blocks
         n, k = B.shape
         direct = ((B >= lo) & (B < hi)).all(axis=1) & ~touched[G].any(axis=1)
-        L = B - lo
+        L = np.ascontiguousarray(B - lo)
+        ai, aj = seq.getRowIJ(compressed=True)      # the block CSR (columns sorted in a row)
+        self.rest = np.flatnonzero(~direct)
+        self.bs, self.k = bs, k
+        self.nblocks = len(aj)
+        # the places; the first addition into each block, in the order (group, row, column)
+        # the kernels add (a store there: zero_rest); the blocks no direct group holds
+        places = _load().places if available() else None
+        if places is not None:
+            # one pass with a search in each block's row: 0.5 ms at 10^4 planar elements,
+            # where numpy's search over every block's code took 7-10 ms
+            self.pos = np.empty((n, k, k), dtype=I32)
+            self.first = np.empty((n, k, k), dtype=np.int8)
+            seen = np.zeros(len(aj), dtype=np.int8)
+            missing = places(n, k, L, direct.astype(np.int8), len(ai) - 1,
+                             np.ascontiguousarray(ai, dtype=I32),
+                             np.ascontiguousarray(aj, dtype=I32), int(upper), self.pos,
+                             self.first, seen)
+            self.complete = missing == 0
+            self.untouched = np.flatnonzero(seen == 0)
+            return
+        self._places_numpy(L, direct, ai, aj, max(hi - lo, 1), upper)
+
+    def _places_numpy(self, L, direct, ai, aj, ncol, upper):
+        """What rodsnes_element_places does (_assembly_kernel.c), with numpy."""
+        n, k = L.shape
         rows = np.broadcast_to(L[:, :, None], (n, k, k))
         cols = np.broadcast_to(L[:, None, :], (n, k, k))
-        ai, aj = seq.getRowIJ(compressed=True)      # the block CSR (columns sorted in a row)
         ai, aj = np.asarray(ai, dtype=np.int64), np.asarray(aj, dtype=np.int64)
-        ncol = max(hi - lo, 1)
         codes = np.repeat(np.arange(len(ai) - 1), np.diff(ai)) * ncol + aj
         want = np.where(direct[:, None, None], rows * ncol + cols, -1)
         pos = np.searchsorted(codes, want).clip(0, max(len(codes) - 1, 0))
         found = (codes[pos] == want) if len(codes) else np.zeros(want.shape, dtype=bool)
+        pos = np.where(found, pos, -1)
         if upper:       # SBAIJ: the upper blocks alone
             found |= rows > cols
             pos = np.where(rows > cols, -1, pos)
         self.complete = bool(found.all(axis=(1, 2))[direct].all())    # every block in place
         self.pos = np.where(direct[:, None, None], pos, -1).astype(I32)
-        self.rest = np.flatnonzero(~direct)
-        self.bs, self.k = bs, k
-        # the first addition into each block, in the order (group, row, column) the kernels add
-        # (a store there: zero_rest), and the blocks no direct group holds
         flat = self.pos.ravel()
         held = np.flatnonzero(flat >= 0)
         used, at = np.unique(flat[held], return_index=True)
@@ -125,7 +155,6 @@ class ElementBlocks:
         first[held[at]] = 1
         self.first = first.reshape(self.pos.shape)
         self.untouched = np.setdiff1d(np.arange(len(aj)), used, assume_unique=True)
-        self.nblocks = len(aj)
 
     def fits(self, groups, touched, state):
         """Whether these places hold for ``groups`` and ``touched`` at the pattern ``state``."""
@@ -171,7 +200,7 @@ class ElementBlocks:
             raise ValueError(f"tangents {V.shape} for groups {a}..{b}: ({b - a}, {kb}, {kb}) "
                              "expected")
         with petsc_lib.values_at(*self.seq) as ptr:
-            if _load()(ptr, self.pos[a:b], V, b - a, self.k, self.bs):
+            if _load().add(ptr, self.pos[a:b], V, b - a, self.k, self.bs):
                 raise ValueError(f"block size {self.bs}: the assembly kernel has 3 and 6")
         lo, hi = np.searchsorted(self.rest, (a, b))
         if hi > lo:

@@ -284,6 +284,38 @@ static inline void backward_bs(const int BS, int n, const int *uofs, const int *
     }
 }
 
+/* The two streams' layout (above) for the block CSR (ai, aj) of n rows with diagonal blocks
+ * at diag, eliminated in direction dir: place[p] the slot of block p, col[slot] its block
+ * column, lofs (n + 1) per order position s the first slot of its row's multipliers (each
+ * row's in its order of elimination: ascending columns for +1, descending for -1), uofs
+ * (n + 1) the slot of its inverted diagonal block, its upper blocks after it in ascending
+ * columns (from lofs[n]).  One pass over the pattern (chain.py's numpy took 2.8 ms at 10^4
+ * planar elements). */
+void rodsnes_chain_streams(int n, const int *ai, const int *aj, const int *diag, int dir,
+                           int *place, int *col, int *lofs, int *uofs)
+{
+    lofs[0] = 0;
+    for (int s = 0; s < n; s++) {
+        const int i = ROW(s);
+        lofs[s + 1] = lofs[s] + (dir > 0 ? diag[i] - ai[i] : ai[i + 1] - 1 - diag[i]);
+    }
+    uofs[0] = lofs[n];
+    for (int s = 0; s < n; s++) {
+        const int i = ROW(s);
+        uofs[s + 1] = uofs[s] + (ai[i + 1] - ai[i]) - (lofs[s + 1] - lofs[s]);
+    }
+    for (int s = 0; s < n; s++) {
+        const int i = ROW(s), st = ai[i], sp = ai[i + 1], d = diag[i];
+        for (int p = st; p < sp; p++) {
+            int slot;
+            if (dir > 0) slot = p < d ? lofs[s] + (p - st) : uofs[s] + (p - d);
+            else slot = p > d ? lofs[s] + (sp - 1 - p) : uofs[s] + (p == d ? 0 : 1 + (p - st));
+            place[p] = slot;
+            col[slot] = aj[p];
+        }
+    }
+}
+
 #define DISPATCH(call3, call6, callany) \
     do { if (bs == 3) { call3; } else if (bs == 6) { call6; } else { callany; } } while (0)
 

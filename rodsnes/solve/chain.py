@@ -34,7 +34,7 @@ MAX_BS = 8                  # the kernel's largest block size
 
 
 # the kernel's C entries by name (compiled.Foreign each)
-Kernel = collections.namedtuple("Kernel", "plan factor solve")
+Kernel = collections.namedtuple("Kernel", "plan streams factor solve")
 
 
 def _declare(lib):
@@ -42,6 +42,8 @@ def _declare(lib):
     plan = compiled.Foreign(lib.rodsnes_chain_plan,
                             [c_int, i32, i32, c_int, i32, ctypes.c_void_p, ctypes.c_int64],
                             ctypes.c_int64)
+    streams = compiled.Foreign(lib.rodsnes_chain_streams,
+                               [c_int, i32, i32, i32, c_int, i32, i32, i32, i32], None)
     # the entry's name changes with its arguments: a library built from an older source lacks
     # it and the kernel counts as not built (compiled.load), instead of being misread
     factor = compiled.Foreign(lib.rodsnes_chain_factor_streams,
@@ -49,7 +51,7 @@ def _declare(lib):
                                ctypes.c_void_p, I8, f64, ctypes.c_void_p], c_int)
     solve = compiled.Foreign(lib.rodsnes_chain_solve_streams,
                              [c_int, c_int, i32, i32, i32, c_int, f64, c_int, c_int, f64], c_int)
-    return Kernel(plan, factor, solve)
+    return Kernel(plan, streams, factor, solve)
 
 
 _load = compiled.loader("rodsnes.solve._chain_kernel", _declare)
@@ -68,34 +70,17 @@ def factorable(mat):
 
 
 def _streams(ai, aj, diag, direction):
-    """The factors' two streams (_chain_kernel.c): (place, col, lofs, uofs) - the slot of each
-    block of the CSR, the block column of each slot, and per order position s the first slot
-    of its row's multipliers (lofs, slots 0 .. nL - 1, each row's in its order of
-    elimination: ascending columns for +1, descending for -1) and of its inverted diagonal
-    block, its upper blocks after it in ascending columns (uofs, from nL).  int32 each."""
+    """The factors' two streams (_chain_kernel.c's rodsnes_chain_streams): (place, col, lofs,
+    uofs) - the slot of each block of the CSR, the block column of each slot, and per order
+    position s the first slot of its row's multipliers (lofs, slots 0 .. nL - 1, each row's in
+    its order of elimination: ascending columns for +1, descending for -1) and of its inverted
+    diagonal block, its upper blocks after it in ascending columns (uofs, from nL).  int32
+    each."""
     n = len(ai) - 1
-    ai = np.asarray(ai, dtype=np.int64)
-    diag = np.asarray(diag, dtype=np.int64)
-    rows = np.arange(n) if direction > 0 else np.arange(n)[::-1]     # the row at position s
-    start, stop, d = ai[rows], ai[rows + 1], diag[rows]
-    nlow = d - start if direction > 0 else stop - 1 - d
-    lofs = np.concatenate([[0], np.cumsum(nlow)])
-    uofs = lofs[-1] + np.concatenate([[0], np.cumsum(stop - start - nlow)])
-    place = np.empty(int(ai[-1]), dtype=np.int64)
-    length = stop - start
-    s = np.repeat(np.arange(n), length)                 # order position of every block ...
-    p = np.arange(int(length.sum())) - np.repeat(np.cumsum(length) - length, length) \
-        + np.repeat(start, length)                      # ... and its place in the CSR
-    ds, ls, us = d[s], lofs[s], uofs[s]
-    if direction > 0:
-        place[p] = np.where(p < ds, ls + (p - start[s]), us + (p - ds))
-    else:
-        place[p] = np.where(p > ds, ls + (stop[s] - 1 - p), us + np.where(
-            p == ds, 0, 1 + (p - start[s])))
-    col = np.empty_like(place)
-    col[place] = np.asarray(aj, dtype=np.int64)
-    as32 = lambda a: np.ascontiguousarray(a, dtype=I32)
-    return as32(place), as32(col), as32(lofs), as32(uofs)
+    place, col = np.empty(int(ai[-1]), dtype=I32), np.empty(int(ai[-1]), dtype=I32)
+    lofs, uofs = np.empty(n + 1, dtype=I32), np.empty(n + 1, dtype=I32)
+    _load().streams(n, ai, aj, diag, int(direction), place, col, lofs, uofs)
+    return place, col, lofs, uofs
 
 
 def plan_of(mat, direction=1, out=()):
@@ -124,9 +109,13 @@ class ChainLU:
         # how each block enters the factorisation: as it is (0), or, for the block rows taken
         # out, zero (1: their rows' and columns' other blocks) and the identity (2: their
         # diagonal blocks)
-        rows = np.repeat(np.arange(self.n), np.diff(ai))
-        hit = np.isin(rows, out) | np.isin(aj, out)
-        self.kind = np.where(hit, np.where(rows == aj, 2, 1), 0).astype(I8)
+        self.kind = np.zeros(len(aj), dtype=I8)
+        if len(out):
+            taken = np.zeros(self.n, dtype=bool)
+            taken[np.asarray(out)] = True
+            rows = np.repeat(np.arange(self.n, dtype=I32), np.diff(ai))
+            hit = taken[rows] | taken[aj]
+            self.kind[hit] = np.where(rows[hit] == aj[hit], 2, 1)
 
     @classmethod
     def plan(cls, ai, aj, bs, direction, out=()):
