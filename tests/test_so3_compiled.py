@@ -31,3 +31,44 @@ def test_compiled_rotations_equal_the_numpy_path():
     assert so3_compiled.rotate(np.asfortranarray(th), q, False) is None
     assert np.allclose(so3.rotated(np.asfortranarray(th), q), so3.qmul(so3.qexp(th), q),
                        rtol=0, atol=1e-15)
+
+
+def test_normalized_is_the_compiled_normalisation_bit_for_bit():
+    """so3.normalized (recentre's normalisation of a kept rotation) against the compiled
+    rotation's own: the same bits."""
+    rng = np.random.default_rng(4)
+    X = rng.standard_normal((2000, 6))
+    q = so3.qexp(rng.standard_normal((2000, 3))) * (1.0 + 1e-9 * rng.standard_normal((2000, 1)))
+    th = X[:, 3:6]
+    assert np.array_equal(so3.normalized(so3_compiled.rotate(th, q, False)),
+                          so3_compiled.rotate(th, q, True))
+
+
+def test_recentre_takes_the_line_searchs_rotations_bit_for_bit(monkeypatch):
+    """A Newton path run with recentre taking the rotations of the last residual's local_config
+    (where its increments are the state's) and one that always rotates anew: the same
+    iterations and the same bits; the kept rotations are taken at most Newton updates; and
+    q_ref is read-only outside set_q_ref."""
+    import pytest
+    from conftest import run_case, gathered_positions
+    from rodsnes.model.problem import RodState
+    taken = []
+    normalized = so3.normalized
+
+    def counted(q):
+        taken.append(1)
+        return normalized(q)
+    monkeypatch.setattr(so3, "normalized", counted)
+    a = run_case("mattiasson", load_path="newton", rod_error_estimate="off")
+    assert a.ok and len(taken) >= a.summary(True)["newton_iterations"] // 2
+    with pytest.raises(ValueError):
+        a.problem.state.q_ref[0, 0] = 1.0
+    with monkeypatch.context() as m:
+        m.setattr(RodState, "local_config", lambda self, X=None, f=RodState.local_config:
+                  (lambda r, q: (setattr(self, "_rotated", None), (r, q))[1])(*f(self, X)))
+        b = run_case("mattiasson", load_path="newton", rod_error_estimate="off")
+    assert b.ok
+    sa, sb = a.summary(True), b.summary(True)
+    assert sa["newton_iterations"] == sb["newton_iterations"]
+    assert np.array_equal(gathered_positions(a), gathered_positions(b))
+    assert sa["energy"] == sb["energy"]
