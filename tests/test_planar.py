@@ -163,6 +163,13 @@ def test_restrict_expand_and_share_are_the_components(monkeypatch, strided):
     b = w.getArray(readonly=True).reshape(-1, NDOF)
     assert np.array_equal(b[:, pl.plane.inplane], a[:, pl.plane.inplane])
     assert not b[:, pl.plane.outplane].any()
+    # a vector of block size 1 (as a shell's may be): the numpy way, the same values
+    flat = PETSc.Vec().createMPI((v.getLocalSize(), v.getSize()), comm=v.getComm())
+    v.copy(flat)
+    assert flat.getBlockSize() == 1
+    assert np.array_equal(pl.restrict(flat).getArray(readonly=True), vi.getArray(readonly=True))
+    pl.expand(vi, flat)
+    assert np.array_equal(flat.getArray(readonly=True), w.getArray(readonly=True))
     go, gn = pl.out_of_plane_share(v)
     from mpi4py import MPI
     o2 = comm.allreduce(float((a[:, pl.plane.outplane] ** 2).sum()), op=MPI.SUM)

@@ -52,19 +52,32 @@ _INSERT = int(PETSc.InsertMode.INSERT_VALUES)
 _PETSC_INT = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
 
 
-def _strided(name, vec, count, *rest):
-    """PETSc's strided vector function ``name`` on ``vec`` (by handle): VecStrideSubSetGather
-    and VecStrideSubSetScatter (``count`` components; index arrays of PETSc's integers or None,
-    the other vector's handle, the insert mode) or VecStrideNormAll (``count`` the norm type,
-    the norms' array); petsc4py 3.18 wraps none of them.  False where it cannot be reached
-    (the caller's numpy way instead)."""
-    norms = name == "VecStrideNormAll"
-    types = [ctypes.c_void_p, ctypes.c_int if norms else _PETSC_INT] + [
-        ctypes.c_int if isinstance(a, int) else ctypes.c_void_p for a in rest]
-    fn = petsc_lib.function(name, *types)
+# PETSc's strided vector functions (petsc4py 3.18 wraps none of them): their argument types
+_VEC, _ARRAY_OR_NULL = ctypes.c_void_p, ctypes.c_void_p
+_STRIDED = {
+    # (Vec v, PetscInt nidx, const PetscInt idxv[], const PetscInt idxs[], Vec s, InsertMode)
+    "VecStrideSubSetGather": (_VEC, _PETSC_INT, _ARRAY_OR_NULL, _ARRAY_OR_NULL, _VEC,
+                              ctypes.c_int),
+    # (Vec s, PetscInt nidx, const PetscInt idxs[], const PetscInt idxv[], Vec v, InsertMode)
+    "VecStrideSubSetScatter": (_VEC, _PETSC_INT, _ARRAY_OR_NULL, _ARRAY_OR_NULL, _VEC,
+                               ctypes.c_int),
+    # (Vec v, NormType, PetscReal nrm[])
+    "VecStrideNormAll": (_VEC, ctypes.c_int, _ARRAY_OR_NULL)}
+
+
+def _strided(name, vecs, *args):
+    """PETSc's strided vector function ``name`` on ``args`` (vectors by handle, index and norm
+    arrays as numpy arrays or None), where every vector of ``vecs`` (Vec, block size) has
+    that block size (a vector of another, as the SNES shell's of block size 1 that
+    -snes_test_jacobian multiplies, would be read and written past its end: those strided
+    loops trust the block size).  False where it does not apply or cannot be reached (the
+    caller's numpy way instead)."""
+    if any(v.getBlockSize() != bs for v, bs in vecs):
+        return False
+    fn = petsc_lib.function(name, *_STRIDED[name])
     if fn is None:
         return False
-    code = fn(vec, count, *(a.ctypes.data if isinstance(a, np.ndarray) else a for a in rest))
+    code = fn(*(a.ctypes.data if isinstance(a, np.ndarray) else a for a in args))
     if code:
         raise PETSc.Error(code)
     return True
@@ -265,8 +278,8 @@ class PlanarSystem:
         (PETSc's VecStrideSubSetGather: one pass, where numpy's gather and copy took 0.2 ms
         at 10^4 elements)."""
         out = self._block_vec() if out is None else out
-        if not _strided("VecStrideSubSetGather", v.handle, 3, self._inplane_ids, None,
-                        out.handle, _INSERT):
+        if not _strided("VecStrideSubSetGather", ((v, NDOF), (out, 3)), v.handle, 3,
+                        self._inplane_ids, None, out.handle, _INSERT):
             a = v.getArray(readonly=True).reshape(-1, NDOF)[:, self.plane.inplane]
             with out as o:
                 o[:] = a.ravel()
@@ -281,8 +294,8 @@ class PlanarSystem:
     def expand(self, vi, v):
         """v <- vi on the in-plane components, 0 on the others."""
         v.zeroEntries()
-        if not _strided("VecStrideSubSetScatter", vi.handle, 3, None, self._inplane_ids,
-                        v.handle, _INSERT):
+        if not _strided("VecStrideSubSetScatter", ((vi, 3), (v, NDOF)), vi.handle, 3, None,
+                        self._inplane_ids, v.handle, _INSERT):
             with v as a:
                 a.reshape(-1, NDOF)[:, self.plane.inplane] = \
                     vi.getArray(readonly=True).reshape(-1, 3)
@@ -292,7 +305,8 @@ class PlanarSystem:
         VecStrideNormAll: one pass and one reduction, where numpy's took 0.23 ms at 10^4
         elements)."""
         norms = np.zeros(NDOF)
-        if _strided("VecStrideNormAll", v.handle, int(PETSc.NormType.NORM_2), norms):
+        if _strided("VecStrideNormAll", ((v, NDOF),), v.handle, int(PETSc.NormType.NORM_2),
+                    norms):
             sq = norms ** 2
             return float(np.sqrt(sq[self.plane.outplane].sum())), float(np.sqrt(sq.sum()))
         a = v.getArray(readonly=True)
@@ -405,6 +419,7 @@ class PlanarSystem:
         n, N = NDOF * lay.n_owned, NDOF * lay.n_global
         self.shell = PETSc.Mat().createPython(((n, N), (n, N)), context=_Operator(self),
                                               comm=lay.comm)
+        self.shell.setBlockSize(NDOF)       # its vectors: a node's 6 unknowns a block
         self.shell.setUp()
         solver.snes.setJacobian(self._snes_jacobian, self.shell)
         self.attach_pc(solver.snes.getKSP())
