@@ -122,6 +122,14 @@ class Layout:
                                          comm=PETSc.COMM_SELF)
         self.scatter = PETSc.Scatter().create(self.x, is_from, self.xlocal, None)
 
+    def natural_rows(self, nrows):
+        """The natural index (node n, unknown c: n k + c, k = nrows / n_owned unknowns a node)
+        of each of this rank's ``nrows`` rows of a vector or matrix over its owned nodes, in
+        PETSc's order: one unknown has one number on any number of ranks (a seed drawn from
+        it is the same vector however the rod is shared)."""
+        k = nrows // max(self.n_owned, 1)
+        return (self.owned_nodes[:, None] * k + np.arange(k)).ravel()
+
     def create_vec(self):
         v = PETSc.Vec().createMPI((NDOF * self.n_owned, NDOF * self.n_global), bsize=NDOF, comm=self.comm)
         v.set(0.0)

@@ -275,8 +275,9 @@ class EnergyMinimizer:
         if self._mode is not None and self._mode.getSize() == v.getSize():
             self._mode.copy(v)
         else:
-            lo, hi = v.getOwnershipRange()
-            idx = np.arange(lo, hi, dtype=float)
+            # a seed of the unknowns' natural numbers: the same on any number of ranks (at a
+            # symmetric saddle the mode it finds is the branch the path takes)
+            idx = p.layout.natural_rows(v.getLocalSize()).astype(float)
             v.setArray(np.sin(12.9898 * idx + 0.5) * 43758.5453 % 1.0 - 0.5)
         self.inverse_iterate(self.factor.solve, v, its, lambda x: x.scale(1.0 / x.norm()))
         if self._mode is not None:

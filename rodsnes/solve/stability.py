@@ -35,12 +35,13 @@ class ChainCount:
     docstring): chain.ChainLU's pivot blocks on one rank, on several schur.RankSchur (a python
     PC) with its stretches' and the separator's Schur complement's (Haynsworth).  A count is
     taken where the factors solve H x = b, b_i = sin(0.37 i), to a backward error within the
-    caller's bound: count(H, bound) gives it or None; solve(b, x) by the last factors;
+    caller's bound (i the unknown's natural number, Layout.natural_rows: the same b on any
+    number of ranks): count(H, bound) gives it or None; solve(b, x) by the last factors;
     ``backward`` the error found, ``structural`` where the condensation cannot count at all (a
     stretch not a chain, the whole-matrix mode)."""
 
-    def __init__(self, lu=None, pc=None):
-        self.lu, self.pc = lu, pc
+    def __init__(self, lu=None, pc=None, layout=None):
+        self.lu, self.pc, self.layout = lu, pc, layout
         self.backward = None
         self.structural = False
 
@@ -56,9 +57,9 @@ class ChainCount:
             ctx = schur.RankSchur(problem)
             ctx.inertia = True
             pc.setPythonContext(ctx)
-            return cls(pc=pc)
+            return cls(pc=pc, layout=problem.layout)
         lu = chain.plan_of(H)
-        return None if lu is None else cls(lu=lu)
+        return None if lu is None else cls(lu=lu, layout=problem.layout)
 
     def count(self, H, bound):
         """H's negative eigenvalues, or None (a singular pivot block, factors not backward
@@ -92,7 +93,8 @@ class ChainCount:
         at most ``bound`` / |H| (sets ``backward``).  Collective."""
         b = H.createVecRight()
         lo, hi = b.getOwnershipRange()
-        b.setArray(np.sin(0.37 * np.arange(lo, hi)))
+        rows = np.arange(lo, hi) if self.layout is None else self.layout.natural_rows(hi - lo)
+        b.setArray(np.sin(0.37 * rows))
         x = b.duplicate()
         self.solve(b, x)
         r = b.duplicate()
