@@ -42,6 +42,32 @@ def test_two_ranks_give_the_serial_residual_energy_and_contact_forces():
         assert owners[0] != owners[-1]
 
 
+@pytest.mark.mpi
+def test_the_pattern_pairs_when_one_rank_alone_has_candidates(monkeypatch):
+    """ContactTerm.pattern_pairs where only rank 0 has candidate pairs: every rank meets the
+    same collectives (a rank without candidates had taken the next allgather, of the pairs,
+    for the elements' positions: ValueError on 3 ranks at rollup_contact's step 9), and all
+    ranks hold rank 0's pairs that touch."""
+    run = coiled()
+    term = run.contact
+    r = run.problem.state.local_config()[0]
+    every = term.pattern_pairs(r)
+    search_pairs = type(term).search_pairs
+    rank = PETSc.COMM_WORLD.getRank()
+
+    def rank0_only(self, *args, **kw):
+        pairs, cen, rad = search_pairs(self, *args, **kw)
+        return (pairs if rank == 0 else pairs[:0]), cen, rad
+    monkeypatch.setattr(type(term), "search_pairs", rank0_only)
+    got = term.pattern_pairs(r)
+    mine = PETSc.COMM_WORLD.tompi4py().bcast(got)
+    assert np.array_equal(got, mine)                    # the same on every rank
+    keys = set(map(tuple, every))
+    assert len(got) and all(tuple(p) in keys for p in got)
+    if PETSc.COMM_WORLD.getSize() == 1:
+        assert np.array_equal(got, every)
+
+
 def test_kkt_report_and_action_reaction():
     run = coiled()
     p = run.problem

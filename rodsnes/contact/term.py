@@ -426,9 +426,12 @@ class ContactTerm(Term):
         touch = 2.0 * self.eps + margin
         x_el = r_loc[self.lconn]
         pairs, cen, rad = self.search_pairs(*search.element_bounds(x_el), touch, bounds=True)
-        if len(pairs):
+        # every rank gathers the elements where any rank has candidates (collectives met by
+        # all: a rank without candidates of its own took the next allgather for this one's)
+        if allreduce(self.comm, int(len(pairs) > 0), op=MPI.MAX):
             lay_ids = self._element_slots()
             x_all = np.concatenate(self.comm.allgather(x_el))
+        if len(pairs):
             caps = search.element_capsules(x_all)
             near = search.capsules_within([v[lay_ids[pairs[:, 0]]] for v in caps],
                                       [v[lay_ids[pairs[:, 1]]] for v in caps], touch)
