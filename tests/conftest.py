@@ -108,7 +108,7 @@ def place(run, x, t):
     from rodsnes.model import so3
     from rodsnes.model.partition import NDOF
     p, lay = run.problem, run.layout
-    p.state.set_q_ref(so3.quat_from_rot(so3.frame_from_tangent(t))[lay.local_nodes])
+    p.state.q_ref[:] = so3.quat_from_rot(so3.frame_from_tangent(t))[lay.local_nodes]
     with p.state.X as a:
         a = a.reshape(-1, NDOF)
         a[:, 0:3] = x[lay.owned_nodes]

@@ -63,7 +63,7 @@ def test_the_problem_sums_a_term_it_does_not_know():
         a[p.constraints.rows_local] = base.state.X.getArray(readonly=True)[p.constraints.rows_local]
     p.state.recentre()                     # the tangent is the chart's at theta = 0
     p.state.X.copy(base.state.X)
-    base.state.set_q_ref(p.state.q_ref)
+    base.state.q_ref[:] = p.state.q_ref
     # energy: the rod's and the loads' plus the spring's
     r, _ = p.state.local_config()
     end = PETSc.COMM_WORLD.tompi4py().allreduce(

@@ -39,41 +39,18 @@ def reference_strains(rod, mesh, conn, strains):
 
 
 class RodState:
-    """q_ref (local nodes) + X; snapshot/restore for rejected load steps.
-
-    q_ref is read-only: it changes through set_q_ref alone, which forgets the rotations
-    local_config made from the old one (``_rotated``: the increments theta and exp(theta) q_ref
-    of its last call away from the reference).  recentre takes them when X's increments are
-    those (a Newton update, after the line search evaluated the residual there): the node
-    rotations once an iteration instead of twice, bit for bit the same q_ref."""
+    """q_ref (local nodes) + X; snapshot/restore for rejected load steps."""
 
     def __init__(self, layout, q_local, X):
         self.layout = layout
-        self._q_ref = np.array(q_local, dtype=float)
-        self._q_ref.flags.writeable = False
-        self._rotated = None
+        self.q_ref = q_local.copy()
         self.X = X
-
-    @property
-    def q_ref(self):
-        """The local nodes' reference rotations (n_local, 4), read-only (set_q_ref)."""
-        return self._q_ref
-
-    def set_q_ref(self, values, index=slice(None)):
-        """q_ref[index] = values."""
-        q = self._q_ref
-        q.flags.writeable = True
-        try:
-            q[index] = values
-        finally:
-            q.flags.writeable = False
-        self._rotated = None
 
     def snapshot(self):
         return self.q_ref.copy(), self.X.copy()
 
     def restore(self, snap):
-        self.set_q_ref(snap[0])
+        self.q_ref[:] = snap[0]
         snap[1].copy(self.X)
 
     def snapshot_of(self, positions, directors, rotation=None):
@@ -114,7 +91,7 @@ class RodState:
             psi = so3.log_relative(self.q_ref[:no], q_prev[:no])
         else:
             psi = so3.log_relative(self.q_ref[:no], so3.twisted(q_prev, twist)[:no])
-            self.set_q_ref(so3.twisted(self.q_ref, ratio * twist))
+            self.q_ref[:] = so3.twisted(self.q_ref, ratio * twist)
         xp = X_prev.getArray(readonly=True).reshape(-1, NDOF)
         with self.X as a:
             a = a.reshape(-1, NDOF)
@@ -122,33 +99,24 @@ class RodState:
             a[:, 3:6] = ratio * psi
 
     def recentre(self):
-        """Fold theta into the reference rotations: q_ref <- qexp(theta) * q_ref (normalised),
-        theta <- 0; the rotations of the last local_config where they are those of X's theta
-        (0.7 ms of a 14 ms Newton iteration at 10^4 planar elements)."""
-        xl = self.layout.local_view(self.X)
+        """Fold theta into the reference rotations: q_ref <- qexp(theta) * q_ref, theta <- 0."""
+        xl = self.layout.to_local(self.X)
         th = xl[:, 3:6]
         if np.any(th):
-            kept = self._rotated
-            if kept is not None and np.array_equal(kept[0], th):
-                self.set_q_ref(so3.normalized(kept[1]))
-            else:
-                self.set_q_ref(so3.rotated(th, self.q_ref, normalize=True))
+            self.q_ref[:] = so3.rotated(th, self.q_ref, normalize=True)
             with self.X as a:
                 a.reshape(-1, NDOF)[:, 3:6] = 0.0
 
     def local_config(self, X=None):
         """Positions (n_local,3) and rotations q (n_local,4) at the vector X (default: state),
         both new C-contiguous arrays (the kernels' layout: no copy of the owned and ghost
-        values first and of the positions again); q read-only where it is kept for recentre."""
+        values first and of the positions again)."""
         xl = self.layout.local_view(self.X if X is None else X)
         th = xl[:, 3:6]
         r = np.array(xl[:, 0:3])
         if not th.any():            # at a recentred iterate: exp(0) q_ref = q_ref, bit for bit
             return r, self.q_ref.copy()
-        q = so3.rotated(th, self.q_ref)
-        q.flags.writeable = False
-        self._rotated = (np.array(th), q)
-        return r, q
+        return r, so3.rotated(th, self.q_ref)
 
 
 class Constraints:
@@ -222,7 +190,7 @@ class Constraints:
         for node, fun in self.rotation_targets:
             li = lay.nat2local[node]
             if li >= 0:
-                state.set_q_ref(fun(lam), li)
+                state.q_ref[li] = fun(lam)
         with state.X as a:
             a[self.rows_local] = np.where(self.rows_local % NDOF < 3, self.target_own, 0.0)
 

@@ -62,22 +62,14 @@ def qexp(theta):
 
 def rotated(theta, q, normalize=False):
     """exp(theta_i) q_i per node (qmul(qexp(theta), q)), divided by its norm with
-    ``normalize`` (as ``normalized``): by the compiled kernel (so3_compiled; theta read in
-    place) when it is built, else by numpy."""
+    ``normalize``: by the compiled kernel (so3_compiled; theta read in place) when it is built,
+    else by numpy."""
     out = so3_compiled.rotate(theta, q, normalize)
     if out is None:
         out = qmul(qexp(theta), q)
         if normalize:
-            out = normalized(out)
+            out /= np.linalg.norm(out, axis=-1, keepdims=True)
     return out
-
-
-def normalized(q):
-    """q_i / |q_i| per node, |q|^2 summed in the order (((q0^2 + q1^2) + q2^2) + q3^2): the
-    bits of rotated(..., normalize=True)'s compiled division (_rotation_kernel.c)."""
-    q = np.asarray(q, dtype=float)
-    q0, q1, q2, q3 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return q / np.sqrt(((q0 * q0 + q1 * q1) + q2 * q2) + q3 * q3)[..., None]
 
 
 def qlog(q):

@@ -239,7 +239,7 @@ class EnrichedProblem:
         discretisation (refine.transfer), rotation increments zero."""
         x, q = refine.transfer(mesh, x_nodes, q_nodes, self.mesh)
         st, lay = self.problem.state, self.layout
-        st.set_q_ref(q[lay.local_nodes])
+        st.q_ref[:] = q[lay.local_nodes]
         with st.X as a:
             a = a.reshape(-1, NDOF)
             a[:, 0:3] = x[lay.owned_nodes]

@@ -75,8 +75,8 @@ class LoadPath:
         R_i <- R_i exp(phi_i e3^x)."""
         phi = self.twist_angles(dlam)
         if phi is not None:
-            state = self.problem.state
-            state.set_q_ref(so3.twisted(state.q_ref, phi))
+            q = self.problem.state.q_ref
+            q[:] = so3.twisted(q, phi)
 
     def keep_promise(self, res, max_raises=4):
         """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
