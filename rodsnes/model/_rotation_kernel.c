@@ -5,6 +5,7 @@
  * increments in place in the rows of the local dof array, no copy.  Built with
  * -ffp-contract=off: the same floating-point operations as the numpy path, up to sin and cos.
  */
+#define _GNU_SOURCE             /* sincos: glibc's sin and cos of one argument in one call */
 #include <math.h>
 #include <stdint.h>
 
@@ -15,8 +16,10 @@ void rodsnes_rotate(int64_t n, const double *x, int64_t stride, const double *q,
         const double *t = x + i * stride;
         const double t1 = t[0], t2 = t[1], t3 = t[2];
         const double ang = sqrt(t1 * t1 + t2 * t2 + t3 * t3), half = 0.5 * ang;
-        const double s = ang < 1e-8 ? 0.5 - ang * ang / 48.0 : sin(half) / ang;
-        const double a0 = cos(half), a1 = s * t1, a2 = s * t2, a3 = s * t3;
+        double sh, ch;
+        sincos(half, &sh, &ch);
+        const double s = ang < 1e-8 ? 0.5 - ang * ang / 48.0 : sh / ang;
+        const double a0 = ch, a1 = s * t1, a2 = s * t2, a3 = s * t3;
         const double *b = q + 4 * i;
         const double b0 = b[0], b1 = b[1], b2 = b[2], b3 = b[3];
         double *o = out + 4 * i;
