@@ -11,3 +11,7 @@ class SceneError(Exception):
     def __init__(self, message, options=()):
         super().__init__(message)
         self.options = tuple(options)
+
+    def __reduce__(self):
+        """Pickled with its options (sent from one rank to the others)."""
+        return type(self), (str(self), self.options)

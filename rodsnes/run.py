@@ -150,8 +150,8 @@ class Run:
     # ------------------------------------------------------------------------------
     def _restart(self, rdir):
         """Resume from the last converged step of an earlier run in rdir (refused with a
-        SceneError if rdir holds no readable step or a run of another scene)."""
-        last = self._restart_step(rdir)
+        SceneError if rdir holds no readable step or a run of another scene).  Collective."""
+        last, before = self._read_restart(rdir)
         self._check_restart_scene(rdir, last["meta"])
         st = self.problem.state
         pos = np.asarray(last["positions"])
@@ -177,10 +177,35 @@ class Run:
         if arc is not None and self.arclength:
             self.arc0 = float(arc)      # dlam0 is then the continuation's next increment
         # (a checkpoint of one step has no step before it: the last state predicts)
-        if (self.step >= 1 and not last["attrs"].get("branch_switch", 0)
-                and self.step - 1 in output.read_steps(rdir)):
-            before = output.read_step(rdir, self.step - 1)
+        if before is not None:
             self.prev0 = (st.snapshot_of_step(before), float(before["attrs"]["load"]))
+
+    def _read_restart(self, rdir):
+        """(last, before): the last complete step of rdir's result.h5 and the step before it
+        (None where there is none, or across a step flagged branch_switch), read on rank 0
+        alone and sent to every rank, so that all ranks resume from one reading of the file
+        (read by each, a file another run was still writing gave the ranks different steps and
+        mixed states); a SceneError on rank 0 is raised on every rank.  Collective."""
+        got = None
+        if self.mpi.rank == 0:
+            try:
+                last = self._restart_step(rdir)
+                step, before = int(last["step"]), None
+                if (step >= 1 and not last["attrs"].get("branch_switch", 0)
+                        and step - 1 in output.read_steps(rdir)):
+                    before = output.read_step(rdir, step - 1)
+                got = (last, before)
+            except SceneError as exc:
+                got = exc
+            except Exception as exc:    # noqa: BLE001 - said on every rank, none left waiting
+                why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                got = SceneError(f"-restart {rdir}: its steps cannot be read ({why}): restart "
+                                 f"from another run or a checkpoint, or drop -restart",
+                                 ("-restart",))
+        got = self.mpi.bcast(got, root=0)
+        if isinstance(got, SceneError):
+            raise got
+        return got
 
     def _tip(self, fields):
         if self.mesh.closed:

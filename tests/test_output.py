@@ -394,3 +394,32 @@ def test_xdmf_rewrite_reads_only_new_steps(tmp_path, monkeypatch):
     output.write_xdmf(tmp_path, cache=small)
     output.write_xdmf(tmp_path, cache=small)
     assert small.data == {} and read == [0, 1, 2, 3] * 2
+
+
+@pytest.mark.mpi
+def test_a_step_rank_0_cannot_open_fails_on_every_rank_without_a_stray_message():
+    """Gathered writing (parallel_io False): rank 0 cannot open result.h5 (its directory
+    removed between two steps): the step's error on every rank, and every rank took part in
+    every gather (before, the other ranks' rows were left for rank 0's next collective, or
+    they waited in a gather rank 0 never joined)."""
+    from mpi4py import MPI
+    comm = MPI.COMM_WORLD
+    out = comm.bcast(tempfile.mkdtemp(prefix="rodsnes_gathered_") if comm.rank == 0 else None)
+    n = 8
+    mine = np.arange(comm.rank, n, comm.size)
+    fields = {"positions": np.zeros((len(mine), 3)),
+              "directors": np.tile(np.eye(3), (len(mine), 1, 1))}
+    attrs = {"load": 0.0, "energy": 0.0, "newton_iterations": 0, "residual_norm": 0.0}
+    meta = dict(case_name="fake", closed=False, length=1.0, radius=0.01, nelem=n - 1, order=1)
+    w = output.ResultWriter(out, comm, n, meta, xdmf=False, parallel_io=False)
+    w.write_step(0, attrs, mine, fields)
+    comm.Barrier()
+    if comm.rank == 0:
+        shutil.rmtree(out)
+    comm.Barrier()
+    if comm.size > 1:
+        with pytest.raises(RuntimeError, match="failed on rank 0"):
+            w.write_step(1, dict(attrs, load=0.5), mine, fields)
+    got = comm.gather(("fresh", comm.rank), root=0)
+    if comm.rank == 0:
+        assert got == [("fresh", r) for r in range(comm.size)]

@@ -254,3 +254,16 @@ def test_newton_that_stops_gaining_fails_early():
     assert feed(slow) == (None, None) and not sv.stagnated
     sv.stagnation_its = 0
     assert feed(cycle) == (None, None)
+
+
+@pytest.mark.mpi
+def test_a_failed_eigen_solve_raises_on_every_rank():
+    """lowest_eigenpair solves on rank 0: its failure (a Hessian that is not finite) is raised
+    on every rank, none left waiting for the eigenvector."""
+    from rodsnes.solve.stability import lowest_eigenpair
+    run = build_run("euler", rod_nelem=8, load_path="newton")
+    p = run.problem
+    with p.state.X as a:
+        a[0] = np.nan
+    with pytest.raises(ValueError):
+        lowest_eigenpair(p)

@@ -151,3 +151,39 @@ def test_a_checkpoint_of_one_step_resumes_without_a_secant(tmp_path):
     assert resumed.ok and resumed.prev0 is None
     assert [h["load"] for h in resumed.history] == [1.0]
     assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
+
+
+@pytest.mark.mpi
+def test_the_ranks_resume_from_rank_0s_reading(monkeypatch):
+    """The restart's steps are read on rank 0 alone and sent to every rank (read by each, a
+    file another run was still writing gave the ranks different steps and mixed states, then a
+    hang): the other ranks' reads fail here and the run still resumes; a directory rank 0
+    finds unreadable is refused on every rank."""
+    from rodsnes.errors import SceneError
+    from rodsnes.io import results
+    comm = MPI.COMM_WORLD
+    base = comm.bcast(tempfile.mkdtemp(prefix="rodsnes_restart_") if comm.rank == 0 else None, root=0)
+    try:
+        full = run_case("mattiasson", outdir=os.path.join(base, "full"), load_steps=4)
+        cut = os.path.join(base, "cut")
+        if comm.rank == 0:
+            shutil.copytree(os.path.join(base, "full"), cut)
+            with h5py.File(os.path.join(cut, "result.h5"), "r+") as f:
+                f.attrs["last_step"] = 2
+        comm.Barrier()
+        if comm.rank > 0:
+            monkeypatch.setattr(results, "read_step", lambda *a, **k: 1 / 0)
+        resumed = run_case("mattiasson", outdir=os.path.join(base, "out"), load_steps=4,
+                           restart=cut)
+        assert full.ok and resumed.ok
+        assert [h["load"] for h in resumed.history] == [0.75, 1.0]
+        assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
+        monkeypatch.undo()
+        if comm.rank == 0:          # rank 0 alone cannot read it
+            monkeypatch.setattr(results, "read_step", lambda *a, **k: 1 / 0)
+        with pytest.raises(SceneError, match="-restart"):
+            run_case("mattiasson", outdir=os.path.join(base, "out2"), load_steps=4, restart=cut)
+    finally:
+        comm.Barrier()
+        if comm.rank == 0:
+            shutil.rmtree(base, ignore_errors=True)

@@ -553,12 +553,23 @@ class ResultWriter:
         return None, None
 
     def _write_gathered(self, step, attrs, prepared):
-        f = None
+        """Gather each field to rank 0, which writes it.  Every rank takes part in every
+        gather whatever happens on rank 0 (a file rank 0 cannot open: the step's error is
+        said on every rank after the gathers, none is left waiting in one)."""
+        f = g = None
         err = None
-        try:
-            if self.comm.rank == 0:
+        if self.comm.rank == 0:
+            try:
                 f = _open_h5(self.path, "a")
                 g = self._group_setup(f, step, attrs)
+            except Exception as exc:  # noqa: BLE001 - reported on all ranks below
+                if f is not None:
+                    f.close()
+                    f = None
+                if self.comm.size == 1:
+                    raise
+                err = f"{type(exc).__name__}: {exc}"
+        try:
             for kind, ids, order, n_total, specs, fields in prepared:
                 for name, shape, dtype in specs:
                     rows = np.ascontiguousarray(

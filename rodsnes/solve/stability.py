@@ -484,41 +484,52 @@ def lowest_eigenpair(problem, nneg=None, dense_max=None):
     H.destroy()
     payload = None
     if comm.rank == 0:
-        A = 0.5 * (A + A.T)
-        n = A.shape[0]
-        dmax = float(np.abs(A.diagonal()).max())
-        tau = 1e3 * np.finfo(float).eps * dmax
-        kk = min(n - 1, max(6, (nneg or 1) + 4))
-        if n <= dense_max:
-            import scipy.linalg as sl
-            w, V = sl.eigh(A.toarray(), subset_by_index=[0, min(n, kk) - 1])
-            method = "dense"
-        else:
-            import scipy.sparse as sp
-            from scipy.sparse.linalg import eigsh, splu
-            w, V = eigsh(A.tocsc(), k=kk, sigma=-tau, which="LM")
-            w = np.sort(w)
-            # ARPACK's Ritz vectors are accurate relative to the shift-inverted operator, whose
-            # largest eigenvalues are the near-zero modes (rigid motions, symmetries); two steps
-            # of block inverse iteration just below the lowest Ritz value + Rayleigh-Ritz bring
-            # |H v - lam v| down to roundoff (1e-13 instead of 1e-3 on the Michell ring)
-            lu = splu((A - (w[0] - 1e-2 * abs(w[0]) - tau) * sp.identity(n, format="csc")).tocsc())
-            for _ in range(2):
-                V, _ = np.linalg.qr(lu.solve(V))
-            w, Y = np.linalg.eigh(V.T @ (A @ V))
-            V = V @ Y
-            method = "eigsh"
-        v, ncl = _canonical(V, w, 1e-6 * abs(w[0]) + tau)
-        lam = float(v @ (A @ v))                     # Rayleigh quotient (= w[0] in a cluster)
-        resid = float(np.linalg.norm(A @ v - lam * v))
-        payload = (lam, v, {"n": n, "method": method, "cluster": ncl, "residual": resid,
-                            "eigenvalues": w.tolist()})
-    lam, v_nat, info = comm.bcast(payload, root=0)
+        try:
+            payload = _lowest_on_root(A, nneg, dense_max)
+        except Exception as exc:    # noqa: BLE001 - raised on every rank below, none left waiting
+            payload = exc
+    payload = comm.bcast(payload, root=0)
+    if isinstance(payload, Exception):
+        raise payload
+    lam, v_nat, info = payload
     vec = lay.create_vec()
     with vec as a:
         a[:] = v_nat.reshape(-1, 6)[lay.owned_nodes].ravel()
     info["seconds"] = comm.allreduce(time.perf_counter() - t0, op=_max())
     return lam, vec, info
+
+
+def _lowest_on_root(A, nneg, dense_max):
+    """lowest_eigenpair's solve of the gathered Hessian A on rank 0: (lam, v, info)."""
+    A = 0.5 * (A + A.T)
+    n = A.shape[0]
+    dmax = float(np.abs(A.diagonal()).max())
+    tau = 1e3 * np.finfo(float).eps * dmax
+    kk = min(n - 1, max(6, (nneg or 1) + 4))
+    if n <= dense_max:
+        import scipy.linalg as sl
+        w, V = sl.eigh(A.toarray(), subset_by_index=[0, min(n, kk) - 1])
+        method = "dense"
+    else:
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import eigsh, splu
+        w, V = eigsh(A.tocsc(), k=kk, sigma=-tau, which="LM")
+        w = np.sort(w)
+        # ARPACK's Ritz vectors are accurate relative to the shift-inverted operator, whose
+        # largest eigenvalues are the near-zero modes (rigid motions, symmetries); two steps
+        # of block inverse iteration just below the lowest Ritz value + Rayleigh-Ritz bring
+        # |H v - lam v| down to roundoff (1e-13 instead of 1e-3 on the Michell ring)
+        lu = splu((A - (w[0] - 1e-2 * abs(w[0]) - tau) * sp.identity(n, format="csc")).tocsc())
+        for _ in range(2):
+            V, _ = np.linalg.qr(lu.solve(V))
+        w, Y = np.linalg.eigh(V.T @ (A @ V))
+        V = V @ Y
+        method = "eigsh"
+    v, ncl = _canonical(V, w, 1e-6 * abs(w[0]) + tau)
+    lam = float(v @ (A @ v))                     # Rayleigh quotient (= w[0] in a cluster)
+    resid = float(np.linalg.norm(A @ v - lam * v))
+    return lam, v, {"n": n, "method": method, "cluster": ncl, "residual": resid,
+                    "eigenvalues": w.tolist()}
 
 
 def _max():
