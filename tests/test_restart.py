@@ -14,6 +14,18 @@ from conftest import gathered_positions, run_case
 pytestmark = pytest.mark.usefixtures("newton_path")
 
 
+def _cut_copy(comm, base):
+    """base/cut: a copy of the run in base/full as if interrupted - the same file, but only two
+    steps complete when it stopped.  Collective."""
+    cut = os.path.join(base, "cut")
+    if comm.rank == 0:
+        shutil.copytree(os.path.join(base, "full"), cut)
+        with h5py.File(os.path.join(cut, "result.h5"), "r+") as f:
+            f.attrs["last_step"] = 2
+    comm.Barrier()
+    return cut
+
+
 @pytest.mark.mpi
 def test_restart_from_an_interrupted_run_matches_the_uninterrupted_one():
     """Collective: on 2 ranks the restart appends to rank 0's file (every rank learns last_step)."""
@@ -22,13 +34,7 @@ def test_restart_from_an_interrupted_run_matches_the_uninterrupted_one():
     try:
         full = run_case("mattiasson", outdir=os.path.join(base, "full"), load_steps=4)
         assert full.ok
-        # an interrupted run: the same file, but only two steps were complete when it stopped
-        cut = os.path.join(base, "cut")
-        if comm.rank == 0:
-            shutil.copytree(os.path.join(base, "full"), cut)
-            with h5py.File(os.path.join(cut, "result.h5"), "r+") as f:
-                f.attrs["last_step"] = 2
-        comm.Barrier()
+        cut = _cut_copy(comm, base)
         resumed = run_case("mattiasson", outdir=cut, load_steps=4, restart=cut)
         assert resumed.ok
         assert [h["load"] for h in resumed.history] == [0.75, 1.0]
@@ -165,12 +171,7 @@ def test_the_ranks_resume_from_rank_0s_reading(monkeypatch):
     base = comm.bcast(tempfile.mkdtemp(prefix="rodsnes_restart_") if comm.rank == 0 else None, root=0)
     try:
         full = run_case("mattiasson", outdir=os.path.join(base, "full"), load_steps=4)
-        cut = os.path.join(base, "cut")
-        if comm.rank == 0:
-            shutil.copytree(os.path.join(base, "full"), cut)
-            with h5py.File(os.path.join(cut, "result.h5"), "r+") as f:
-                f.attrs["last_step"] = 2
-        comm.Barrier()
+        cut = _cut_copy(comm, base)
         if comm.rank > 0:
             monkeypatch.setattr(results, "read_step", lambda *a, **k: 1 / 0)
         resumed = run_case("mattiasson", outdir=os.path.join(base, "out"), load_steps=4,
