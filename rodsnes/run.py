@@ -102,9 +102,17 @@ class Run:
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
                                  f"raise -load_stop (at most 1) or drop it", ("-load_stop", "-restart"))
             append = os.path.abspath(scene.output.restart) == os.path.abspath(self.outdir)
-        if self.rank == 0:
-            os.makedirs(self.outdir, exist_ok=True)
-        self.mpi.Barrier()
+        made = None
+        if self.rank == 0:              # said on every rank: none left waiting for rank 0
+            try:
+                os.makedirs(self.outdir, exist_ok=True)
+            except OSError as exc:
+                why = exc.strerror or str(exc)
+                made = SceneError(f"-output_dir {self.outdir}: cannot be made ({why}): give a "
+                                  "writable directory", ("-output_dir",))
+        made = self.mpi.bcast(made, root=0)
+        if made is not None:
+            raise made
         self.writer = output.ResultWriter(self.outdir, self.mpi, self.mesh.n_nodes, meta, append=append)
         self.dofs = NDOF * self.mesh.n_nodes
 

@@ -680,3 +680,27 @@ def test_deferred_keeps_a_signal_until_its_section_ends():
                 pass
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+@pytest.mark.mpi
+def test_an_output_dir_rank_0_cannot_make_is_refused_on_every_rank():
+    """A Run built through the API (no rodsnes command's check before it) whose -output_dir
+    rank 0 cannot make: a SceneError naming the option on every rank, none left waiting."""
+    import tempfile
+    from mpi4py import MPI
+    from conftest import build_run
+    from rodsnes.errors import SceneError
+    comm = MPI.COMM_WORLD
+    blocker = None
+    if comm.rank == 0:
+        fd, blocker = tempfile.mkstemp(prefix="rodsnes_not_a_dir_")
+        os.close(fd)
+    blocker = comm.bcast(blocker)
+    try:
+        with pytest.raises(SceneError, match="-output_dir") as err:
+            build_run("mattiasson", outdir=os.path.join(blocker, "out"))
+        assert err.value.options == ("-output_dir",)
+    finally:
+        comm.Barrier()
+        if comm.rank == 0:
+            os.remove(blocker)
