@@ -122,4 +122,3 @@ def set_pc_failed(pc, failed):
              argtypes=[ctypes.c_void_p, ctypes.c_int])
     except RuntimeError:
         pass
-

@@ -18,6 +18,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes import interrupts
+from rodsnes.collective import on_root
 from rodsnes.model import fe, mesh as rodmesh
 from rodsnes.io import results as output
 from rodsnes.model import partition
@@ -102,17 +103,7 @@ class Run:
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
                                  f"raise -load_stop (at most 1) or drop it", ("-load_stop", "-restart"))
             append = os.path.abspath(scene.output.restart) == os.path.abspath(self.outdir)
-        made = None
-        if self.rank == 0:              # said on every rank: none left waiting for rank 0
-            try:
-                os.makedirs(self.outdir, exist_ok=True)
-            except OSError as exc:
-                why = exc.strerror or str(exc)
-                made = SceneError(f"-output_dir {self.outdir}: cannot be made ({why}): give a "
-                                  "writable directory", ("-output_dir",))
-        made = self.mpi.bcast(made, root=0)
-        if made is not None:
-            raise made
+        on_root(self.mpi, self._make_output_dir)   # its refusal said on every rank
         self.writer = output.ResultWriter(self.outdir, self.mpi, self.mesh.n_nodes, meta, append=append)
         self.dofs = NDOF * self.mesh.n_nodes
 
@@ -188,32 +179,39 @@ class Run:
         if before is not None:
             self.prev0 = (st.snapshot_of_step(before), float(before["attrs"]["load"]))
 
+    def _make_output_dir(self):
+        """Make -output_dir (rank 0: on_root), or a SceneError naming it."""
+        try:
+            os.makedirs(self.outdir, exist_ok=True)
+        except OSError as exc:
+            raise SceneError(f"-output_dir {self.outdir}: cannot be made "
+                             f"({exc.strerror or exc}): give a writable directory",
+                             ("-output_dir",)) from None
+
     def _read_restart(self, rdir):
         """(last, before): the last complete step of rdir's result.h5 and the step before it
         (None where there is none, or across a step flagged branch_switch), read on rank 0
-        alone and sent to every rank, so that all ranks resume from one reading of the file
-        (read by each, a file another run was still writing gave the ranks different steps and
-        mixed states); a SceneError on rank 0 is raised on every rank.  Collective."""
-        got = None
-        if self.mpi.rank == 0:
-            try:
-                last = self._restart_step(rdir)
-                step, before = int(last["step"]), None
-                if (step >= 1 and not last["attrs"].get("branch_switch", 0)
-                        and step - 1 in output.read_steps(rdir)):
-                    before = output.read_step(rdir, step - 1)
-                got = (last, before)
-            except SceneError as exc:
-                got = exc
-            except Exception as exc:    # noqa: BLE001 - said on every rank, none left waiting
-                why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-                got = SceneError(f"-restart {rdir}: its steps cannot be read ({why}): restart "
-                                 f"from another run or a checkpoint, or drop -restart",
-                                 ("-restart",))
-        got = self.mpi.bcast(got, root=0)
-        if isinstance(got, SceneError):
-            raise got
-        return got
+        alone and sent to every rank (on_root), so that all ranks resume from one reading of
+        the file (read by each, a file another run was still writing gave the ranks different
+        steps and mixed states); its SceneError raised on every rank.  Collective."""
+        return on_root(self.mpi, self._restart_steps, rdir)
+
+    def _restart_steps(self, rdir):
+        """_read_restart's reading (rank 0), any failure a SceneError naming -restart."""
+        try:
+            last = self._restart_step(rdir)
+            step, before = int(last["step"]), None
+            if (step >= 1 and not last["attrs"].get("branch_switch", 0)
+                    and step - 1 in output.read_steps(rdir)):
+                before = output.read_step(rdir, step - 1)
+            return last, before
+        except SceneError:
+            raise
+        except Exception as exc:    # noqa: BLE001 - a SceneError, said on every rank
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise SceneError(f"-restart {rdir}: its steps cannot be read ({why}): restart from "
+                             f"another run or a checkpoint, or drop -restart",
+                             ("-restart",)) from None
 
     def _tip(self, fields):
         if self.mesh.closed:

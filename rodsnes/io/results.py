@@ -63,6 +63,8 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from rodsnes.collective import on_root
+
 FORMAT = "rodsnes-result-1"
 RESULT_FILE = "result.h5"
 SUMMARY_FILE = "summary.json"
@@ -146,21 +148,14 @@ def _open_h5(path, mode, **kw):
 
 
 def _collective(comm, fn, *args):
-    """Run ``fn`` on rank 0 only and re-raise its exception on every rank (no deadlock on error);
-    every rank returns rank 0's result."""
-    err = None
-    out = None
-    if comm.rank == 0:
-        try:
-            out = fn(*args)
-        except Exception as exc:  # noqa: BLE001 - re-raised below on all ranks
-            err = f"{type(exc).__name__}: {exc}"
-            if comm.size == 1:
-                raise
-    err = comm.bcast(err, root=0)
-    if err is not None:
-        raise RuntimeError(f"rank 0 failed: {err}")
-    return comm.bcast(out, root=0)
+    """Run ``fn`` on rank 0 only (collective.on_root) and re-raise its exception on every rank as
+    a RuntimeError naming it (no deadlock on error); every rank returns rank 0's result."""
+    try:
+        return on_root(comm, fn, *args)
+    except Exception as exc:  # noqa: BLE001 - said the same way on every rank
+        if comm.size == 1:
+            raise
+        raise RuntimeError(f"rank 0 failed: {type(exc).__name__}: {exc}") from None
 
 
 def _attr_value(v):

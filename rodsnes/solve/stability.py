@@ -17,6 +17,7 @@ the vector broadcast and scattered back to the owned rows of the SNES layout.
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.collective import on_root
 from rodsnes.model.term import same_patterns
 from rodsnes.solve import chain, schur
 from rodsnes.solve.linear import is_default, mumps_fill_room, mumps_ordering, option_default
@@ -40,8 +41,8 @@ class ChainCount:
     ``backward`` the error found, ``structural`` where the condensation cannot count at all (a
     stretch not a chain, the whole-matrix mode)."""
 
-    def __init__(self, lu=None, pc=None, layout=None):
-        self.lu, self.pc, self.layout = lu, pc, layout
+    def __init__(self, layout, lu=None, pc=None):
+        self.layout, self.lu, self.pc = layout, lu, pc
         self.backward = None
         self.structural = False
 
@@ -57,9 +58,9 @@ class ChainCount:
             ctx = schur.RankSchur(problem)
             ctx.inertia = True
             pc.setPythonContext(ctx)
-            return cls(pc=pc, layout=problem.layout)
+            return cls(problem.layout, pc=pc)
         lu = chain.plan_of(H)
-        return None if lu is None else cls(lu=lu, layout=problem.layout)
+        return None if lu is None else cls(problem.layout, lu=lu)
 
     def count(self, H, bound):
         """H's negative eigenvalues, or None (a singular pivot block, factors not backward
@@ -93,8 +94,7 @@ class ChainCount:
         at most ``bound`` / |H| (sets ``backward``).  Collective."""
         b = H.createVecRight()
         lo, hi = b.getOwnershipRange()
-        rows = np.arange(lo, hi) if self.layout is None else self.layout.natural_rows(hi - lo)
-        b.setArray(np.sin(0.37 * rows))
+        b.setArray(np.sin(0.37 * self.layout.natural_rows(hi - lo)))
         x = b.duplicate()
         self.solve(b, x)
         r = b.duplicate()
@@ -482,16 +482,8 @@ def lowest_eigenpair(problem, nneg=None, dense_max=None):
     H = hessian(problem)
     A = gather_csr(H, lay)
     H.destroy()
-    payload = None
-    if comm.rank == 0:
-        try:
-            payload = _lowest_on_root(A, nneg, dense_max)
-        except Exception as exc:    # noqa: BLE001 - raised on every rank below, none left waiting
-            payload = exc
-    payload = comm.bcast(payload, root=0)
-    if isinstance(payload, Exception):
-        raise payload
-    lam, v_nat, info = payload
+    # solved on rank 0, its failure raised on every rank (none left waiting for the vector)
+    lam, v_nat, info = on_root(comm, _lowest_on_root, A, nneg, dense_max)
     vec = lay.create_vec()
     with vec as a:
         a[:] = v_nat.reshape(-1, 6)[lay.owned_nodes].ravel()
