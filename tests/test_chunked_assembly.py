@@ -49,7 +49,7 @@ def test_the_chunked_jacobian_is_the_one_call_jacobian(case, kw, symmetric):
     assert p.elastic.kernel == "compiled"
     p.set_load(0.4)                      # michell: e0 twisted by the load
     perturb_state(p)
-    ne = len(p.layout.gconn)
+    ne = len(p.layout.row_gconn)
     assert ne > RodProblem.TANGENT_CHUNK
     e0 = p.elastic.e0
     assert e0.ndim == 3 and len(e0) == ne

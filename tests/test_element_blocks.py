@@ -90,7 +90,7 @@ def _ranks_sum(n):
 def test_3d_jacobian_and_hessian_straight_into_the_values(monkeypatch, symmetric):
     """The 3-D Jacobian (MPIBAIJ, block size 6) and Hessian (SBAIJ, upper blocks) of an open
     clamped rod: every element but those at a constrained node (and, on 2 ranks, the one cut
-    by the partition) written straight; the same matrix as the insertion gives."""
+    by the partition, on both) written straight; the same matrix as the insertion gives."""
     made = places_checked(monkeypatch)
     seen = counted(monkeypatch)
     run = perturbed(build_run("mattiasson", rod_nelem=40))
@@ -105,8 +105,13 @@ def test_3d_jacobian_and_hessian_straight_into_the_values(monkeypatch, symmetric
     assert_same(A, B)
     size = PETSc.COMM_WORLD.getSize()
     direct, rest = _ranks_sum(seen["direct"]), _ranks_sum(seen["rest"])
-    assert direct + rest == 40
-    assert 1 <= rest <= 1 + (size - 1), (direct, rest)       # the clamped end, the cuts
+    # each element once on its rank, a cut one also on the rank of its other nodes (owner
+    # computes: Layout.row_elems)
+    lay = p.layout
+    halo = _ranks_sum(len(lay.row_elems) - len(lay.owned_elems))
+    assert halo == size - 1
+    assert direct + rest == 40 + halo
+    assert 1 <= rest <= 1 + 2 * (size - 1), (direct, rest)   # the clamped end, the cuts
     assert made and all(len(b.pos) for b in made)
     A.destroy()
     B.destroy()

@@ -187,7 +187,7 @@ def test_planar_jacobian_through_the_plane_kernel(monkeypatch):
             mats.append(dense(M))
         assert np.abs(mats[0] - mats[1]).max() < 1e-12 * np.abs(mats[1]).max()
         cut[symmetric] = mats[1]
-    ne = len(p.lconn)
+    ne = len(p.row_lconn)
     assert sum(calls) == 2 * ne               # the plane views' elements, not the others'
     pl.assemble_tangent(X)                    # the Newton step's, through the plane kernel
     assert sum(calls) == 3 * ne

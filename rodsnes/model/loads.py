@@ -22,6 +22,7 @@ class Loads(Term):
     per element for gravity."""
 
     depends_on_load = True
+    owner_computes = True       # the end's loads on its owner; gravity over layout.row_elems
 
     def __init__(self, loads, mesh, layout, nq):
         self.conservative = nonconservative(loads) is None
@@ -42,7 +43,8 @@ class Loads(Term):
             self.gravity_weights = (w * mesh.h / 2.0) @ N            # int N_a ds per element node
         else:
             self.gravity_weights = None
-        self.lconn = layout.lconn
+        self.lconn = layout.lconn           # the owned elements: the potential
+        self.row_lconn = layout.row_lconn   # every element of an owned node: the residual
         self.layout = layout
 
     def end_force(self, q_end):
@@ -58,7 +60,8 @@ class Loads(Term):
             Floc[i, 0:3] -= lam * self.end_force(q_loc[i])
             Floc[i, 3:6] -= lam * self.m
         if self.gravity_weights is not None:
-            np.add.at(Floc[:, 0:3], self.lconn, -lam * self.gravity_weights[None, :, None] * self.g)
+            np.add.at(Floc[:, 0:3], self.row_lconn,
+                      -lam * self.gravity_weights[None, :, None] * self.g)
 
     def add_jacobian(self, lam, r_loc, q_loc, P, symmetric=False):
         """The follower force's blocks into P (none in the energy's Hessian: no potential)."""

@@ -104,7 +104,15 @@ class Layout:
         self.starts = np.concatenate([[0], np.cumsum(counts)])
         self.owned_elems = np.flatnonzero(self.elem_owner == rank)
         self.owned_nodes = order[self.starts[rank]:self.starts[rank + 1]]   # natural ids
-        touched = np.unique(mesh.conn[self.owned_elems].ravel())
+        # owner computes: the rows of an owned node are summed on this rank from every element
+        # holding it, its own and the other ranks' that touch it (``row_elems``: the owned
+        # elements, then those), so no rank sends another its partial rows (no reverse
+        # scatter of the residual, no stash of the Jacobian: RodProblem)
+        holds = np.zeros(n, dtype=bool)
+        holds[self.owned_nodes] = True
+        halo = np.flatnonzero((self.elem_owner != rank) & holds[mesh.conn].any(axis=1))
+        self.row_elems = np.concatenate([self.owned_elems, halo])
+        touched = np.unique(mesh.conn[self.row_elems].ravel())
         ghosts = np.setdiff1d(touched, self.owned_nodes)
         self.ghost_nodes = ghosts[np.argsort(self.nat2petsc[ghosts])]
         self.local_nodes = np.concatenate([self.owned_nodes, self.ghost_nodes])  # natural ids
@@ -114,6 +122,11 @@ class Layout:
         self.nat2local = nat2local
         self.lconn = nat2local[mesh.conn[self.owned_elems]]
         self.gconn = self.nat2petsc[mesh.conn[self.owned_elems]]   # PETSc block ids
+        self.row_lconn = nat2local[mesh.conn[self.row_elems]]       # the same of row_elems
+        self.row_gconn = self.nat2petsc[mesh.conn[self.row_elems]]
+        # row_gconn with -1 at the nodes of other ranks: the block rows this rank sets
+        # (MatSetValues ignores a negative row)
+        self.row_rows = np.where(self.row_lconn < self.n_owned, self.row_gconn, -1)
         self.n_global = n
         # vectors and the scatter global -> local (owned + ghost)
         self.x = self.create_vec()
@@ -339,12 +352,15 @@ class DirichletRows:
                  lambda a, b: put(R[a:b], C[a:b], V[a:b], addv=addv))
 
     def _touching(self, I2):
-        """Which groups (rows of the block ids I2) hold a constrained node."""
+        """Which groups (rows of the block ids I2) hold a constrained node (a negative id,
+        another rank's row that the matrix ignores, holds none)."""
+        if I2.size and I2.min() < 0:
+            return (np.take(self.touched, np.maximum(I2, 0)) & (I2 >= 0)).any(axis=1)
         return np.take(self.touched, I2).any(axis=1)
 
     def _masked(self, R2, C2, V, hit):
         """A copy of the groups V with the constrained rows and columns zeroed (hit: the groups
-        that need it, None for all)."""
+        that need it, None for all; a negative row's values are the matrix's to ignore)."""
         V = np.array(V, copy=True)
         idx = np.flatnonzero(hit) if hit is not None else slice(None)
         n = len(V) if hit is None else len(idx)

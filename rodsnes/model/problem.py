@@ -210,7 +210,9 @@ class RodProblem:
         self.elastic = elastic.ElasticRod(rod.order, nq, mesh.h, stiff, kernel=rod.kernel)
         lconn = layout.lconn
         own = layout.owned_elems
-        e0 = reference_strains(rod, mesh, mesh.conn[own], self.elastic.strains)
+        # the reference strains of the elements the rows of the owned nodes are summed from
+        # (layout.row_elems: the owned ones first, e0[:len(own)])
+        e0 = reference_strains(rod, mesh, mesh.conn[layout.row_elems], self.elastic.strains)
         self.e0_base = e0
         self.elastic.set_reference(e0.copy())
         c = scene.contact
@@ -236,8 +238,19 @@ class RodProblem:
         self.J = layout.create_matrix(self.node_groups(self.patterns),
                                       positions_only=self.positions_only())
         self.F = layout.create_vec()
-        self.lconn = lconn
-        self._gconn = layout.gconn.astype(PETSc.IntType)     # element node blocks, PETSc ids
+        self.lconn = lconn                  # the owned elements' local nodes: the energy
+        self.n_elems = len(own)
+        # the residual's and tangent's elements (owned, then the others touching an owned
+        # node: the owner computes its rows, layout.row_elems), their node blocks (PETSc
+        # ids), and the block rows this rank sets (-1: another rank's node)
+        self.row_lconn = layout.row_lconn
+        self._gconn = layout.row_gconn.astype(PETSc.IntType)
+        self._rows = layout.row_rows.astype(PETSc.IntType)
+        self._rows_all_own = bool((layout.row_rows >= 0).all())
+        # the rows of other ranks' nodes summed into their owners' (reverse scatter, the
+        # Jacobian's stash) only where some term needs it (Term.owner_computes); the same on
+        # every rank (the terms are the scene's)
+        self.sums_ghost_rows = not all(t.owner_computes for t in terms)
         self.stats = {}
         self.inertia = None                 # stability.Inertia, made at the first count
         self.planar = None                  # planar.PlanarSystem of a planar run (run.py)
@@ -477,15 +490,22 @@ class RodProblem:
         """The residual at X into F: the rod's, then every term's (``terms``: these only, e.g.
         load_terms), Dirichlet rows x - target."""
         r, q = self.state.local_config(X)
-        # the element rows summed per local node (ghosts included), the elements' nodes
-        # gathered in the kernel's pass (ElasticRod.node_residual)
-        _, Floc = self.elastic.node_residual(q, r, self.lconn)
+        # the element rows summed per local node, the elements' nodes gathered in the
+        # kernel's pass (ElasticRod.node_residual): over every element of an owned node, so
+        # the owned rows are whole here (owner computes) and the ghost rows partial
+        _, Floc = self.elastic.node_residual(q, r, self.row_lconn)
+        no = self.layout.n_owned
+        if self.sums_ghost_rows:
+            Floc[no:] = 0.0         # the ghost rows: the terms' alone, summed by their owners
         for t in (self.terms if terms is None else terms):
             t.add_residual(self.lam, r, q, Floc)
-        F.set(0.0)
-        self.layout.add_to_global(Floc, F)
+        if self.sums_ghost_rows:
+            F.set(0.0)
+            self.layout.add_to_global(Floc, F)
         xa = X.getArray(readonly=True)
         with F as fa:
+            if not self.sums_ghost_rows:
+                fa[:] = Floc[:no].ravel()
             if self.gauge is not None:      # its reaction: the unbalanced force it holds
                 lo, hi = F.getOwnershipRange()
                 row = self.gauge[2]
@@ -519,7 +539,15 @@ class RodProblem:
         comps = getattr(view, "comps", None)
         plane = getattr(view, "plane", None)
         add = T.setValuesBlockedRCV if comps is None else T.add_cut
-        g, lconn, e0 = self._gconn, self.lconn, self.elastic.e0     # e0: (elements, points, 6)
+        # the elements of the owned rows (e0: (elements, points, 6)); the rows this rank sets
+        g, lconn, e0 = self._gconn, self.row_lconn, self.elastic.e0
+        rows = g if self._rows_all_own else self._rows
+        # no entry of another rank's row (owner computes), unless a term sets such rows, and
+        # where no term's pattern moves none outside the matrix's pattern: then the assembly
+        # sends nothing and needs no reduction (MatAssemblyEnd of an MPI block matrix decides
+        # by two whether some rank added a nonzero)
+        P.setOption(PETSc.Mat.Option.NO_OFF_PROC_ENTRIES, not self.sums_ghost_rows)
+        P.setOption(PETSc.Mat.Option.NEW_NONZERO_LOCATION_ERR, not self.moving_pattern)
         rc, qc = np.ascontiguousarray(r), np.ascontiguousarray(q)   # np.take copies a strided one
         nc = NDOF if comps is None else len(comps)
         # the elements' blocks straight into the matrix's values where that applies
@@ -556,10 +584,11 @@ class RodProblem:
                 _, _, H = self.elastic.element_terms(qa, xa, ea, tangent=True, symmetric=symmetric,
                                                      reuse=True, comps=comps)
             ga = g[ids]
+            ra = ga if rows is g else rows[ids]
             if blocks is None:
-                add(ga, ga, H, addv=PETSc.InsertMode.ADD)
+                add(ra, ga, H, addv=PETSc.InsertMode.ADD)
             else:
-                blocks.add(a, b, H, lambda i: add(ga[i], ga[i], H[i], addv=PETSc.InsertMode.ADD))
+                blocks.add(a, b, H, lambda i: add(ra[i], ga[i], H[i], addv=PETSc.InsertMode.ADD))
         for t in self.terms:
             t.add_jacobian(self.lam, r, q, T, symmetric=symmetric)
         T.finish(self.constraints.rows_global)
@@ -681,7 +710,7 @@ class RodProblem:
         loads' potential, contact) at local positions r and rotations q; ``shares``: the terms'
         shares when known (trial: precheck and the minimiser take them from the evaluation
         they make anyway)."""
-        E = self.elastic.node_energy(q, r, self.lconn)
+        E = self.elastic.node_energy(q, r, self.lconn, self.elastic.e0[:self.n_elems])
         if shares is None:
             shares = [t.energy_local(self.lam, r, q) for t in self.terms]
         for e in shares:

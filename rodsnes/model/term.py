@@ -35,6 +35,11 @@ class Term:
     length_scale = None         # the smallest length it resolves (the contact radius)
     keeps_link = False          # strands cannot pass through each other: the link is conserved
     adapt = False               # raises its penalty to keep its promise (promised_penalty)
+    # owner computes: its residual and tangent rows of this rank's own nodes are complete
+    # from this rank alone, and its rows of other ranks' nodes are not needed (the problem
+    # drops them); False: those rows are summed into their owners' (a reverse scatter of the
+    # residual, the Jacobian's stash), the problem's elastic rows then dropped from them
+    owner_computes = False
 
     # -- the equations (local shares; r (n_local, 3), q (n_local, 4)) --------------------
     def energy_local(self, lam, r, q):
@@ -42,7 +47,8 @@ class Term:
         return 0.0
 
     def add_residual(self, lam, r, q, Floc):
-        """dE_t/dx into the local node rows Floc (n_local, 6)."""
+        """dE_t/dx into the local node rows Floc (n_local, 6) (owner_computes: the owned
+        rows whole, the ghost rows ignored)."""
 
     def add_jacobian(self, lam, r, q, P, symmetric=False):
         """d2E_t/dx2 into the global matrix P (ADD_VALUES); ``symmetric``: the chart Hessian of
