@@ -293,3 +293,15 @@ def test_interleaved_rounds_and_a_failure_stops_more_ranks():
                           4: runner(4, [0.01, 0.01])}, 3)
     assert order == [1, 2, 4, 1]
     assert out == {1: {"status": "failed (exit 1)"}}
+
+
+def test_ranks_bound_to_cores_as_plain_mpirun_binds_them():
+    """Up to the machine's cores each rank is bound to a core (what `mpirun -n 2` does by
+    default); beyond them unbound and oversubscribed; one rank without mpirun."""
+    def cmd(ranks, cores):
+        return bs.command("cantilever", "-", 10, ranks, "d", "log", cores=cores)
+    two = cmd(2, 2)
+    assert two[:5] == ["mpirun", "-n", "2", "--bind-to", "core"] and "--oversubscribe" not in two
+    three = cmd(3, 2)
+    assert three[:6] == ["mpirun", "-n", "3", "--bind-to", "none", "--oversubscribe"]
+    assert cmd(1, 2)[0] == sys.executable

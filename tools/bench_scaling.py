@@ -30,7 +30,8 @@ times per iteration in the CSV's repeats column: on the shared 2-core VM the sam
 10-40 % from run to run (the planar cantilever at N = 1e4 took 47-69 ms per iteration serially
 and 31-51 ms on 2 ranks over five single runs of 26 Nov 2026), and the least time is the one
 least disturbed.  The rank counts of one case take turns (1, 2, 1, 2, ... ranks: interleaved),
-so that the speed-up compares runs made in the same minutes.  With --reuse the files of the
+so that the speed-up compares runs made in the same minutes.  The ranks of a run are bound
+to cores as a plain ``mpirun -n 2`` binds them (``command``).  With --reuse the files of the
 last run of each case are read.
 
 Each run writes PETSc's -log_view (ASCII) and rodsnes' summary.json; the parts of an iteration
@@ -258,14 +259,23 @@ def run_name(scene, law, n, ranks):
     return f"{scene}{'' if law == '-' else '_' + law}_N{n}_np{ranks}"
 
 
-def command(scene, law, n, ranks, rundir, logfile, extra=(), topology=True):
-    """The command line of one run: this file's child mode under mpirun for ranks > 1."""
+def command(scene, law, n, ranks, rundir, logfile, extra=(), topology=True, cores=None):
+    """The command line of one run: this file's child mode under mpirun for ranks > 1, each
+    rank bound to a core as a plain ``mpirun -n 2`` binds them (Open MPI's default up to two
+    ranks); more ranks than the ``cores`` (default: this machine's) run unbound.  On the 2-core
+    VM of 28 Nov 2026 the cantilever at 10^4 elements, five alternating benches each way: 2
+    ranks against 1 1.53-1.69 x bound (median 1.64), 1.51-1.61 x unbound (median 1.57), the
+    bound run the faster in every pair; unbound, some runs' two ranks ran 1.5 x slower
+    throughout (12 against 8 ms an iteration)."""
     cmd = [sys.executable, os.path.abspath(__file__), "--child",
            *(() if topology else ("--skip-topology",)), "rodsnes",
            *scene_options(scene, n, None if law == "-" else law),
            "-output_dir", rundir, "-quiet", "-log_view", ":" + logfile, *extra]
     if ranks > 1:
-        cmd = ["mpirun", "-n", str(ranks), "--bind-to", "none", "--oversubscribe"] + cmd
+        cores = os.cpu_count() if cores is None else cores
+        bind = ["--bind-to", "core"] if ranks <= cores else ["--bind-to", "none",
+                                                              "--oversubscribe"]
+        cmd = ["mpirun", "-n", str(ranks), *bind] + cmd
     return cmd
 
 
