@@ -5,8 +5,10 @@ Element graph: element e is adjacent to e-1 and e+1 (and across the wrap of a cl
 pymetis partitions it (PETSc's Debian build has no METIS).  A node is owned by the rank of
 the lowest-numbered element that contains it.  PETSc numbering: nodes sorted by owner, so each
 rank owns a contiguous range, and within a rank by natural id (descending where the rank's
-stretch meets the others at its first element alone: stretch_descends).  Local nodes = owned
-nodes, then ghosts (nodes of owned elements owned elsewhere).  Every rank keeps the O(n) maps
+stretch meets the others at its first element alone: stretch_descends).  Row elements = the
+owned elements, then the other ranks' that hold an owned node (owner computes: RodProblem).
+Local nodes = owned nodes, then ghosts (nodes of the row elements owned elsewhere).  Every rank
+keeps the O(n) maps
 natural <-> PETSc (a rod has at most millions of nodes: cheap, and it keeps contact-pair
 bookkeeping simple).
 """

@@ -498,7 +498,13 @@ class RodProblem:
         if self.sums_ghost_rows:
             Floc[no:] = 0.0         # the ghost rows: the terms' alone, summed by their owners
         for t in (self.terms if terms is None else terms):
-            t.add_residual(self.lam, r, q, Floc)
+            if self.sums_ghost_rows and t.owner_computes:
+                # its rows of other ranks' nodes are their owners' to compute: not sent
+                ghost = Floc[no:].copy()
+                t.add_residual(self.lam, r, q, Floc)
+                Floc[no:] = ghost
+            else:
+                t.add_residual(self.lam, r, q, Floc)
         if self.sums_ghost_rows:
             F.set(0.0)
             self.layout.add_to_global(Floc, F)
