@@ -389,3 +389,24 @@ def test_a_jacobian_over_garbage_is_the_jacobian_over_zeros(planar):
         assert np.array_equal(a.view(np.int64), b.view(np.int64))
     A.destroy()
     B.destroy()
+
+
+@pytest.mark.mpi
+def test_a_rank_owning_no_node(monkeypatch):
+    """A linear ring of 3 elements whose last element alone is rank 1's: its two nodes are rank
+    0's (a node is its first element's rank's), so rank 1's block of the matrix is empty (no
+    value array: ElementBlocks.zero_rest read a null address, a TypeError) - the ring's energy
+    as one rank finds it."""
+    comm = PETSc.COMM_WORLD
+    if comm.getSize() != 2:
+        pytest.skip("two ranks")
+    from rodsnes.model import partition
+    from conftest import run_case
+    serial = run_case("michell", comm=PETSc.COMM_SELF, rod_nelem=3, rod_order=1,
+                      rod_error_estimate="off")
+    monkeypatch.setattr(partition, "metis_parts",
+                        lambda ne, closed, n: np.array([0] * (ne - 1) + [1]))
+    run = run_case("michell", rod_nelem=3, rod_order=1, rod_error_estimate="off")
+    assert run.layout.n_owned == (3 if comm.getRank() == 0 else 0)
+    assert run.ok and serial.ok
+    assert abs(run.problem.energy() - serial.problem.energy()) <= 1e-12 * abs(serial.problem.energy())
