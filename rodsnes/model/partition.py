@@ -217,6 +217,11 @@ class Layout:
         J.setType(PETSc.Mat.Type.SBAIJ if symmetric else PETSc.Mat.Type.BAIJ)
         J.setBlockSize(bs)
         J.setFromOptions()
+        if symmetric and J.getType() in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
+            # -mat_type baij asks for block storage: of a symmetric matrix its upper triangle
+            # (MUMPS's LDL^T takes no BAIJ matrix: the Hessian's factorisation failed and
+            # every shift with it, "no positive definite shift")
+            J.setType(PETSc.Mat.Type.SBAIJ)
         ai, aj = self.block_pattern(extra_pairs)
         self.pattern_blocks = int(self.comm.tompi4py().allreduce(int(len(aj))))
         row0 = self.starts[self.comm.getRank()]
