@@ -24,23 +24,30 @@ def perturbed(run, lam=1.0, seed=0, size=1e-3):
     return run
 
 
-def zero_rows_columns_reference(p, P, symmetric=False):
-    """The definition: elastic and terms' tangents summed into P as they are (the elastic ones
-    of every element holding an owned node, this rank's rows: owner computes), assembled,
-    then MatZeroRowsColumns(P, rows, 1)."""
-    X = p.state.X
-    r, q = p.state.local_config(X)
-    lay = p.layout
-    _, _, H = p.elastic.element_terms(q[lay.row_lconn], r[lay.row_lconn], tangent=True,
-                                      symmetric=symmetric)
+def summed_then_zeroed(p, P, H, rows, cols, symmetric=False):
+    """The elastic tangents H of the node groups ``cols``, this rank setting the block rows
+    ``rows`` (MatSetValues' own way: rows of other ranks stashed, negative ones ignored), and
+    the terms' tangents summed into P, assembled, then MatZeroRowsColumns(P, rows, 1)."""
+    r, q = p.state.local_config(p.state.X)
     P.zeroEntries()
     V = partition.node_view(P)          # node blocks of 6 (a split contact Jacobian: of 3)
-    V.setValuesBlockedRCV(lay.row_rows.astype(PETSc.IntType),
-                          lay.row_gconn.astype(PETSc.IntType), H, addv=PETSc.InsertMode.ADD)
+    V.setValuesBlockedRCV(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType), H,
+                          addv=PETSc.InsertMode.ADD)
     for t in p.terms:
         t.add_jacobian(p.lam, r, q, V, symmetric=symmetric)
     P.assemble()
     P.zeroRowsColumns(p.constraints.is_rows, 1.0)
+
+
+def zero_rows_columns_reference(p, P, symmetric=False):
+    """The definition: elastic and terms' tangents summed into P as they are (the elastic ones
+    of every element holding an owned node, this rank's rows: owner computes), assembled,
+    then MatZeroRowsColumns(P, rows, 1)."""
+    r, q = p.state.local_config(p.state.X)
+    lay = p.layout
+    _, _, H = p.elastic.element_terms(q[lay.row_lconn], r[lay.row_lconn], tangent=True,
+                                      symmetric=symmetric)
+    summed_then_zeroed(p, P, H, lay.row_rows, lay.row_gconn, symmetric)
 
 
 def stashed_sum(p, P, F, symmetric=False):
@@ -53,15 +60,8 @@ def stashed_sum(p, P, F, symmetric=False):
     e0 = p.elastic.e0[:p.n_elems]
     _, Floc, H = p.elastic.element_terms(q[lay.lconn], r[lay.lconn], e0, tangent=True,
                                          symmetric=symmetric)
-    P.zeroEntries()
     P.setOption(PETSc.Mat.Option.NO_OFF_PROC_ENTRIES, False)
-    g = lay.gconn.astype(PETSc.IntType)
-    V = partition.node_view(P)
-    V.setValuesBlockedRCV(g, g, H, addv=PETSc.InsertMode.ADD)
-    for t in p.terms:
-        t.add_jacobian(p.lam, r, q, V, symmetric=symmetric)
-    P.assemble()
-    P.zeroRowsColumns(p.constraints.is_rows, 1.0)
+    summed_then_zeroed(p, P, H, lay.gconn, lay.gconn, symmetric)
     loc = np.zeros((len(lay.local_nodes), NDOF))
     np.add.at(loc, lay.lconn, Floc)
     for t in p.terms:

@@ -242,11 +242,12 @@ class RodProblem:
         self.n_elems = len(own)
         # the residual's and tangent's elements (owned, then the others touching an owned
         # node: the owner computes its rows, layout.row_elems), their node blocks (PETSc
-        # ids), and the block rows this rank sets (-1: another rank's node)
+        # ids), and the block rows this rank sets (-1: another rank's node; the node blocks
+        # themselves where every node is this rank's, as on one rank)
         self.row_lconn = layout.row_lconn
         self._gconn = layout.row_gconn.astype(PETSc.IntType)
-        self._rows = layout.row_rows.astype(PETSc.IntType)
-        self._rows_all_own = bool((layout.row_rows >= 0).all())
+        self._rows = (self._gconn if (layout.row_rows >= 0).all()
+                      else layout.row_rows.astype(PETSc.IntType))
         # the rows of other ranks' nodes summed into their owners' (reverse scatter, the
         # Jacobian's stash) only where some term needs it (Term.owner_computes); the same on
         # every rank (the terms are the scene's)
@@ -546,8 +547,7 @@ class RodProblem:
         plane = getattr(view, "plane", None)
         add = T.setValuesBlockedRCV if comps is None else T.add_cut
         # the elements of the owned rows (e0: (elements, points, 6)); the rows this rank sets
-        g, lconn, e0 = self._gconn, self.row_lconn, self.elastic.e0
-        rows = g if self._rows_all_own else self._rows
+        g, rows, lconn, e0 = self._gconn, self._rows, self.row_lconn, self.elastic.e0
         # no entry of another rank's row (owner computes), unless a term sets such rows, and
         # where no term's pattern moves none outside the matrix's pattern: then the assembly
         # sends nothing and needs no reduction (MatAssemblyEnd of an MPI block matrix decides
