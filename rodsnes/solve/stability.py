@@ -319,6 +319,10 @@ class Inertia:
             w["H"] = H.createSubMatrices(w["is"], w["is"])[0]
         else:
             H.createSubMatrices(w["is"], w["is"], submats=[w["H"]])
+            # PETSc 3.18 refills an MPIAIJ's submatrix without raising its state (BAIJ and
+            # SBAIJ raise it): the PC would see the matrix unchanged and keep the old factor -
+            # a stale inertia and solve under -mat_type aij
+            w["H"].stateIncrease()
         return w["H"]
 
     def solve(self, b, x):
