@@ -8,8 +8,9 @@ option says what replaced it); 3 the load path failed (the last converged step s
 DIR/result.h5 and DIR/summary.json says so), or a conservative scene ended on an unstable
 equilibrium that was not asked for (asked for: -load_arclength, or -load_path newton, whose
 last line then says "unstable" with exit code 0);
-128 + N stopped by signal N (130 SIGINT, 143 SIGTERM): summary.json says ``"interrupted": true``
-and the steps written stay readable.
+4 an internal error (a defect, or a failure of one rank alone: _failed); 128 + N stopped by
+signal N (130 SIGINT, 143 SIGTERM): summary.json says ``"interrupted": true`` and the steps
+written stay readable.
 
 Before the solve the command also checks what the options database itself cannot: the
 -options_file files (before PETSc reads them), PETSc solver types and numbers, the output
@@ -36,7 +37,11 @@ from rodsnes.interrupts import Interrupted
 # this routine" at PetscFinalize, exit 1 after a converged run) are lost.  The solver modules
 # are imported inside the functions that run after the start (tests/test_cli.py).
 
-EXIT_REFUSED, EXIT_FAILED = 2, 3
+EXIT_REFUSED, EXIT_FAILED, EXIT_INTERNAL = 2, 3, 4
+
+# after an error, the seconds every rank waits for the others to have stopped too (_failed):
+# beyond them the error is taken for this rank's alone and the job is aborted
+AGREE_SECONDS = 5.0
 
 LINESEARCH_TYPES = ("basic", "bt", "l2", "cp", "nleqerr", "shell", "ncglinear")
 
@@ -489,31 +494,110 @@ def main(argv=None):
             print("PETSc's own options (-snes_*, -ksp_*, -pc_*, -mat_*, -log_view ...) work as "
                   "usual; run with -help -snes_view to list them.", flush=True)
         return 0
-    with _signals():
-        try:
-            run = _prepare(argv, comm, opts, rank, given)
-        except scn.SceneError as err:
-            _say(rank, "error", err)
-            return EXIT_REFUSED
-        except PETSc.Error as err:
-            _say(rank, "error", petsc_error_message(err, opts, comm))
-            return EXIT_REFUSED
-        except Interrupted as sig:
-            _say(rank, "error", f"interrupted by {sig.name} before the run started")
-            return 128 + sig.signum
-        try:
-            ok = run.execute()
-        except Interrupted as sig:
-            return _interrupted(run, sig)
-        except PETSc.Error as err:
-            message = petsc_error_message(err, opts, comm)
-            run.record_error(message)
-            _say(rank, "error", message)
-            return EXIT_REFUSED
+    # a communicator of its own for the ranks' agreement after an error (_failed): the ranks
+    # still waiting in a collective of the solver's communicator never take part in it
+    agree = comm.tompi4py().Dup()
+    try:
+        with _signals():
+            try:
+                run = _prepare(argv, comm, opts, rank, given)
+            except scn.SceneError as err:
+                _say(rank, "error", err)
+                return EXIT_REFUSED
+            except PETSc.Error as err:
+                return _failed(agree, None, petsc_error_message(err, opts, comm),
+                               code=EXIT_REFUSED)
+            except Interrupted as sig:
+                _say(rank, "error", f"interrupted by {sig.name} before the run started")
+                return 128 + sig.signum
+            except Exception as exc:  # noqa: BLE001 - a defect: said, never a hang (_failed)
+                return _failed(agree, None, *_internal(exc, None), code=EXIT_INTERNAL)
+            try:
+                ok = run.execute()
+            except Interrupted as sig:
+                return _interrupted(run, sig)
+            except scn.SceneError as err:       # a trial of -rod_tolerance's that cannot run
+                return _failed(agree, run, str(err), code=EXIT_REFUSED)
+            except PETSc.Error as err:
+                return _failed(agree, run, petsc_error_message(err, opts, comm),
+                               code=EXIT_REFUSED)
+            except Exception as exc:  # noqa: BLE001 - a defect: said, never a hang (_failed)
+                return _failed(agree, run, *_internal(exc, run), code=EXIT_INTERNAL)
+    finally:
+        agree.Free()            # every rank is here (a rank that stopped alone aborted)
     for line in unused_petsc_warnings(given, late=True):
         _say(rank, "warning", line)
     _release_petsc_objects(comm)
     return 0 if ok else EXIT_FAILED
+
+
+def _all_ranks_reach(agree, seconds=None):
+    """Whether every rank of ``agree`` reaches this point within ``seconds`` (AGREE_SECONDS): a
+    non-blocking barrier on a communicator of its own, which a rank still inside a
+    collective of the solver (waiting for the rank that raised) never joins."""
+    if agree.size == 1:
+        return True
+    req = agree.Ibarrier()
+    t_end = time.monotonic() + (AGREE_SECONDS if seconds is None else seconds)
+    while not req.Test():
+        if time.monotonic() > t_end:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+def _internal(exc, run):
+    """(line, traceback) of an internal error (an exception no part of rodsnes expected): its
+    type, message and rank, and where its traceback is (DIR/error_rank<r>.txt, to be reported;
+    where there is no output directory yet, the traceback text, printed after the line)."""
+    import traceback
+    from mpi4py import MPI
+    rank, size = MPI.COMM_WORLD.rank, MPI.COMM_WORLD.size
+    text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    where, trailer = "printed below", text
+    outdir = getattr(run, "outdir", None)
+    if outdir and os.path.isdir(outdir):
+        path = os.path.join(outdir, f"error_rank{rank}.txt")
+        try:
+            with open(path, "w") as fh:
+                fh.write(text)
+            where, trailer = path, None
+        except OSError:
+            pass
+    on = f" on rank {rank} of {size}" if size > 1 else ""
+    return (f"internal error{on}: {type(exc).__name__}: {exc} (a defect of rodsnes: please "
+            f"report it with the options and the traceback, {where})"), trailer
+
+
+def _failed(agree, run, message, trailer=None, code=EXIT_FAILED):
+    """The end of a run stopped by an error (PETSc's, or an internal one: ``message`` and the
+    ``trailer`` printed after it): the message, the last converged step kept (summary.json
+    marked failed; result.h5 holds the steps written), exit ``code``.  Every rank that raised
+    gets here; those that did not are waiting in a collective for it, and would wait for ever.
+    So the ranks first agree (_all_ranks_reach): where all stopped alike (bad options, a defect
+    every rank meets) rank 0 says it and writes the summary; where one rank stopped alone it
+    says so itself, marks the summary itself, and aborts the job (MPI_Abort with ``code``): a
+    nonzero exit, never a hang.  A signal meanwhile is dropped: the run is ending already."""
+    rank = agree.rank
+    with interrupts.deferred(keep=False):
+        together = _all_ranks_reach(agree)
+        if together:
+            if run is not None:
+                run.record_error(message)
+            _say(rank, "error", message)
+            if trailer and rank == 0:
+                print(trailer, file=sys.stderr, flush=True)
+            return code
+        if run is not None:
+            run.record_error(message, by_this_rank=True)
+        for line in str(message).splitlines():
+            print(f"rodsnes: error: {line}", file=sys.stderr, flush=True)
+        if trailer:
+            print(trailer, file=sys.stderr, flush=True)
+        print(f"rodsnes: error: the other ranks did not stop within {AGREE_SECONDS:g} s: the "
+              f"job is aborted (exit code {code})", file=sys.stderr, flush=True)
+        agree.Abort(code)
+    return code
 
 
 def _release_petsc_objects(comm):

@@ -506,15 +506,16 @@ class Run:
         return dict(last, steps=list(last["steps"][:last["load_steps"]]),
                     wall_time_s=time.perf_counter() - self.t_start)
 
-    def record_error(self, message):
-        """summary.json after an error that ended the run (rank 0, not collective): the
-        summary made after the last step, marked failed with ``message`` (nothing before the
-        first step).  Never raises: the error itself is what the user must see."""
+    def record_error(self, message, by_this_rank=False):
+        """summary.json after an error that ended the run (rank 0, or ``by_this_rank``: the
+        rank that stopped alone; not collective): the summary made after the last step, marked
+        failed with ``message`` (nothing before the first step).  Never raises: the error
+        itself is what the user must see."""
         live = self._live()
         if live is not self:
-            return live.record_error(message)
+            return live.record_error(message, by_this_rank)
         last = self._last_step_summary()
-        if self.rank != 0 or last is None:
+        if (self.rank != 0 and not by_this_rank) or last is None:
             return
         try:
             output.write_summary(self.outdir, None, dict(
