@@ -118,16 +118,18 @@ def test_contact_blocks_zero_at_the_first_assembly_stay_in_the_matrix():
 
 @pytest.mark.mpi
 @pytest.mark.slow
-def test_first_contact_solve_same_on_two_ranks():
+@pytest.mark.parametrize("steps", [20, 40])
+def test_first_contact_solve_same_on_two_ranks(steps):
     """The solved rollup_contact (16 elements: the free end lands on the clamped end, contact
     across ranks): the same load steps, Newton iterations and tip on COMM_WORLD as serial.
     Under mpirun only: in a serial session both runs would be serial (tests/test_planar_contact.py
-    solves this scene serially against the exact reference).  40 load steps instead of the
-    case's 10: the same equilibrium, with one cut-back at the first touch instead of eight and
-    Newton solves of up to 21 iterations instead of 37 (a fifth of the time)."""
+    solves this scene serially against the exact reference).  20 or 40 load steps instead of
+    the case's 10 (five cut-backs at the first touch, Newton solves of up to 37 iterations):
+    20 cut back three times, 40 not at all since the Newton path's secant keeps to the
+    contact's move limits (newton.NewtonSolver._predict)."""
     if PETSc.COMM_WORLD.getSize() == 1:
         pytest.skip("compares 2 ranks with 1: runs under mpirun -n 2 (make test-mpi)")
-    kw = dict(rod_nelem=16, load_steps=40)
+    kw = dict(rod_nelem=16, load_steps=steps)
     par = run_case("rollup_contact", **kw)
     ser = run_case("rollup_contact", comm=PETSc.COMM_SELF,
                    outdir=par.outdir + f"_s{PETSc.COMM_WORLD.getRank()}", **kw)
@@ -137,7 +139,7 @@ def test_first_contact_solve_same_on_two_ranks():
     # different orders, and 2 ranks solve by static condensation, solve/schur.py: one more
     # iteration may be needed to fall below the tolerance; measured 5 steps of 41)
     assert [h["load"] for h in par.history] == [h["load"] for h in ser.history]
-    assert len(par.history) > 40                      # a cut-back in the path
+    assert (len(par.history) > steps) == (steps == 20)        # cut-backs where expected
     its_p = np.array([h["newton_iterations"] for h in par.history])
     its_s = np.array([h["newton_iterations"] for h in ser.history])
     assert np.abs(its_p - its_s).max() <= 1
@@ -149,8 +151,13 @@ def test_first_contact_solve_same_on_two_ranks():
     assert sp["contact"]["law"] == ss["contact"]["law"] == "projection"    # auto, 32 elements
     assert "closest-point projection (-contact_model auto)" in par.header()
     # the pre-check's scalings are counted, identically on both (rank-independent decisions)
+    # where every solve converges; a solve cut back for stagnation (|F| not halved in 15
+    # iterations) may take an iteration more or less on 2 ranks (its |F| hovers at the
+    # threshold), and with it a scaling (20 steps: 68 and 52 against 70 and 54)
     keys = ("limited_steps", "penetration_limited_steps", "energy_limited_steps")
-    assert [sp["contact"][k] for k in keys] == [ss["contact"][k] for k in keys]
+    cp = np.array([sp["contact"][k] for k in keys])
+    cs = np.array([ss["contact"][k] for k in keys])
+    assert np.abs(cp - cs).max() <= (0 if steps == 40 else 0.05 * cs.max())
     assert sp["contact"]["limited_steps"] > 0
 
 

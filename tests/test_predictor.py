@@ -2,13 +2,14 @@
 (tests/data/plectoneme_7.2): the secant moves no node further than the minimiser's move
 limits (the rest of the end's turn arrives as twist, which moves no node), and a step whose
 end turned by more than half a turn is extrapolated as that turn, not the short way round.
-Either way the predicted state's link is the imposed one."""
+Either way the predicted state's link is the imposed one.  The Newton path's predictor
+(newton.NewtonSolver._predict) keeps to the same move limits."""
 import os
 
 import numpy as np
 import pytest
 
-from conftest import build_run
+from conftest import build_run, run_case
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SEVEN_TURNS = os.path.join(ROOT, "tests", "data", "plectoneme_7.2")
@@ -67,3 +68,18 @@ def test_an_end_turned_more_than_half_a_turn_is_extrapolated_as_a_turn():
     got = p.state.q_ref
     # the same rotations (a quaternion and its negative are one)
     assert np.abs(np.abs(np.einsum("ij,ij->i", got, want)) - 1.0).max() < 1e-10
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("steps", [12, 20])
+def test_the_newton_paths_secant_keeps_to_the_move_limits(steps):
+    """rollup_contact (the Newton path: an end moment) in 12 or 20 load steps: the unlimited
+    secant of a step 1.5 x the last carried the free end past the clamped end's cap, and the
+    run converged, exit 0, on another equilibrium (tip outside the first turn, energy 237.95
+    against 206.2347).  Limited, every step count ends on the documented one."""
+    ref = run_case("rollup_contact")
+    run = run_case("rollup_contact", load_steps=steps)
+    assert ref.ok and run.ok
+    e, e_ref = run.problem.energy(), ref.problem.energy()
+    assert abs(e - e_ref) <= 1e-8 * abs(e_ref), (e, e_ref)
+    assert abs(e_ref - 206.2347) < 1e-3

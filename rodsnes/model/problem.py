@@ -20,6 +20,10 @@ from rodsnes.errors import SceneError
 from rodsnes.model import topology
 from rodsnes.model.term import same_patterns
 
+# the largest nodal rotation of one step (rad): the exponential update is exact for any angle,
+# but a step that turns a node by more than this is far outside its quadratic model
+MAX_ROTATION = 1.0
+
 
 def reference_strains(rod, mesh, conn, strains):
     """Stress-free strains e0 = (v_hat, u_hat) at the points where ``strains(q, x)`` evaluates.
@@ -357,6 +361,40 @@ class RodProblem:
         """The least free space between strands at r over the limiting terms (Term.clearance;
         inf without one).  Collective."""
         return min([t.clearance(r) for t in self.limiting_terms()], default=np.inf)
+
+    def largest_moves(self, d, rows=None):
+        """(largest translation, largest rotation) of the nodal step d (owned nodes ``rows``:
+        all by default) over all ranks: maxima, the same on every rank.  Collective."""
+        from mpi4py import MPI
+        a = d.getArray(readonly=True).reshape(-1, NDOF)
+        if rows is not None:
+            a = a[rows]
+        t = float(np.sqrt((a[:, 0:3] ** 2).sum(axis=1)).max()) if len(a) else 0.0
+        r = float(np.sqrt((a[:, 3:6] ** 2).sum(axis=1)).max()) if len(a) else 0.0
+        out = np.array([t, r])
+        self.layout.comm.tompi4py().Allreduce(MPI.IN_PLACE, out, op=MPI.MAX)
+        return float(out[0]), float(out[1])
+
+    def longest_step(self, d, most=1.0, reach=1.0):
+        """The largest multiple (<= most) of the step d from the state within the move limits:
+        no rotation turns by more than MAX_ROTATION, no node a limiting term watches (near a
+        possible contact) moves by more than ``reach`` times its step limit (half the contact
+        radius), no node by more than half the clearance between strands (or that limit).
+        Collective."""
+        t, rot = self.largest_moves(d)
+        alpha = most
+        if rot > MAX_ROTATION:
+            alpha = MAX_ROTATION / rot
+        limit = reach * self.step_limit       # the terms' (contact: half its radius; 0: none)
+        if limit and t * alpha > limit:       # a shorter step is within every move limit
+            r, _ = self.state.local_config()
+            t_near, _ = self.largest_moves(d, self.watched_nodes(r))
+            if t_near * alpha > limit:
+                alpha = limit / t_near
+            room = max(0.5 * self.clearance(r), limit)
+            if t * alpha > room:
+                alpha = room / t
+        return alpha
 
     def deepest(self, r=None, report=True):
         """The deepest penetration over the terms that measure one (Term.deepest) at the local

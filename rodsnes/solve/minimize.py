@@ -23,8 +23,8 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
 4. Backtracking line search on E (Armijo, quadratic interpolation), within move limits: no
    node near a contact moves more than half the contact radius, no node anywhere more than
    half the clearance between strands that have come back toward each other
-   (ContactTerm.clearance), no rotation more than MAX_ROTATION, and the deepest penetration
-   grows at most to twice itself or 2 % of the diameter.  A watchdog lets the energy rise
+   (ContactTerm.clearance), no rotation more than MAX_ROTATION (RodProblem.longest_step),
+   and the deepest penetration grows at most to twice itself or 2 % of the diameter.  A watchdog lets the energy rise
    over WATCHDOG_STEPS full Newton steps (a linearised step that turns a stiff rod stretches
    it); if they have not paid off, the search goes back and backtracks, and the load step
    takes no more free steps (every step since the reference point counts).  A first trial
@@ -47,7 +47,6 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
 import time
 
 import numpy as np
-from mpi4py import MPI
 from petsc4py import PETSc
 
 from rodsnes.model.partition import NDOF
@@ -58,9 +57,6 @@ from rodsnes.solve.stability import Inertia
 from rodsnes.solve.valley import ValleyFollower
 from rodsnes.model.mesh import lumped_weights
 
-# the largest nodal rotation of one Newton step (rad): the exponential update is exact for any
-# angle, but a step that turns a node by more than this is far outside its quadratic model
-MAX_ROTATION = 1.0
 ARMIJO = 1e-4
 # full Newton steps the watchdog lets the energy rise over before it goes back and searches
 WATCHDOG_STEPS = 4
@@ -287,14 +283,8 @@ class EnergyMinimizer:
 
     def _move(self, d, rows=None):
         """(largest translation, largest rotation) of the nodal step d (owned nodes ``rows``:
-        all by default), over all ranks."""
-        a = d.getArray(readonly=True).reshape(-1, NDOF)
-        if rows is not None:
-            a = a[rows]
-        t = float(np.sqrt((a[:, 0:3] ** 2).sum(axis=1)).max()) if len(a) else 0.0
-        r = float(np.sqrt((a[:, 3:6] ** 2).sum(axis=1)).max()) if len(a) else 0.0
-        return self._same(self.comm.allreduce(t, op=MPI.MAX)), \
-            self._same(self.comm.allreduce(r, op=MPI.MAX))
+        all by default), over all ranks (RodProblem.largest_moves)."""
+        return self.problem.largest_moves(d, rows)
 
     def _descending(self, energies, its):
         """Past -load_max_it iterations, whether the minimisation is still going somewhere:
@@ -309,23 +299,9 @@ class EnergyMinimizer:
         return bool(drop > PROGRESS * (abs(energies[-1]) + self.energy_scale))
 
     def _longest_step(self, d, most=1.0, reach=1.0):
-        """The largest multiple (<= most) of d within the move limits (module docstring, 4.),
-        the contact's (half its radius) taken ``reach`` times."""
-        p = self.problem
-        t, rot = self._move(d)
-        alpha = most
-        if rot > MAX_ROTATION:
-            alpha = MAX_ROTATION / rot
-        limit = reach * p.step_limit          # the terms' (contact: half its radius; 0: none)
-        if limit and t * alpha > limit:       # a shorter step is within every move limit
-            r, _ = p.state.local_config()
-            t_near, _ = self._move(d, p.watched_nodes(r))
-            if t_near * alpha > limit:
-                alpha = limit / t_near
-            room = max(0.5 * p.clearance(r), limit)
-            if t * alpha > room:
-                alpha = room / t
-        return alpha
+        """The largest multiple (<= most) of d within the move limits (module docstring, 4.;
+        RodProblem.longest_step), the contact's (half its radius) taken ``reach`` times."""
+        return self.problem.longest_step(d, most, reach)
 
     # -- one load step ----------------------------------------------------------------
     @logged("MinStep")

@@ -212,7 +212,7 @@ class NewtonSolver:
             snap = p.state.snapshot()
             predicted = prev is not None and self.predictor
             if predicted:
-                p.state.predict(prev[0], (target - lam) / (lam - prev[1]))
+                self._predict(snap, prev, (target - lam) / (lam - prev[1]))
             res = self.solve_guarded(target)
             if not res.converged and predicted and cutbacks == 0:
                 # the secant can carry a strand into another (contact) or past a turn of the
@@ -263,6 +263,30 @@ class NewtonSolver:
             if on_step is not None:
                 on_step(res)
         return results, True
+
+    def _predict(self, snap, prev, ratio):
+        """The secant predictor ``ratio`` times the last step from the state (``snap``), as
+        far along as the move limits let any node move (RodProblem.longest_step: contact, half
+        its radius near a possible contact), and only where it penetrates no deeper than a
+        line search may (else the step starts from the state): the minimiser path's predictor
+        (load_path.LoadPath.predict) without the twist.  Unlimited, the secant of a step 1.5 x
+        the last carried rollup_contact's free end past the clamped end's cap (12 or 20 load
+        steps: the tip landed outside the first turn, another equilibrium, exit 0).
+        Collective."""
+        p = self.problem
+        p.state.predict(prev[0], ratio)
+        if not p.step_limit:
+            return
+        move = p.state.X.copy()
+        move.axpy(-1.0, snap[1])
+        p.state.restore(snap)
+        depth0 = p.deepest(p.state.local_config()[0], report=False)
+        share = p.longest_step(move)
+        move.destroy()
+        p.state.predict(prev[0], share * ratio)
+        if depth0 is not None and \
+                p.deepest(p.state.local_config()[0], report=False) > p.depth_allowed(depth0):
+            p.state.restore(snap)
 
     def _fold_seen_before(self):
         """True when the path stands at a fold that an earlier continuation started from:
