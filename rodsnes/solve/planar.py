@@ -321,8 +321,9 @@ class PlanarSystem:
         beyond round-off; else the run leaves the plane (said) and False.  Collective."""
         if not self.active:
             return False
-        go, gn = self.out_of_plane_share(g)
-        go, gn = self.comm.bcast((go, gn), root=0)
+        norms = np.array(self.out_of_plane_share(g))
+        self.comm.Bcast(norms, root=0)      # rank 0's decision (MPI promises no equal sums)
+        go, gn = norms
         if go <= max(GUARD * gn, self.floor):
             return True
         self.leave("the residual has an out-of-plane part (|g_out| = %.3e of |g| = %.3e): the "

@@ -598,7 +598,8 @@ class RankSchur:
         the tail, one backward substitution: a solve's work."""
         k = self.kept
         lu, tail = k["chain"], k["tail"]
-        z = b.copy()
+        z = y.getArray()                    # the substitutions in y's own values (b is x's)
+        z[:] = b
         z[k["G"]] = 0.0
         lu.solve(z, 0, lu.n)                                    # z = L^-1 b_I
         rows = k["tail_rows"]
@@ -606,9 +607,7 @@ class RankSchur:
         xg = self._separator_solution(comm, b, yT[k["near_in_tail"]])
         z[rows] -= self._tail_solve(self._on_tail(k["ANS"] @ xg), tail, lu.n)
         lu.solve(z, lu.n, 0)                                    # x_I = U^-1 (z - L^-1 A_IG x_G)
-        out = y.getArray()
-        out[:] = z
-        out[k["G"]] = xg[k["Gpos"]]
+        z[k["G"]] = xg[k["Gpos"]]
 
     def _factor_mumps(self, ANS):
         """The interior's MUMPS LU with T, the Schur complement of its near unknowns N; then
