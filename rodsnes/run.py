@@ -74,7 +74,8 @@ class Run:
                                    max_it=ld.max_it, quiet=scene.output.quiet)
         else:
             self.solver = NewtonSolver(self.problem, self.force_scale,
-                                       check_stability=scene.stability)
+                                       check_stability=scene.stability,
+                                       conservative=self.conservative)
         if self.problem.step_limit and self.path == "newton":
             snes = self.solver.snes
             self.solver.snes.setLineSearchPreCheck(
@@ -349,6 +350,10 @@ class Run:
             # not the factorisation (the plectoneme's 181 nodes: 27.7 s on 2 ranks, 23 s on one)
             parts.append(f"every rank factors the whole matrix: {self.mesh.n_nodes} nodes are "
                          f"too few to share it over {size} ranks (one rank may be as fast)")
+        if self.scene.stability and not self.conservative:
+            parts.append("-stability: " + nonconservative(self.scene.loads).split(", so")[0]
+                         + ": the Hessian's negative eigenvalues are counted but decide no "
+                         "stability, and no step is cut back for them")
         if rod.kernel == "auto" and self.problem.elastic.kernel != "compiled":
             parts.append("elastic kernel in numpy, 10-20 x slower: the compiled one is not built "
                          "or older than its source (make install)")

@@ -267,3 +267,20 @@ def test_a_failed_eigen_solve_raises_on_every_rank():
         a[0] = np.nan
     with pytest.raises(ValueError):
         lowest_eigenpair(p)
+
+
+@pytest.mark.mpi
+def test_stability_of_a_load_without_energy_is_counted_not_enforced():
+    """-stability with a dead end moment in 3-D (the helix): the loads have no energy, so the
+    Hessian's inertia decides no stability; the count is reported (summary.json
+    "negative_eigenvalues", "stable": null) and no step is cut back for it.  Before, the
+    converged step (3 iterations, 6 negative eigenvalues against none at the start) was cut
+    back for being "less stable" until the run failed, exit 3."""
+    ref = run_case("helix")
+    run = run_case("helix", stability=True)
+    assert run.ok and ref.ok
+    s = run.summary(converged=True)
+    assert s["stable"] is None and s["negative_eigenvalues"] > 0
+    assert [h["load"] for h in run.history] == [h["load"] for h in ref.history] == [1.0]
+    assert "-stability: a dead end moment is not conservative" in run.header()
+    assert abs(run.problem.energy() - ref.problem.energy()) <= 1e-12 * abs(ref.problem.energy())
