@@ -219,7 +219,8 @@ class O:
                         shown="none", note="an error in length units, e.g. 1e-6")
     rod_planar = Opt(CHOICE, "auto", "a scene whose shape, directors, supports and loads lie in "
                      "one coordinate plane is solved on its in-plane unknowns (x, y, theta per "
-                     "node: half the unknowns; each step's out-of-plane stability checked): auto "
+                     "node: half the unknowns; each step's out-of-plane stability checked by the "
+                     "minimiser, on -load_path newton with -stability): auto "
                      "(when the scene is planar), on (refused for a scene that is not), off (3-D)",
                      "disc", choices=("auto", "on", "off"))
     # --- boundary conditions ----------------------------------------------------
