@@ -17,6 +17,10 @@ residual and Jacobian into the elastic kernel and the parts of self-contact
     ChainFactor      a rank's stretch factored by its own LU without fill (solve/chain.py)
     ChainSolve       its substitutions (whole, or over the stretch's last rows)
 
+Work done once after the path, not in its iterations, runs in a log stage of its own
+(``with stage(PATH_END):``, -log_view's "Event Stage 1: PathEnd"; the bench leaves it out of
+its per-iteration parts): the stability count at the end of a Newton path (Run._execute).
+
 A call site is either a ``with timed("ContactSearch"):`` block or a method decorated with
 ``@logged("ContactSearch")``.  Events nest in PETSc's log: the time of one counts inside the
 SNES events around it (SNESFunctionEval, SNESJacobianEval, SNESLineSearch), and an event
@@ -31,6 +35,10 @@ NAMES = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "Con
          "MinCurved", "ChainFactor", "ChainSolve")
 
 _events = {}
+_stages = {}
+
+# the log stage of the work done once at the end of the path (module docstring)
+PATH_END = "PathEnd"
 
 
 def event(name):
@@ -70,3 +78,17 @@ def logged(name):
         inner.rod_event = name
         return inner
     return wrap
+
+
+@contextlib.contextmanager
+def stage(name):
+    """Log the block in PETSc's log stage ``name`` (registered at first use)."""
+    st = _stages.get(name)
+    if st is None:
+        from petsc4py import PETSc
+        st = _stages[name] = PETSc.Log.Stage(name)
+    st.push()
+    try:
+        yield
+    finally:
+        st.pop()

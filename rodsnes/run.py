@@ -17,7 +17,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from rodsnes import interrupts
+from rodsnes import interrupts, profiling
 from rodsnes.collective import on_root
 from rodsnes.model import fe, mesh as rodmesh
 from rodsnes.io import results as output
@@ -414,6 +414,13 @@ class Run:
                                        arc0=self.arc0, stop=ld.stop)
         reason = None if ok else self.solver.fail_reason or (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
                                   f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
+        if ok and self.path == "newton" and self.conservative and self.history \
+                and self.history[-1].get("negative_eigenvalues") is None:
+            # the Newton path counts every step only with -stability; its end is counted
+            # anyway (one LDL^T), so that a zero of the residual that is unstable says so
+            # (michell -load_path newton: "converged" on the circle past its threshold)
+            with profiling.stage(profiling.PATH_END):
+                self.history[-1]["negative_eigenvalues"] = self.solver.negative_eigenvalues()
         nneg = self.history[-1].get("negative_eigenvalues") if self.history else None
         unstable = bool(nneg) and self.conservative
         if ok and unstable and not self.unstable_asked():

@@ -47,7 +47,9 @@ def test_counts_match_the_run(mattiasson_run):
     assert p["residual_evals"] == its + s["load_steps"]
     # the elastic kernel runs once per residual and twice per Jacobian (child mode's event):
     # the tangents added into the matrix as they are made, and those of the element at the
-    # clamp, which goes in through the matrix's insertion (its Dirichlet rows masked)
+    # clamp, which goes in through the matrix's insertion (its Dirichlet rows masked).  The
+    # stability count of the path's end (a Newton path with an energy counts its end,
+    # Run._execute) runs in the PathEnd stage, which the parser leaves out
     assert ev["ElasticKernel"]["count"] == p["residual_evals"] + 2 * its
 
 

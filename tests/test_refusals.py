@@ -446,6 +446,37 @@ def test_an_unstable_end_asked_for_converges_and_says_so(capsys, tmp_path, asked
     assert s["converged"] is True and s["stable"] is False and s["negative_eigenvalues"] == 2
 
 
+def test_a_newton_path_with_an_energy_counts_its_end(capsys, tmp_path):
+    """-load_path newton without -stability on a conservative scene (the twisted ring past its
+    threshold stays on the circle, a zero of the residual): its end is counted anyway, and the
+    last line and summary.json say it is unstable (they said "converged", "stable" null)."""
+    d = tmp_path / "out"
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "michell.opts"),
+                           "-rod_nelem", "12", "-load_path", "newton", out=d)
+    assert rc == 0, err
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("converged to an unstable equilibrium at load 1.000000"), last
+    s = summary(d)
+    assert s["stable"] is False and s["negative_eigenvalues"] > 0
+    assert all("negative_eigenvalues" not in step for step in s["steps"][:-1])
+
+
+def test_a_newton_path_at_a_fold_says_what_goes_on_from_there(capsys, tmp_path):
+    """-load_path newton -stability on the imperfect twisted ring stops at the fold just below
+    Michell's threshold: no equilibrium near the last one however short the step.  The line
+    says so and what follows the path further (it said only "Newton failed after 10
+    cut-backs")."""
+    d = tmp_path / "out"
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "michell.opts"),
+                           "-rod_nelem", "12", "-load_path", "newton", "-stability", out=d)
+    assert rc == 3, err
+    last = out.strip().splitlines()[-1]
+    assert "Newton found no equilibrium near the last one however short the step" in last
+    assert "-load_arclength follows the branch around a fold" in last
+    assert "-load_path minimize descends past it" in last
+    assert "however short the step" in summary(d)["failure"]
+
+
 def test_an_unstable_end_not_asked_for_fails(capsys, tmp_path, monkeypatch):
     """A conservative run on the default path whose last step is unstable (faked: the
     minimiser's steps end stable) has failed: exit 3, the last line says UNSTABLE."""

@@ -86,6 +86,8 @@ DEFAULT_OUT = os.path.join(ROOT, "tools", "out", "bench_scaling")
 DOC_PNG = os.path.join(ROOT, "docs", "img", "bench_scaling.png")
 DOC_MD = os.path.join(ROOT, "docs", "bench_scaling.md")
 COIL_ELEMENT = 0.02         # element length of the coil scene (2 x rod radius)
+from rodsnes.profiling import PATH_END  # noqa: E402  (no PETSc import: the stage's name)
+
 ROD_EVENTS = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "ContactHalo",
               "ContactAssemble")
 
@@ -120,14 +122,16 @@ _EVENT_LINE = re.compile(r"^(\S+)\s+(\d+)\s+\S+\s+([0-9.]+e[+-]?\d+)\s")
 
 def parse_log_view(text):
     """PETSc's ASCII -log_view -> {"ranks": int, "events": {name: {"count", "time"}}}: per
-    event the count and the time (seconds, maximum over ranks), summed over the stages."""
+    event the count and the time (seconds, maximum over ranks), summed over the stages but
+    rodsnes' PathEnd (profiling.PATH_END: the work done once after the path, no iteration's:
+    a Newton path's stability count of its end)."""
     m = re.search(r"with (\d+) processors?", text)
     if m is None:
         raise ValueError("not a PETSc -log_view: no 'with N processor(s)' line")
     events, inside = {}, False
     for line in text.splitlines():
         if line.startswith("--- Event Stage"):
-            inside = True
+            inside = not line.rstrip().endswith(": " + PATH_END)
             continue
         if inside and (line.startswith("----") or line.startswith("====")):
             inside = False

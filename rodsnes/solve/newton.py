@@ -245,6 +245,7 @@ class NewtonSolver:
                 # no equilibrium near the last one, however short the step: a fold of the
                 # path; -load_arclength follows the branch around it, else the run ends here
                 if not self.arclength:
+                    self.fail_reason = self._no_equilibrium(lam, 2.0 * dlam)
                     return results, False
                 if self._fold_seen_before():
                     self.fail_reason = (f"load path stopped at load {lam:.6f}: the continuation "
@@ -267,6 +268,16 @@ class NewtonSolver:
             if on_step is not None:
                 on_step(res)
         return results, True
+
+    def _no_equilibrium(self, lam, dlam):
+        """Why the path stopped where no step, however short, found an equilibrium, and what
+        goes on from there (-load_arclength; for loads with an energy the minimiser)."""
+        hint = "-load_arclength follows the branch around a fold"
+        if self.conservative:
+            hint += ", and the default -load_path minimize descends past it"
+        return (f"load path stopped at load {lam:.6f}: Newton found no equilibrium near the last "
+                f"one however short the step (the last increment {dlam:.1e}: a fold, where the "
+                f"path turns back, or a jump): {hint}; the last converged step is in result.h5")
 
     def _predict(self, snap, prev, ratio):
         """The secant predictor ``ratio`` times the last step from the state (``snap``), as
