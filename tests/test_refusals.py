@@ -461,6 +461,34 @@ def test_a_newton_path_with_an_energy_counts_its_end(capsys, tmp_path):
     assert all("negative_eigenvalues" not in step for step in s["steps"][:-1])
 
 
+def test_a_failed_or_empty_end_count_claims_nothing(capsys, tmp_path, monkeypatch):
+    """The end count of a Newton path records an unstable end only: a count of none (which a
+    fine mesh can give for an unstable end: the zero shift grows as 1/h) and a failed one
+    (-1: a factorisation MUMPS could not make, taken for "unstable" before) leave "stable"
+    null and the line "converged"."""
+    from rodsnes.solve.newton import NewtonSolver
+    for n in (0, -1):
+        monkeypatch.setattr(NewtonSolver, "negative_eigenvalues", lambda self, n=n: n)
+        d = tmp_path / f"out{n}"
+        rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "michell.opts"),
+                               "-rod_nelem", "12", "-load_path", "newton", out=d)
+        assert rc == 0, err
+        assert out.strip().splitlines()[-1].startswith("converged;"), out
+        s = summary(d)
+        assert s["stable"] is None and s["negative_eigenvalues"] is None
+
+
+def test_a_newton_path_out_of_cut_backs_is_no_fold(capsys, tmp_path):
+    """The cut-backs run out before the step has shrunk to -load_min_step: the plain line,
+    not the fold's."""
+    d = tmp_path / "out"
+    rc, out, err = rodsnes(capsys, *MATT, "-load_path", "newton", "-snes_max_it", "2",
+                           "-load_max_cutbacks", "1", out=d)
+    assert rc == 3, err
+    failure = summary(d)["failure"]
+    assert "Newton failed after 1 cut-backs" in failure and "fold" not in failure, failure
+
+
 def test_a_newton_path_at_a_fold_says_what_goes_on_from_there(capsys, tmp_path):
     """-load_path newton -stability on the imperfect twisted ring stops at the fold just below
     Michell's threshold: no equilibrium near the last one however short the step.  The line

@@ -245,7 +245,8 @@ class NewtonSolver:
                 # no equilibrium near the last one, however short the step: a fold of the
                 # path; -load_arclength follows the branch around it, else the run ends here
                 if not self.arclength:
-                    self.fail_reason = self._no_equilibrium(lam, 2.0 * dlam)
+                    if dlam < min_step:         # the step shrank to nothing: a fold, or a jump
+                        self.fail_reason = self._no_equilibrium(lam, 2.0 * dlam)
                     return results, False
                 if self._fold_seen_before():
                     self.fail_reason = (f"load path stopped at load {lam:.6f}: the continuation "
