@@ -216,7 +216,7 @@ class NewtonSolver:
             snap = p.state.snapshot()
             predicted = prev is not None and self.predictor
             if predicted:
-                self._predict(snap, prev, (target - lam) / (lam - prev[1]))
+                predicted = self._predict(snap, prev, (target - lam) / (lam - prev[1]))
             res = self.solve_guarded(target)
             if not res.converged and predicted and cutbacks == 0:
                 # the secant can carry a strand into another (contact) or past a turn of the
@@ -287,12 +287,13 @@ class NewtonSolver:
         line search may (else the step starts from the state): the minimiser path's predictor
         (load_path.LoadPath.predict) without the twist.  Unlimited, the secant of a step 1.5 x
         the last carried rollup_contact's free end past the clamped end's cap (12 or 20 load
-        steps: the tip landed outside the first turn, another equilibrium, exit 0).
-        Collective."""
+        steps: the tip landed outside the first turn, another equilibrium, exit 0).  Returns
+        whether the step starts from a prediction (a failed one is tried again from the
+        state).  Collective."""
         p = self.problem
         p.state.predict(prev[0], ratio)
         if not p.step_limit:
-            return
+            return True
         move = p.state.X.copy()
         move.axpy(-1.0, snap[1])
         p.state.restore(snap)
@@ -303,6 +304,8 @@ class NewtonSolver:
         if depth0 is not None and \
                 p.deepest(p.state.local_config()[0], report=False) > p.depth_allowed(depth0):
             p.state.restore(snap)
+            return False
+        return True
 
     def _fold_seen_before(self):
         """True when the path stands at a fold that an earlier continuation started from:
