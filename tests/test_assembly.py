@@ -361,3 +361,26 @@ def test_each_stretch_is_numbered_toward_the_nodes_it_shares(owners, closed, des
     from rodsnes.model.partition import stretch_descends
     got = stretch_descends(np.asarray(owners), closed, max(owners) + 1)
     assert got.tolist() == descends
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("case, kw", [("mattiasson", dict(rod_nelem=24)),
+                                      ("michell", dict(rod_nelem=12)),
+                                      ("rollup_contact", dict(rod_nelem=16))])
+def test_the_block_pattern_of_the_row_elements_is_the_whole_rods(case, kw):
+    """Layout.block_pattern from the elements holding an owned node (row_elems) equals the
+    owned rows of the whole rod's pattern, with a term's extra groups (contact pairs) too."""
+    from conftest import build_run
+    from rodsnes.model.partition import group_pairs
+    run = build_run(case, **kw)
+    lay, p = run.layout, run.problem
+    extra = p.node_groups(p.patterns)
+    ai, aj = lay.block_pattern(extra)
+    rows, cols = group_pairs(lay.coupled_groups(extra))       # every element on every rank
+    r, c = lay.nat2petsc[rows], lay.nat2petsc[cols]
+    lo, hi = lay.starts[lay.comm.getRank()], lay.starts[lay.comm.getRank() + 1]
+    keep = (r >= lo) & (r < hi)
+    code = np.unique(r[keep] * lay.n_global + c[keep])
+    want_i = np.concatenate([[0], np.cumsum(np.bincount(code // lay.n_global - lo,
+                                                        minlength=hi - lo))])
+    assert np.array_equal(ai, want_i) and np.array_equal(aj, code % lay.n_global)

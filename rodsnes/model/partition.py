@@ -177,8 +177,12 @@ class Layout:
     def block_pattern(self, extra_pairs=None):
         """The block nonzero structure of the owned block rows: element coupling + extra node
         groups (coupled_groups), as CSR (ai: offsets per owned block row, aj: global PETSc
-        block columns, sorted)."""
-        rows, cols = group_pairs(self.coupled_groups(extra_pairs))
+        block columns, sorted).  The elements are the row elements (every element holding an
+        owned node): the pattern of the whole rod's would be the same rows, at the cost of all
+        of them on every rank (2.2 ms of the in-plane matrix's 5.1 on each of 2 ranks at 10^4
+        elements)."""
+        groups = [self.mesh.conn[self.row_elems]] + self.coupled_groups(extra_pairs)[1:]
+        rows, cols = group_pairs(groups)
         r, c = self.nat2petsc[rows], self.nat2petsc[cols]
         rank = self.comm.getRank()
         lo, hi = self.starts[rank], self.starts[rank + 1]
