@@ -511,7 +511,7 @@ def main(argv=None):
                 _say(rank, "error", f"interrupted by {sig.name} before the run started")
                 return 128 + sig.signum
             except Exception as exc:  # noqa: BLE001 - a defect: said, never a hang (_failed)
-                return _failed(agree, None, *_internal(exc, None), code=EXIT_INTERNAL)
+                return _failed(agree, None, *_internal(exc, None, agree), code=EXIT_INTERNAL)
             try:
                 ok = run.execute()
             except Interrupted as sig:
@@ -522,7 +522,7 @@ def main(argv=None):
                 return _failed(agree, run, petsc_error_message(err, opts, comm),
                                code=EXIT_REFUSED)
             except Exception as exc:  # noqa: BLE001 - a defect: said, never a hang (_failed)
-                return _failed(agree, run, *_internal(exc, run), code=EXIT_INTERNAL)
+                return _failed(agree, run, *_internal(exc, run, agree), code=EXIT_INTERNAL)
     finally:
         agree.Free()            # every rank is here (a rank that stopped alone aborted)
     for line in unused_petsc_warnings(given, late=True):
@@ -531,14 +531,14 @@ def main(argv=None):
     return 0 if ok else EXIT_FAILED
 
 
-def _all_ranks_reach(agree, seconds=None):
-    """Whether every rank of ``agree`` reaches this point within ``seconds`` (AGREE_SECONDS): a
-    non-blocking barrier on a communicator of its own, which a rank still inside a
-    collective of the solver (waiting for the rank that raised) never joins."""
+def _all_ranks_reach(agree):
+    """Whether every rank of ``agree`` reaches this point within AGREE_SECONDS: a non-blocking
+    barrier on a communicator of its own, which a rank still inside a collective of the
+    solver (waiting for the rank that raised) never joins."""
     if agree.size == 1:
         return True
     req = agree.Ibarrier()
-    t_end = time.monotonic() + (AGREE_SECONDS if seconds is None else seconds)
+    t_end = time.monotonic() + AGREE_SECONDS
     while not req.Test():
         if time.monotonic() > t_end:
             return False
@@ -546,13 +546,13 @@ def _all_ranks_reach(agree, seconds=None):
     return True
 
 
-def _internal(exc, run):
+def _internal(exc, run, agree):
     """(line, traceback) of an internal error (an exception no part of rodsnes expected): its
-    type, message and rank, and where its traceback is (DIR/error_rank<r>.txt, to be reported;
-    where there is no output directory yet, the traceback text, printed after the line)."""
+    type, message and rank (of ``agree``), and where its traceback is (DIR/error_rank<r>.txt,
+    to be reported; where there is no output directory yet, the traceback text, printed
+    after the line)."""
     import traceback
-    from mpi4py import MPI
-    rank, size = MPI.COMM_WORLD.rank, MPI.COMM_WORLD.size
+    rank, size = agree.rank, agree.size
     text = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
     where, trailer = "printed below", text
     outdir = getattr(run, "outdir", None)

@@ -81,13 +81,12 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
+from rodsnes.profiling import PATH_END  # noqa: E402  (no PETSc import: the stage's name)
 
 DEFAULT_OUT = os.path.join(ROOT, "tools", "out", "bench_scaling")
 DOC_PNG = os.path.join(ROOT, "docs", "img", "bench_scaling.png")
 DOC_MD = os.path.join(ROOT, "docs", "bench_scaling.md")
 COIL_ELEMENT = 0.02         # element length of the coil scene (2 x rod radius)
-from rodsnes.profiling import PATH_END  # noqa: E402  (no PETSc import: the stage's name)
-
 ROD_EVENTS = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "ContactHalo",
               "ContactAssemble")
 

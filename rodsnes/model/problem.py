@@ -396,6 +396,21 @@ class RodProblem:
                 alpha = room / t
         return alpha
 
+    def predict_within_limits(self, snap, prev, ratio, twist=None):
+        """The secant predictor (RodState.predict: ``ratio`` times the step from ``prev`` to the
+        state ``snap``, the twist ``twist`` factored out) as far along as the move limits let
+        any node move, as a line search's step from the state (longest_step): the load paths'
+        start of a step.  Returns the share of the secant taken.  Collective."""
+        st = self.state
+        st.predict(prev, ratio, twist)
+        move = st.X.copy()
+        move.axpy(-1.0, snap[1])
+        st.restore(snap)
+        share = self.longest_step(move)
+        move.destroy()
+        st.predict(prev, share * ratio, twist)
+        return share
+
     def deepest(self, r=None, report=True):
         """The deepest penetration over the terms that measure one (Term.deepest) at the local
         positions r (None: their last evaluation), or None where none does.  Collective."""

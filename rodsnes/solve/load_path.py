@@ -162,13 +162,7 @@ class LoadPath:
             snap = p.state.snapshot()
             ratio = dl / (lam - prev[1])
             twist = self.twist_angles(lam - prev[1])     # the last step's, factored out
-            p.state.predict(prev[0], ratio, twist)
-            move = p.state.X.copy()
-            move.axpy(-1.0, snap[1])
-            p.state.restore(snap)
-            share = m._longest_step(move)         # at the start, as a line search's step
-            move.destroy()
-            p.state.predict(prev[0], share * ratio, twist)
+            share = p.predict_within_limits(snap, prev[0], ratio, twist)
             p.state.recentre()
             if share < 1.0:
                 self.twist_predictor((1.0 - share) * dl)

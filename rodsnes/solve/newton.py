@@ -291,16 +291,11 @@ class NewtonSolver:
         whether the step starts from a prediction (a failed one is tried again from the
         state).  Collective."""
         p = self.problem
-        p.state.predict(prev[0], ratio)
         if not p.step_limit:
+            p.state.predict(prev[0], ratio)
             return True
-        move = p.state.X.copy()
-        move.axpy(-1.0, snap[1])
-        p.state.restore(snap)
         depth0 = p.deepest(p.state.local_config()[0], report=False)
-        share = p.longest_step(move)
-        move.destroy()
-        p.state.predict(prev[0], share * ratio)
+        p.predict_within_limits(snap, prev[0], ratio)
         if depth0 is not None and \
                 p.deepest(p.state.local_config()[0], report=False) > p.depth_allowed(depth0):
             p.state.restore(snap)
