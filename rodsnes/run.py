@@ -27,7 +27,7 @@ from rodsnes.model.problem import RodProblem
 from rodsnes.solve.load_path import LoadPath
 from rodsnes.solve.newton import NewtonSolver
 from rodsnes.terms import scene_terms, contact_term
-from rodsnes.solve import estimate, linear, schur
+from rodsnes.solve import estimate, linear, schur, stability
 from rodsnes.solve import planar
 from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
@@ -304,6 +304,9 @@ class Run:
         # None: not counted, or loads without a potential (follower forces, 3-D end moments),
         # for which the inertia of the elastic energy's Hessian does not decide stability
         s["stable"] = None if nneg is None or not self.conservative else bool(nneg == 0)
+        if "neutral_band" in self.problem.stats:
+            # eigenvalues of H v = lambda M v above -neutral_band EI_min / L^4 count as neutral
+            s["neutral_band"] = self.problem.stats["neutral_band"]
         tip = self._tip(self.last_fields)
         if tip is not None:
             s["tip_position"] = tip.tolist()
@@ -417,17 +420,21 @@ class Run:
         if ok and self.path == "newton" and self.conservative and self._last_count() is None:
             # the Newton path counts every step only with -stability; its end is counted
             # anyway (one LDL^T), so that a zero of the residual that is unstable says so
-            # (michell -load_path newton: "converged" on the circle past its threshold).  Only
-            # an unstable end is recorded: a negative pivot beyond the zero shift is a negative
-            # eigenvalue, but a count of none certifies little on a fine mesh (the shift grows
-            # as 1/h while a buckling eigenvalue shrinks with h: the straight Euler column at
-            # 1.2 P_cr counts 2 at 200 elements, none at 1500)
+            # (michell -load_path newton: "converged" on the circle past its threshold), and
+            # one that is stable says that.  A failed count (-1) claims nothing.
             with profiling.stage(profiling.PATH_END):
                 n = self.solver.negative_eigenvalues()
-            if n > 0:
+            if n >= 0:
                 self.history[-1]["negative_eigenvalues"] = n
         nneg = self._last_count()
         unstable = bool(nneg) and self.conservative
+        band = self.problem.stats.get("neutral_band", 0.0)
+        if band > stability.COARSE * stability.NEUTRAL:
+            self._say(f"note: the stability count took eigenvalues of H v = lambda M v above "
+                      f"-{band:.3g} EI/L^4 as neutral ({band / stability.NEUTRAL:.0f} x the "
+                      f"default band, set by the round-off of the Hessian of {self.mesh.nelem} "
+                      f"elements, ~ EA / h^2): a state that close to a critical one may count as stable; "
+                      f"fewer elements (-rod_nelem) sharpen it")
         if ok and unstable and not self.unstable_asked():
             ok, reason = False, (f"the load path ends at load {self.problem.lam:.6f} on an "
                                  f"UNSTABLE equilibrium ({nneg} negative eigenvalues of the energy "

@@ -210,21 +210,24 @@ def test_the_chain_ldlt_counts_and_hands_an_unstable_factorisation_to_mumps(monk
 
 
 def test_a_closed_turn_hands_its_count_to_mumps_and_the_chain_stays(monkeypatch):
-    """A roll-up's closed turn (8 cubic elements) has a pivot block carrying growth: the chain
-    factors' backward error (2e-13 |H| |x|) exceeds a tenth of the zero shift, MUMPS counts
-    (the same count as the fresh factorisation's).  The MUMPS options rodsnes set for that
-    count are its own defaults, not the user's: a later count still takes the chain where it
-    is backward stable (the Euler column)."""
+    """A roll-up's closed turn (8 cubic elements) counted under the round-off shift alone
+    (NEUTRAL 0: the neutral band's shift, 1e-4 there, keeps its pivots apart) has a pivot
+    block carrying growth: the chain factors' backward error (8e-14 |H| |x|) exceeds a tenth
+    of the round-off scale, MUMPS counts (the same count as the fresh factorisation's).  The
+    MUMPS options rodsnes set for that count are its own defaults, not the user's: a later
+    count still takes the chain where it is backward stable (the Euler column)."""
     from rodsnes.solve import stability
     if PETSc.COMM_WORLD.getSize() > 1:
         pytest.skip("one rank (the rods are shorter than a condensation)")
     p = run_case("rollup", rod_nelem=8).problem
+    monkeypatch.setattr(stability, "NEUTRAL", 0.0)
     inertia = stability.Inertia(p)
     n = inertia.count()
     assert inertia.chain is not None and not inertia.by_chain and inertia.chain_counts == 0
-    assert inertia.backward > 1e-14 and n == stability.negative_eigenvalues_scaled(p)
+    assert inertia.backward > 1e-14 and n == stability.negative_eigenvalues_scaled(p) == 2
     inertia_solve(inertia, 1e-12)
     inertia.destroy()
+    monkeypatch.undo()
     q = run_case("euler", stability=True, rod_imperfection=1e-3, load_path="newton",
                  rod_planar="off", load_end_force="%r,0,0" % (-1.2 * np.pi ** 2 / 4),
                  load_steps=4).problem
@@ -298,3 +301,50 @@ def test_a_mat_type_keeps_the_twisted_ring_s_path(mat_type):
         PETSc.Options().delValue("mat_type")
     assert ref.ok and run.ok
     assert abs(run.problem.energy() - ref.problem.energy()) <= 1e-10 * abs(ref.problem.energy())
+
+
+@pytest.mark.parametrize("nelem", [16, 400, 1500])
+def test_a_column_past_buckling_counts_unstable_on_any_mesh(nelem):
+    """The perfect Euler column in 3-D at 1.44 P_cr: straight on the Newton path, its two
+    buckling directions counted at every mesh (H v = lambda M v's lowest pair, -6.17 EI / L^4,
+    is mesh-independent; H's own shrinks as h, below a shift of eps |H|, which grows as 1 / h,
+    from a few hundred elements on: such a count certified the straight column stable at 400
+    and 1500 elements); and the minimiser, whose convergence asks the same count, buckles it
+    (energy 3.19185, the straight column's 3.55305) on every mesh."""
+    kw = dict(rod_nelem=nelem, rod_imperfection=0.0, rod_planar="off", load_steps=4,
+              load_end_force="-3.5530575843921685,0,0", rod_error_estimate="off")
+    straight = run_case("euler", load_path="newton", stability=True, load_max_cutbacks=0, **kw)
+    # loads 0.36, 0.72, 1.08, 1.44 P_cr
+    assert [h["negative_eigenvalues"] for h in straight.history] == [0, 0, 2, 2]
+    assert abs(straight.problem.energy() - 3.553051) < 1e-5
+    buckled = run_case("euler", **kw)
+    assert buckled.ok and buckled.history[-1]["negative_eigenvalues"] == 0
+    assert abs(buckled.problem.energy() - 3.191845) < 1e-5
+
+
+def test_the_count_is_of_the_metric_eigenvalues_below_the_neutral_band(monkeypatch):
+    """The count is Sylvester's on H + tau M: the eigenvalues of H v = lambda M v (M the rod's
+    lumped mass metric, stability_metric) below -tau, by dense LAPACK.  The imperfect twisted
+    ring at 1.5 turns has one, -1.0e-6 (-2e-3 EI / L^4, a near-symmetry the imperfection
+    breaks), inside the neutral band at the default NEUTRAL (tau = 1e-2 EI / L^4): stable;
+    narrower bands count it."""
+    import scipy.linalg as sl
+    from rodsnes.solve import stability
+    from rodsnes.solve.stability import gather_csr
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank (dense eigenvalues of the gathered Hessian)")
+    p = run_case("michell", load_twist_turns=1.5, load_steps=4, rod_nelem=16,
+                 load_path="newton", rod_imperfection=1e-4).problem
+    inertia = stability.Inertia(p)
+    H = inertia.assemble()
+    A = gather_csr(H, p.layout).toarray()
+    A = np.triu(A) + np.triu(A, 1).T
+    lam = sl.eigh(A, np.diag(stability.stability_metric(p).ravel()), eigvals_only=True)
+    assert -2e-6 < lam[0] < -5e-7 < 1e-2 < lam[1]
+    counts = {}
+    for neutral in (1e-2, 1e-3, 1e-4, 1e-6):
+        monkeypatch.setattr(stability, "NEUTRAL", neutral)
+        counts[neutral] = inertia.factor()
+        assert counts[neutral] == int(np.sum(lam < -inertia.tau)), neutral
+    assert counts == {1e-2: 0, 1e-3: 1, 1e-4: 1, 1e-6: 1}
+    inertia.destroy()

@@ -51,14 +51,16 @@ def test_restart_from_an_interrupted_run_matches_the_uninterrupted_one():
 
 
 def test_restart_from_an_unstable_step_takes_the_steps_the_run_would_have_taken(tmp_path):
-    """The Newton path with -stability: the Michell ring near sqrt(3) turns stays on the circle,
-    accepted with negative eigenvalues after the cut-backs.  A restart from such a step, in
+    """The Newton path with -stability: the imperfect Michell ring at 1.7 turns, short of the
+    fold near 1.72 turns that the imperfection makes of Michell's bifurcation (sqrt(3) turns),
+    stays on the circle past 1.67 turns, where its near-symmetry mode falls below the neutral
+    band (stability.NEUTRAL): accepted with a negative eigenvalue after the cut-backs.  A restart from such a step, in
     the middle of the increments growing again after the cut-backs, starts (1) from that
     eigenvalue count (Run.nneg0), so it does not take its own state for a loss of stability
     and cut every step back; (2) from the increment the interrupted run would have taken next
     (next_increment in result.h5) and (3) with the secant predictor through the step before:
     it takes the same load steps with the same Newton iterations as the uninterrupted run."""
-    kw = dict(load_twist_turns=2.5, stability=True, rod_nelem=8,
+    kw = dict(load_twist_turns=1.7, stability=True, rod_nelem=8,
               load_steps=10, load_max_cutbacks=3)
     full = run_case("michell", outdir=str(tmp_path / "full"), **kw)
     assert full.ok

@@ -39,7 +39,7 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
 5. Where Newton's steps crawl along one soft mode (a ply sliding), the minimiser walks the
    valley floor by predictor-corrector (valley.py) and goes on from the walk's last point.
 6. Converged when |g| <= tolerance (relative to the force scale, or the round-off floor of
-   the residual) AND H itself (sigma = 0, the zero_shift of exact zero modes aside) factors
+   the residual) AND H itself (sigma = 0, the neutral band tau M aside: stability.neutral_shift) factors
    with no negative pivot: every converged step is a stable equilibrium, its inertia known
    from the factorisation the iteration makes anyway.  A near-zero positive eigenvalue (a ply
    sliding, a ring turning) is not an instability: convergence is judged on |g| only.
@@ -49,13 +49,11 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
-from rodsnes.model.partition import NDOF
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults
-from rodsnes.solve.stability import Inertia
+from rodsnes.solve.stability import Inertia, lumped_metric
 from rodsnes.solve.valley import ValleyFollower
-from rodsnes.model.mesh import lumped_weights
 
 ARMIJO = 1e-4
 # full Newton steps the watchdog lets the energy rise over before it goes back and searches
@@ -163,16 +161,11 @@ class EnergyMinimizer:
     # -- pieces -----------------------------------------------------------------------
     def _metric(self):
         """Lumped metric M (a Vec): m_i for position rows, m_i h^2 for rotation rows (m_i =
-        int N_i ds, h the element length), 1 on the Dirichlet rows."""
+        int N_i ds, h the element length), 1 on the Dirichlet rows (stability.lumped_metric)."""
         p = self.problem
-        m = lumped_weights(p.mesh, p.layout)
         h = p.mesh.length / p.mesh.nelem
         M = p.layout.create_vec()
-        with M as a:
-            a = a.reshape(-1, NDOF)
-            a[:, 0:3] = m[:, None]
-            a[:, 3:6] = m[:, None] * h * h
-            a.reshape(-1)[p.constraints.rows_local] = 1.0
+        M.setArray(lumped_metric(p, h * h).ravel())
         return M
 
     def _same(self, *values):

@@ -24,11 +24,71 @@ from rodsnes.solve.linear import is_default, mumps_fill_room, mumps_ordering, op
 
 
 def zero_shift(A):
-    """tau = 1000 eps max|diag(A)|, the diagonal shift under which the inertia is counted:
-    above the roundoff of an exact zero eigenvalue, so that exact zero modes (symmetries of
-    isotropic rods, e.g. turning a buckled isotropic column about its load axis) do not count
-    as negative.  Collective."""
+    """1000 eps max|diag(A)|: the round-off scale of A's entries, against which the chain
+    LDL^T's backward error is judged (Inertia.CHAIN_BACKWARD).  Collective."""
     return 1e3 * np.finfo(float).eps * A.getDiagonal().norm(PETSc.NormType.INFINITY)
+
+
+# The inertia is counted on H + tau M (Sylvester: the eigenvalues of H v = lambda M v below
+# -tau), M the rod's lumped mass metric (stability_metric), tau the larger of
+#   NEUTRAL x EI_min / L^4: an eigenvalue above it is neutral, not an instability (a state
+#     within ~0.2 % of the critical load of the rod's softest whole-length mode counts as
+#     stable; the imperfect twisted ring's near-symmetry, -2e-3 EI / L^4, is one), and
+#   ROUNDOFF x eps max_i(H_ii / M_ii): the round-off of an exact zero mode (a buckled isotropic
+#     column turned about its load axis: |lambda| <= 0.6 eps max(H_ii / M_ii) measured at 16-200
+#     elements), which grows as EA / h^2.
+# Both are mesh-independent in the metric, where H's own eigenvalues shrink with h while its
+# diagonal grows as 1 / h: a shift of eps |H| I certified a straight column past its buckling
+# load as stable from a few hundred elements on.
+NEUTRAL = 1e-2
+ROUNDOFF = 10.0
+# a band this many times NEUTRAL (round-off's) is reported as a coarse count (Run)
+COARSE = 10.0
+
+
+def lumped_metric(problem, l2):
+    """A lumped metric per unit line density, (owned nodes, 6): m_i = int N_i ds on the position
+    rows, m_i l2 on the rotation rows, 1 on the Dirichlet rows.  Collective."""
+    from rodsnes.model.mesh import lumped_weights
+    m = lumped_weights(problem.mesh, problem.layout)
+    M = np.empty((len(m), 6))
+    M[:, 0:3] = m[:, None]
+    M[:, 3:6] = (m * l2)[:, None]
+    M.reshape(-1)[problem.constraints.rows_local] = 1.0
+    return M
+
+
+def stability_metric(problem):
+    """The rod's lumped mass metric (lumped_metric with l2 = (EI1 + EI2) / (2 EA), the bending
+    radius of gyration squared of a section of one modulus): the eigenvalues of H v = lambda
+    M v (rho A omega^2 of the rod's small vibrations) converge with the mesh.  Collective."""
+    rod = problem.scene.rod
+    return lumped_metric(problem, (rod.EI1 + rod.EI2) / (2.0 * rod.EA))
+
+
+def neutral_shift(problem, diagonal, metric):
+    """(tau M, tau): the shift the inertia is counted under (NEUTRAL, ROUNDOFF above), a new
+    Vec like ``diagonal`` (H's diagonal) from ``metric`` (M of H's rows: stability_metric);
+    the widest band in problem.stats["neutral_band"].  Collective."""
+    rod = problem.scene.rod
+    scale = min(rod.EI1, rod.EI2) / rod.length ** 4
+    ratio = diagonal.copy()
+    ratio.pointwiseDivide(ratio, metric)
+    big = ratio.norm(PETSc.NormType.INFINITY)
+    ratio.destroy()
+    tau = max(NEUTRAL * scale, ROUNDOFF * np.finfo(float).eps * big)
+    shift = metric.copy()
+    shift.scale(tau)
+    # the widest band of the run, in units of EI_min / L^4 (summary.json's neutral_band)
+    problem.stats["neutral_band"] = max(problem.stats.get("neutral_band", 0.0), tau / scale)
+    return shift, tau
+
+
+def metric_of(problem, like, comps=slice(None)):
+    """stability_metric of the components ``comps`` of each node as a Vec like ``like``."""
+    M = like.duplicate()
+    M.setArray(stability_metric(problem)[:, comps].ravel())
+    return M
 
 
 class ChainCount:
@@ -123,8 +183,9 @@ class Inertia:
     Dirichlet rows masked as it is assembled) that is kept, with
     its factorisation's symbolic analysis, while the block pattern stays the same: a count is
     one Hessian assembly and one numeric LDL^T (half the flops of Newton's LU).  The diagonal
-    is shifted by tau = 1000 eps max|diag| (zero_shift) so that exact zero modes count as
-    positive.  Newton itself factors the consistent tangent by LU: on the symmetric Hessian
+    is shifted by tau M (neutral_shift): the count is of the eigenvalues of H v = lambda M v
+    below -tau, so that exact zero modes and near-neutral ones count as positive, the same on
+    any mesh.  Newton itself factors the consistent tangent by LU: on the symmetric Hessian
     (equal at equilibrium, O(|F|) apart elsewhere) Newton stagnated on the Michell ring's
     unstable branch near its bifurcation (test_restart), where the consistent tangent
     converges.
@@ -138,12 +199,12 @@ class Inertia:
 
     REDUNDANT_MAX = 30000       # unknowns up to which several ranks each factor H whole
     # the chain LDL^T's count is taken where its factors solve H x = b (b fixed) to a backward
-    # error |H x - b| <= CHAIN_BACKWARD (tau / |H|) |H| |x|, tau the zero shift: the factors of
-    # H + E with |E| a tenth of tau, whose inertia is H's but where an eigenvalue lies within
-    # |E| of zero - which the shift already decides.  Without pivoting between blocks a small
+    # error |H x - b| <= CHAIN_BACKWARD (t / |H|) |H| |x|, t = zero_shift(H) the round-off
+    # scale of H's entries: the factors of H + E with |E| a tenth of t, whose inertia is H's but
+    # where an eigenvalue lies within |E| of zero.  Without pivoting between blocks a small
     # pivot block can carry growth (the rod's leading stretch near a critical state of its own:
-    # 2e-13 in a roll-up's closed turn, while tau / |H| is about 1e-13); then MUMPS, pivoting,
-    # counts instead.
+    # 8e-14 in a roll-up's closed turn counted without the neutral band, while t / |H| is
+    # about 1e-13); then MUMPS, pivoting, counts instead.
     CHAIN_BACKWARD = 0.1
 
     def __init__(self, problem, prefix="stability_"):
@@ -159,6 +220,9 @@ class Inertia:
         self.builds = 0                  # matrices (and symbolic analyses) made
         self.counts = 0
         self.chain_counts = 0            # counts made by the chain LDL^T
+        self.comps = slice(None)         # the components of each node H holds
+        self.tau = None                  # the last count's tau (neutral_shift)
+        self.metric = None               # M of H's rows (stability_metric), with H
 
     @property
     def backward(self):
@@ -272,13 +336,17 @@ class Inertia:
         return self.H
 
     def factor(self, shift=None):
-        """LDL^T of H + diag(shift) (shift a Vec; None: zero_shift(H) on the diagonal) by MUMPS;
+        """LDL^T of H + diag(shift) (shift a Vec; None: tau M, neutral_shift) by MUMPS;
         returns the number of negative pivots (INFOG(12)), or -1 when the factorisation failed
         (a zero pivot, MUMPS out of room).  The factor stays for solve().  Collective."""
         H = self.H
         d = self.diagonal.copy()
         if shift is None:
-            d.shift(zero_shift(H))
+            if self.metric is None:
+                self.metric = metric_of(self.problem, self.diagonal, self.comps)
+            shift, self.tau = neutral_shift(self.problem, self.diagonal, self.metric)
+            d.axpy(1.0, shift)
+            shift.destroy()
         else:
             d.axpy(1.0, shift)
         H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
@@ -352,10 +420,11 @@ class Inertia:
     def destroy(self):
         w = self.whole or {}
         for obj in (self.pc, self.H, self.diagonal, w.get("H"), w.get("is"), w.get("scatter"),
-                    w.get("b"), w.get("x"), self.fallback, self.chain):
+                    w.get("b"), w.get("x"), self.fallback, self.chain, self.metric):
             if obj is not None:
                 obj.destroy()
         self.pc = self.H = self.whole = self.diagonal = self.chain = self.fallback = None
+        self.metric = None
         self.by_chain = False
 
 
@@ -369,13 +438,19 @@ def negative_eigenvalues(problem):
 
 def negative_eigenvalues_scaled(problem):
     """The same count by a factorisation made afresh: the Hessian in AIJ, Jacobi-scaled
-    (a congruence, so the inertia is kept), shifted by zero_shift, MUMPS Cholesky with
+    (a congruence, so the inertia is kept), shifted by neutral_shift, MUMPS Cholesky with
     MatGetInertia (ICNTL(24) null pivots).  The reference the kept-factorisation count is
     tested against."""
     H = hessian(problem)
     A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
-    A.shift(zero_shift(A))
+    d = A.getDiagonal()
+    M = metric_of(problem, d)
+    shift, _ = neutral_shift(problem, d, M)
+    d.axpy(1.0, shift)
+    A.setDiagonal(d)
+    for v in (shift, d, M):
+        v.destroy()
     # symmetric Jacobi scaling D^-1/2 A D^-1/2 is a congruence, so it keeps the inertia
     # (Sylvester) while bringing axial (EA/h) and bending (EI/h) pivots to one scale, so that
     # MUMPS's null-pivot test does not swallow soft negative directions
