@@ -141,3 +141,27 @@ def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
     assert not run.ok and len(calls) == 1 and 0.990 < calls[0] < 0.9905
     assert abs(run.problem.lam - calls[0]) < 1e-12
     assert "came back to it (a closed loop of equilibria)" in run.solver.fail_reason
+
+
+def test_a_load_without_energy_leaves_the_continuation_past_the_fold(monkeypatch):
+    """Where the loads have no energy the inertia decides no stability: the continuation ends at
+    the first point past the fold (the load rising again after it fell), whatever the count -
+    here, from the fold on, the solver takes the loads for energy-free and every count says 1 -
+    and load stepping goes on to the end (the continuation went on along the branch until a
+    count said 0: to the end of the load here)."""
+    from rodsnes.solve.arclength import Arclength
+    from rodsnes.solve.newton import NewtonSolver
+    real = Arclength.around
+
+    def around(self, *args, **kwargs):
+        self.solver.conservative = False
+        monkeypatch.setattr(NewtonSolver, "negative_eigenvalues", lambda solver: 1)
+        return real(self, *args, **kwargs)
+    monkeypatch.setattr(Arclength, "around", around)
+    run = run_case(None, stability=True, load_arclength=True, **TWISTED)
+    assert run.ok
+    res = list(run.solver.results)
+    arc = [r for r in res if getattr(r, "arclength", False)]
+    lam = np.array([r.lam for r in arc])
+    assert len(arc) >= 3 and lam.min() < 0.43 and lam[-1] < 0.5 and lam[-1] > lam[-2], lam
+    assert res[-1].lam == 1.0 and not getattr(res[-1], "arclength", False)

@@ -209,7 +209,7 @@ class Arclength:
     def around(self, lam_fold, on_step=None, prev=None, ds=None):
         """Follow the branch from the current equilibrium (at load <= lam_fold) until it is past
         the fold: a converged point with lambda increasing, beyond lam_fold or after lambda has
-        fallen, and (-stability) no negative eigenvalue; or lambda reaches 1 (the last point
+        fallen, and (-stability, loads with an energy) no negative eigenvalue; or lambda reaches 1 (the last point
         then solved at lambda = 1 by plain Newton from the point before).  prev: (snapshot, lambda) of the point before the
         current one on the branch, to start from the secant (a restart inside the continuation);
         None: the exact tangent.  on_step(result) after every converged point (result.arclength,
@@ -278,6 +278,8 @@ class Arclength:
             if lam >= 1.0 - 1e-14:          # the end of the load, stable or not
                 return results, True, prev
             past = tl > 0 and (went_back or lam > lam_fold)
-            if past and getattr(res, "negative_eigenvalues", 0) == 0:
+            # a count decides stability only for loads with an energy (solver.conservative)
+            stable = not solver.conservative or getattr(res, "negative_eigenvalues", 0) == 0
+            if past and stable:
                 return results, True, prev
         return results, False, prev
