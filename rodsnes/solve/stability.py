@@ -84,10 +84,11 @@ def neutral_shift(problem, diagonal, metric):
     return shift, tau
 
 
-def metric_of(problem, like, comps=slice(None)):
-    """stability_metric of the components ``comps`` of each node as a Vec like ``like``."""
+def metric_of(problem, like, comps=slice(None), rows=None):
+    """stability_metric of the components ``comps`` of each node as a Vec like ``like`` (from
+    ``rows``, the metric's values of H's rows, where given)."""
     M = like.duplicate()
-    M.setArray(stability_metric(problem)[:, comps].ravel())
+    M.setArray(stability_metric(problem)[:, comps].ravel() if rows is None else rows)
     return M
 
 
@@ -223,6 +224,7 @@ class Inertia:
         self.comps = slice(None)         # the components of each node H holds
         self.tau = None                  # the last count's tau (neutral_shift)
         self.metric = None               # M of H's rows (stability_metric), with H
+        self.metric_rows = None          # its values (lumped_weights: 13 ms at 10^4 elements)
 
     @property
     def backward(self):
@@ -342,8 +344,10 @@ class Inertia:
         H = self.H
         d = self.diagonal.copy()
         if shift is None:
-            if self.metric is None:
-                self.metric = metric_of(self.problem, self.diagonal, self.comps)
+            if self.metric is None:          # a Vec with H, its values once for the mesh
+                if self.metric_rows is None:
+                    self.metric_rows = stability_metric(self.problem)[:, self.comps].ravel()
+                self.metric = metric_of(self.problem, self.diagonal, rows=self.metric_rows)
             shift, self.tau = neutral_shift(self.problem, self.diagonal, self.metric)
             d.axpy(1.0, shift)
             shift.destroy()
