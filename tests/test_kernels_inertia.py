@@ -303,20 +303,25 @@ def test_a_mat_type_keeps_the_twisted_ring_s_path(mat_type):
     assert abs(run.problem.energy() - ref.problem.energy()) <= 1e-10 * abs(ref.problem.energy())
 
 
-@pytest.mark.parametrize("nelem", [16, 400, 1500])
-def test_a_column_past_buckling_counts_unstable_on_any_mesh(nelem):
+@pytest.mark.parametrize("nelem, EA", [(16, None), (400, None), (1500, None), (16, 1e8)])
+def test_a_column_past_buckling_counts_unstable_on_any_mesh(nelem, EA):
     """The perfect Euler column in 3-D at 1.44 P_cr: straight on the Newton path, its two
     buckling directions counted at every mesh (H v = lambda M v's lowest pair, -6.17 EI / L^4,
     is mesh-independent; H's own shrinks as h, below a shift of eps |H|, which grows as 1 / h,
     from a few hundred elements on: such a count certified the straight column stable at 400
     and 1500 elements); and the minimiser, whose convergence asks the same count, buckles it
-    (energy 3.19185, the straight column's 3.55305) on every mesh."""
+    (energy 3.19185, the straight column's 3.55305) on every mesh.  Also for a rod 100 x as
+    slender in EA/EI (EA = GA = 1e8 EI/L^2), whose rotation rows' H_ii/M_ii (GA EA/EI, on any
+    mesh) once set the round-off term to 19 EI/L^4 and hid the pair."""
     kw = dict(rod_nelem=nelem, rod_imperfection=0.0, rod_planar="off", load_steps=4,
               load_end_force="-3.5530575843921685,0,0", rod_error_estimate="off")
+    if EA is not None:
+        kw.update(rod_EA=EA, rod_GA=EA)
     straight = run_case("euler", load_path="newton", stability=True, load_max_cutbacks=0, **kw)
     # loads 0.36, 0.72, 1.08, 1.44 P_cr
     assert [h["negative_eigenvalues"] for h in straight.history] == [0, 0, 2, 2]
     assert abs(straight.problem.energy() - 3.553051) < 1e-5
+    assert straight.problem.stats["neutral_band"] < 0.2
     buckled = run_case("euler", **kw)
     assert buckled.ok and buckled.history[-1]["negative_eigenvalues"] == 0
     assert abs(buckled.problem.energy() - 3.191845) < 1e-5

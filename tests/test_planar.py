@@ -264,6 +264,30 @@ def test_ltb_critical_load_within_one_percent():
     assert abs(crossing - 1.0) < 0.01
 
 
+def test_the_out_of_plane_count_is_of_its_metric_eigenvalues():
+    """The out-of-plane block's count (planar.BlockInertia: the stability metric restricted to
+    the block's components, Dirichlet rows 1) is Sylvester's on H_oo + tau M_oo: the number of
+    eigenvalues of H_oo v = lambda M_oo v below -tau (dense LAPACK), below and above the
+    lateral-torsional buckling load."""
+    import scipy.linalg as sl
+    from rodsnes.solve import stability
+    if PETSc.COMM_WORLD.getSize() > 1:
+        pytest.skip("one rank (the block's rows in the layout's order)")
+    run = build_run("ltb", load_end_force=_ltb_force(1.0), rod_error_estimate="off")
+    for factor, want in ((0.99, 0), (1.01, 1)):
+        run.problem.set_load(0.0)
+        assert run.solver.minimizer.solve_at(factor).converged
+        inertia = run.problem.planar.out_inertia
+        H = inertia.assemble()
+        A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat()).convert(PETSc.Mat.Type.DENSE,
+                                                               PETSc.Mat()).getDenseArray()
+        A = np.triu(A) + np.triu(A, 1).T
+        M = stability.stability_metric(run.problem)[:, inertia.comps].ravel()
+        lam = sl.eigh(A, np.diag(M), eigvals_only=True)
+        n = inertia.factor()
+        assert n == int(np.sum(lam < -inertia.tau)) == want, (factor, lam[:3], inertia.tau)
+
+
 def test_newton_path_stability_count_from_the_two_blocks():
     """-load_path newton -stability on the perfect Euler column at 0.3 ... 1.2 P_cr (no
     cut-back): the last, straight state has two negative eigenvalues, buckling in the plane

@@ -15,6 +15,7 @@ the matrix is gathered to rank 0 (dense LAPACK up to DENSE_MAX dofs, sparse shif
 the vector broadcast and scattered back to the owned rows of the SNES layout.
 """
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from rodsnes.collective import on_root
@@ -31,12 +32,15 @@ def zero_shift(A):
 
 # The inertia is counted on H + tau M (Sylvester: the eigenvalues of H v = lambda M v below
 # -tau), M the rod's lumped mass metric (stability_metric), tau the larger of
-#   NEUTRAL x EI_min / L^4: an eigenvalue above it is neutral, not an instability (a state
-#     within ~0.2 % of the critical load of the rod's softest whole-length mode counts as
-#     stable; the imperfect twisted ring's near-symmetry, -2e-3 EI / L^4, is one), and
-#   ROUNDOFF x eps max_i(H_ii / M_ii): the round-off of an exact zero mode (a buckled isotropic
-#     column turned about its load axis: |lambda| <= 0.6 eps max(H_ii / M_ii) measured at 16-200
-#     elements), which grows as EA / h^2.
+#   NEUTRAL x EI_min / L^4: an eigenvalue above it is neutral, not an instability (the Euler
+#     column's falls by 13.4 EI / L^4 per unit of relative load past buckling: a state within
+#     ~0.1 % of a critical load counts as stable; the imperfect twisted ring's near-symmetry,
+#     -2e-3 EI / L^4, is neutral), and
+#   ROUNDOFF x eps max(H_ii / M_ii) over the position rows: the round-off of an exact zero mode
+#     (a buckled isotropic column turned about its load axis: |lambda| <= 0.6 eps max(H_ii /
+#     M_ii) measured at 16-200 elements), ~eps EA / h^2.  Not the rotation rows': their ratio,
+#     GA EA / EI from the shear on any mesh, is no bending mode's round-off and hid the
+#     buckling of a column with EA = GA = 1e8 EI / L^2 (19 EI / L^4).
 # Both are mesh-independent in the metric, where H's own eigenvalues shrink with h while its
 # diagonal grows as 1 / h: a shift of eps |H| I certified a straight column past its buckling
 # load as stable from a few hundred elements on.
@@ -66,22 +70,30 @@ def stability_metric(problem):
     return lumped_metric(problem, (rod.EI1 + rod.EI2) / (2.0 * rod.EA))
 
 
-def neutral_shift(problem, diagonal, metric):
+def neutral_shift(problem, diagonal, metric, positions):
     """(tau M, tau): the shift the inertia is counted under (NEUTRAL, ROUNDOFF above), a new
     Vec like ``diagonal`` (H's diagonal) from ``metric`` (M of H's rows: stability_metric);
-    the widest band in problem.stats["neutral_band"].  Collective."""
+    ``positions`` marks H's position rows (the round-off term's).  The widest band in
+    problem.stats["neutral_band"].  Collective."""
     rod = problem.scene.rod
     scale = min(rod.EI1, rod.EI2) / rod.length ** 4
-    ratio = diagonal.copy()
-    ratio.pointwiseDivide(ratio, metric)
-    big = ratio.norm(PETSc.NormType.INFINITY)
-    ratio.destroy()
+    d = diagonal.getArray(readonly=True)[positions]
+    m = metric.getArray(readonly=True)[positions]
+    big = problem.layout.comm.tompi4py().allreduce(
+        float(np.max(np.abs(d) / m)) if len(d) else 0.0, op=MPI.MAX)
     tau = max(NEUTRAL * scale, ROUNDOFF * np.finfo(float).eps * big)
     shift = metric.copy()
     shift.scale(tau)
     # the widest band of the run, in units of EI_min / L^4 (summary.json's neutral_band)
     problem.stats["neutral_band"] = max(problem.stats.get("neutral_band", 0.0), tau / scale)
     return shift, tau
+
+
+def position_rows(problem, comps=slice(None)):
+    """The position rows among H's owned rows (the components ``comps`` of each node)."""
+    rows = np.zeros((problem.layout.n_owned, 6), dtype=bool)
+    rows[:, 0:3] = True
+    return rows[:, comps].ravel()
 
 
 def metric_of(problem, like, comps=slice(None), rows=None):
@@ -348,7 +360,8 @@ class Inertia:
                 if self.metric_rows is None:
                     self.metric_rows = stability_metric(self.problem)[:, self.comps].ravel()
                 self.metric = metric_of(self.problem, self.diagonal, rows=self.metric_rows)
-            shift, self.tau = neutral_shift(self.problem, self.diagonal, self.metric)
+            shift, self.tau = neutral_shift(self.problem, self.diagonal, self.metric,
+                                            position_rows(self.problem, self.comps))
             d.axpy(1.0, shift)
             shift.destroy()
         else:
@@ -450,7 +463,7 @@ def negative_eigenvalues_scaled(problem):
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     d = A.getDiagonal()
     M = metric_of(problem, d)
-    shift, _ = neutral_shift(problem, d, M)
+    shift, _ = neutral_shift(problem, d, M, position_rows(problem))
     d.axpy(1.0, shift)
     A.setDiagonal(d)
     for v in (shift, d, M):
