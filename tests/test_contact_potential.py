@@ -380,12 +380,13 @@ def test_rollup_contact_solves_and_newton_converges_fast(wall):
     penalty alone (-contact_wall 0): |F_2| <= 100 |F_1|^2 from the first step, in 3 iterations
     (measured 127 -> 3.9e-5 -> 2.0e-8 -> 1.2e-9; the quadratic law, 127 -> 3.8e-5 -> 2.0e-8 ->
     1.1e-9), like the closest-point law's (127 -> 3.9e-5 -> 2.5e-8 -> 1.2e-9).  With the wall
-    (the default) the state sits just inside the barrier (mu raised 4 times between steps), whose
-    stiffness varies fast: quadratic with a larger constant, |F_k+1| <= |F_k|^2 (measured 127
-    -> 0.21 -> 5.8e-3 -> 3.6e-6 -> 1.1e-9 or 1.2e-9), at the floor in 4 iterations (a fifth
-    where the fourth still fell by more than 10 x: the minimiser stops at the floor once |F|
-    no longer falls, and which of 1.1e-9 and 1.2e-9 lies above the tolerance is round-off).  40 load steps instead of the
-    case's 10: the same equilibria (tip and force to 1e-10) in about half the time."""
+    (the default) the state sits just inside the barrier (mu raised between steps): the same,
+    127 -> 1.1e-4 -> 1.0e-7 -> 1.3e-9, at the floor in 3 or 4 iterations (a fourth where the
+    third still fell by more than 10 x: the minimiser stops at the floor once |F| no longer
+    falls).  (Its raise once came after the last step too, which left the state off the
+    equilibrium of the raised mu: Newton then went to another one, 127 -> 0.21 -> 5.8e-3 ->
+    3.6e-6 -> 1.1e-9.)  40 load steps instead of the case's 10: the same equilibria (tip and
+    force to 1e-10) in about half the time."""
     kw = dict(rod_nelem=48, load_steps=40)
     pot = run_case("rollup_contact", contact_model="potential", contact_wall=wall, **kw)
     ref = run_case("rollup_contact", **kw)
@@ -402,14 +403,10 @@ def test_rollup_contact_solves_and_newton_converges_fast(wall):
     res = s.solve_at(p.lam)
     h = res.history
     assert res.converged and h[0] > 1e2
-    if not wall:
-        assert h[1] < 1e-6 * h[0] and h[2] <= 100 * h[1] ** 2 and h[3] <= s.floor, h
-    else:
-        assert pot.contact.penalty_eased > 0
-        at_floor = next(k for k, v in enumerate(h) if v <= s.floor)
-        assert h[1] < 1e-2 * h[0] and at_floor <= 4 and len(h) <= at_floor + 2, h
-        assert h[-1] <= s.floor, h
-        assert all(h[k + 1] <= h[k] ** 2 for k in range(1, len(h) - 1) if h[k + 1] > s.floor), h
+    at_floor = next(k for k, v in enumerate(h) if v <= s.floor)
+    assert h[1] < 1e-5 * h[0] and h[2] <= 100 * h[1] ** 2 and h[-1] <= s.floor, h
+    assert at_floor <= (3 if not wall else 4) and len(h) <= at_floor + 2, h
+    assert (pot.contact.penalty_eased > 0) == bool(wall)
 
 
 def evaluation(X, p, closed, L, eps, mu, reach, own, onset=None):

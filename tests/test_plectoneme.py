@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from conftest import ROOT, build_run, run_case
+from conftest import ROOT, build_run, gathered_positions, run_case
 
 
 @pytest.mark.slow
@@ -159,9 +159,10 @@ def test_a_restart_beyond_the_wall_is_refused_with_the_promise_that_fits(tmp_pat
 @pytest.mark.parametrize("path", ["newton", "minimize"])
 def test_a_state_pressing_into_the_wall_raises_the_penalty_for_the_next_step(tmp_path, path):
     """The 10-turn state under a promise whose wall's barrier it presses into (-contact_wall,
-    0.45 %: the state's deepest couple between the barrier's start and the wall): the step is
-    kept as it is, no solve, and mu rises for the next step to 1.25 mu d / a_b, on both load
-    paths; a state short of the barrier raises nothing."""
+    0.45 %: the state's deepest couple between the barrier's start and the wall): the step's
+    promise check keeps it as it is, no solve, no raise; before the next step (and at the
+    start of a restart from it) mu rises to 1.25 mu d / a_b (RodProblem.ease_walls), on both
+    load paths; a state short of the barrier raises nothing."""
     from rodsnes.solve.newton import StepResult
     run = build_run("plectoneme", outdir=tmp_path, restart=TEN_TURNS, load_path=path,
                     contact_penetration=0.0045)
@@ -172,9 +173,51 @@ def test_a_state_pressing_into_the_wall_raises_the_penalty_for_the_next_step(tmp
     res = StepResult(run.lam0, True, 0, "restart", np.nan, np.array([]), 0.0)
     mu0 = c.mu
     (s.keep_penetration if path == "newton" else s.keep_promise)(res)
-    assert res.its == 0 and c.penalty_raises == 0 and c.penalty_eased == 1
+    assert res.its == 0 and c.penalty_raises == 0 and c.penalty_eased == 0 and c.mu == mu0
+    said = run.problem.ease_walls(run.lam0)
+    assert len(said) == 1 and "presses into the wall" in said[0] and c.penalty_eased == 1
     assert c.mu == pytest.approx(1.25 * mu0 * depth / c.wall[0], rel=1e-12)
     run = build_run("plectoneme", outdir=tmp_path / "far", restart=TEN_TURNS, load_path=path)
-    res = StepResult(run.lam0, True, 0, "restart", np.nan, np.array([]), 0.0)
-    (run.solver.keep_penetration if path == "newton" else run.solver.keep_promise)(res)
-    assert run.contact.penalty_eased == 0 and res.its == 0
+    assert run.problem.ease_walls(run.lam0) == [] and run.contact.penalty_eased == 0
+
+
+def test_a_step_pressing_into_the_wall_is_written_with_the_penalty_it_was_solved_with(
+        tmp_path, monkeypatch):
+    """Three turns from the straight rod: the step at load 0.9508 ends pressing into the wall's
+    barrier and raises mu for the next step (1.233e6 -> 1.642e6).  That step is written with
+    the mu it was solved with and its energy under it (it was written with the raised mu's,
+    24.3144 for 24.2960: contact forces that the elastic ones do not balance, |F| 22); the next
+    step records the raised mu; a restart from the raising step raises it again before its
+    first step, and ends where the run ends."""
+    import shutil
+    import h5py
+    from mpi4py import MPI
+    from rodsnes.contact.term import ContactTerm
+    real, raised = ContactTerm.ease_wall, []
+
+    def ease_wall(self, r, lam):
+        mu0, line = self.mu, real(self, r, lam)
+        if line is not None:
+            raised.append((lam, mu0, self.mu))
+        return line
+    monkeypatch.setattr(ContactTerm, "ease_wall", ease_wall)
+    comm = MPI.COMM_WORLD
+    full = run_case("plectoneme", outdir=tmp_path / "full", bc_end_turns=3)
+    assert full.ok and len(raised) == 1
+    lam, mu0, mu1 = raised[0]
+    k = None
+    if comm.rank == 0:
+        with h5py.File(tmp_path / "full" / "result.h5", "r") as f:
+            steps = [dict(f["steps"][key].attrs) for key in sorted(f["steps"])]
+        k = next(i for i, a in enumerate(steps) if a["load"] == lam)
+        assert steps[k]["contact_penalty"] == mu0 and steps[k + 1]["contact_penalty"] == mu1
+        assert abs(steps[k]["energy"] - 24.29598) < 1e-4, steps[k]["energy"]
+        cut = tmp_path / "cut"
+        shutil.copytree(tmp_path / "full", cut)
+        with h5py.File(cut / "result.h5", "r+") as f:
+            f.attrs["last_step"] = k
+    comm.Barrier()
+    cut = str(tmp_path / "cut")
+    resumed = run_case("plectoneme", outdir=cut, restart=cut, bc_end_turns=3)
+    assert resumed.ok and len(raised) == 2 and raised[1] == raised[0]
+    assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9

@@ -77,7 +77,7 @@ searches refuse it (ContactTerm.depth_allowed caps every trial short of a_w).  T
 evaluates the law at its own points, up to the sampling error deeper than the couples; there
 its depth is that of the deepest couple.  With -contact_penalty_adapt a converged load step
 whose deepest couple sits in the barrier (a > a_b) keeps its state (it keeps the promise) and
-raises mu for the next step, 1.25 mu a / a_b (ContactTerm.ease_wall, both load paths): the
+raises mu for the next step, 1.25 mu a / a_b (ContactTerm.ease_wall, both load paths, once the step is written: RodProblem.ease_walls): the
 barrier takes the overshoot within a step, the penalty the growth of the force between steps,
 and nothing is solved twice.  Measured on cases/plectoneme.opts from the straight rod (Intel Xeon
 VM, back to back): 31 load steps, 2378 Newton iterations, 22.8 s with the penalty alone (10

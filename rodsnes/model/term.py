@@ -102,9 +102,10 @@ class Term:
         return 0.0, None
 
     def ease_wall(self, r, lam):
-        """After a converged step at load lam that keeps the promise: the penalty raised for
-        the next step where a wall holds the promise by pressing on it; the line that says so,
-        or None when nothing was raised.  Collective."""
+        """After a converged step at load lam that keeps the promise, once it is written
+        (RodProblem.ease_walls): the penalty raised for the next step where a wall holds the
+        promise by pressing on it; the line that says so, or None when nothing was raised.
+        Collective."""
         return None
 
     def adopt(self, other):

@@ -275,6 +275,7 @@ class Arclength:
             results.append(res)
             if on_step is not None:
                 on_step(res)
+            solver.ease_walls(lam)
             if lam >= 1.0 - 1e-14:          # the end of the load, stable or not
                 return results, True, prev
             past = tl > 0 and (went_back or lam > lam_fold)

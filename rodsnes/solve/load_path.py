@@ -78,6 +78,13 @@ class LoadPath:
             q = self.problem.state.q_ref
             q[:] = so3.twisted(q, phi)
 
+    def _ease_walls(self, lam, stop):
+        """The penalty raised for the next step where the state presses into a contact wall
+        (RodProblem.ease_walls), when there is a next step.  Collective."""
+        if lam < stop - 1e-14:
+            for line in self.problem.ease_walls(lam):
+                self._say(line)
+
     def keep_promise(self, res, max_raises=4):
         """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
         promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
@@ -93,9 +100,6 @@ class LoadPath:
         for _ in range(max_raises):
             pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
             if mu1 is None:
-                said = ct.ease_wall(p.state.local_config()[0], res.lam)
-                if said is not None:
-                    self._say(said)
                 return True
             mu0 = ct.mu
             ct.set_penalty(mu1)
@@ -211,6 +215,7 @@ class LoadPath:
         p.hold_sliding()
         cutbacks = 0
         prev = prev0                         # (snapshot, load) of the step before
+        self._ease_walls(lam, stop)          # a restart from a state pressing into a wall
         while lam < stop - 1e-14:
             dl = min(dlam, stop - lam)
             snap = st.snapshot()
@@ -236,6 +241,7 @@ class LoadPath:
                 self.results.append(res)
                 if on_step is not None:
                     on_step(res)
+                self._ease_walls(lam, stop)
                 continue
             st.restore(snap)
             prev = None

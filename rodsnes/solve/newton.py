@@ -206,6 +206,7 @@ class NewtonSolver:
         results = self.results = []
         prev = prev0           # (snapshot, lambda) of the previous converged step
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
+        self.ease_walls(lam, stop)           # a restart from a state pressing into a wall
         if arc0 is not None:
             ok, prev, lam, nneg = self._around_fold(arc0, on_step, prev0, dlam0)
             if not ok:
@@ -268,7 +269,15 @@ class NewtonSolver:
             results.append(res)
             if on_step is not None:
                 on_step(res)
+            self.ease_walls(lam, stop)
         return results, True
+
+    def ease_walls(self, lam, stop=1.0):
+        """The penalty raised for the next step (or arclength point) where the state presses
+        into a contact wall (RodProblem.ease_walls), when there is a next one.  Collective."""
+        if lam < stop - 1e-14:
+            for line in self.problem.ease_walls(lam):
+                self.say(line)
 
     def _no_equilibrium(self, lam, dlam):
         """Why the path stopped where no step, however short, found an equilibrium, and what
@@ -367,9 +376,6 @@ class NewtonSolver:
         for _ in range(max_raises):
             pen, mu1 = ct.promised_penalty(p.state.local_config()[0])
             if mu1 is None:
-                said = ct.ease_wall(p.state.local_config()[0], res.lam)
-                if said is not None:
-                    self.say(said)
                 break
             mu0, snap = ct.mu, p.state.snapshot()
             while True:
