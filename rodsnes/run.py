@@ -426,6 +426,7 @@ class Run:
                 n = self.solver.negative_eigenvalues()
             if n >= 0:
                 self.history[-1]["negative_eigenvalues"] = n
+                self.writer.add_step_attrs(self.step, {"negative_eigenvalues": n})
         nneg = self._last_count()
         unstable = bool(nneg) and self.conservative
         band = self.problem.stats.get("neutral_band", 0.0)

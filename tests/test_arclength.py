@@ -73,6 +73,10 @@ def test_the_corrector_converges_like_newton_at_the_same_load():
     from rodsnes.solve.arclength import Arclength
     run = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=2,
                    **TWISTED)
+    # two points do not reach past the fold: the run says the continuation stopped, not
+    # "Newton failed after N cut-backs"
+    assert not run.ok and "continuation around the fold at load 0.99" in run.solver.fail_reason
+    assert "-load_arclength_max_steps (2 points)" in run.solver.fail_reason
     solver, p = run.solver, run.solver.problem
     arc = Arclength(solver)
     pairs = []

@@ -477,6 +477,10 @@ def test_a_newton_path_end_count_says_stable_or_claims_nothing(capsys, tmp_path,
         assert rc == 0, err
         s = summary(d)
         assert s["stable"] is True and s["negative_eigenvalues"] == 0
+        # and result.h5's last step has it (it was in summary.json only)
+        with h5py.File(d / "result.h5", "r") as f:
+            last = f["steps"][sorted(f["steps"])[-1]].attrs
+            assert last["negative_eigenvalues"] == 0
         # the neutral band (EI/L^4): 0.01, widened by the Hessian's round-off at 1500
         # elements, which a note says
         coarse = "note: the stability count took eigenvalues" in out

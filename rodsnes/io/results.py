@@ -602,6 +602,17 @@ class ResultWriter:
 
         _collective(self.comm, _add)
 
+    def add_step_attrs(self, step, extra):
+        """Store more attributes of a written step (e.g. the Newton path's end count) in
+        result.h5 (collective)."""
+        def _add():
+            with _open_h5(self.path, "a") as f:
+                g = f["steps"][_step_name(step)]
+                for k, v in dict(extra).items():
+                    g.attrs[k] = _attr_value(v)
+
+        _collective(self.comm, _add)
+
     def close(self):
         """Bring rod.xdmf/rod.h5 up to date if steps were left out (rank 0); nothing else stays
         open between steps (collective)."""
@@ -886,8 +897,9 @@ def _xdmf_writer_class():
 def xdmf_point_data(step, ref_positions, meta):
     """Point data of one step as exported to XDMF (all (n,) or (n,k) float64, global frame):
 
-    ``displacement`` = positions - positions of step 0 (the XDMF geometry is step 0's centreline:
-    apply ParaView's *Warp By Vector* with it to see the deformed rod), ``d1``, ``d2``, ``d3`` (the
+    ``displacement`` = positions - positions of the file's first step (the XDMF geometry is its
+    centreline: step 0 of a run, the resumed step of a restart into a new directory; apply
+    ParaView's *Warp By Vector* with it to see the deformed rod), ``d1``, ``d2``, ``d3`` (the
     directors), every other node field under its own name ((n,3,3) fields as three columns
     ``name_1..3``), and every quadrature-point field except ``qp_s`` interpolated to the nodes by
     taking the *nearest quadrature point* in reference arclength (``gap``, ``contact_force``).
@@ -997,7 +1009,8 @@ def write_xdmf(outdir, cache=None):
             with Writer(xdmf_tmp) as w:
                 info = ET.SubElement(w.domain, "Information", Name="time",
                                      Value="load factor" if use_load else "step index (loads not increasing)")
-                info.text = "rodsnes: geometry = step 0; apply Warp By Vector with 'displacement'"
+                info.text = ("rodsnes: geometry = the first step of result.h5; apply Warp By "
+                             "Vector with 'displacement'")
                 w.write_points_cells(ref, [("line", seg.astype(np.int64))])
                 if cache is not None:
                     cache.for_reference(ref)

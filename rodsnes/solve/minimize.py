@@ -47,6 +47,7 @@ exponential chart of the current state (x = (r, theta), the update (r + dr, exp(
 import time
 
 import numpy as np
+from mpi4py import MPI
 from petsc4py import PETSc
 
 from rodsnes.profiling import logged, timed
@@ -256,6 +257,28 @@ class EnergyMinimizer:
             normalise(v)
         w.destroy()
 
+    def _forget_mode(self):
+        if self._mode is not None:
+            self._mode.destroy()
+        self._mode = None
+
+    def _oriented(self, v):
+        """v with the sign that makes its largest entry positive (the entry of lowest natural
+        number among those within 1e-6 of the largest in size): the same on any number of
+        ranks, where the sign inverse iteration leaves is round-off.  Collective."""
+        a = np.abs(v.getArray(readonly=True))
+        top = self.comm.allreduce(float(a.max()) if len(a) else 0.0, op=MPI.MAX)
+        if top == 0.0:
+            return v
+        nat = self.problem.layout.natural_rows(len(a))
+        near = np.flatnonzero(a >= (1.0 - 1e-6) * top)
+        mine = (int(nat[near].min()), float(v.getArray(readonly=True)[near[np.argmin(nat[near])]])) \
+            if len(near) else (np.iinfo(np.int64).max, 0.0)
+        first = min(self.comm.allgather(mine))
+        if first[1] < 0.0:
+            v.scale(-1.0)
+        return v
+
     def _lowest_mode(self, its=6):
         """Lowest mode of H v = lambda M v by inverse iteration on the current factor of
         H + sigma M (rows of Dirichlet dofs zero).  Collective."""
@@ -264,8 +287,8 @@ class EnergyMinimizer:
         if self._mode is not None and self._mode.getSize() == v.getSize():
             self._mode.copy(v)
         else:
-            # a seed of the unknowns' natural numbers: the same on any number of ranks (at a
-            # symmetric saddle the mode it finds is the branch the path takes)
+            # a seed of the unknowns' natural numbers: the same on any number of ranks (the
+            # mode's sign, which decides the branch at a symmetric saddle: _oriented)
             idx = p.layout.natural_rows(v.getLocalSize()).astype(float)
             v.setArray(np.sin(12.9898 * idx + 0.5) * 43758.5453 % 1.0 - 0.5)
         self.inverse_iterate(self.factor.solve, v, its, lambda x: x.scale(1.0 / x.norm()))
@@ -310,6 +333,10 @@ class EnergyMinimizer:
         # held the translations back step after step (the plectoneme crawled at 7.23 turns;
         # reset, it went on to 8 turns)
         self.sigma_last = 0.0
+        # nor does a load step start from an earlier one's lowest mode (_lowest_mode): what a
+        # step does depends on its start state alone, which result.h5 holds, so that a restart
+        # takes the steps the run took
+        self._forget_mode()
         free_ok = FREE_STEPS           # free steps, until the watchdog has once gone back
         d = X.duplicate()
         Xt = X.duplicate()
@@ -617,7 +644,11 @@ class EnergyMinimizer:
         tv, _ = self._move(v)
         if tv == 0.0:
             return d, 0
-        sign = -1.0 if self._same(g.dot(v)) > 0 else 1.0
+        # downhill; where g is orthogonal to the mode to round-off (a symmetric saddle: either
+        # way is a branch) the mode's own orientation, the same on any number of ranks
+        v = self._oriented(v)
+        gv = self._same(g.dot(v))
+        sign = -1.0 if gv > 1e-8 * self._same(g.norm() * v.norm()) else 1.0
         d.axpy(sign * reach / tv, v)
         return d, 1
 

@@ -347,6 +347,12 @@ class NewtonSolver:
         if not ok:
             self.say(f"  pseudo-arclength continuation FAILED after {arc.steps} steps at load "
                      f"{self.problem.lam:.6f}")
+            why = (f"it reached -load_arclength_max_steps ({arc.max_steps} points)"
+                   if arc.steps >= arc.max_steps else "its step shrank to nothing")
+            self.fail_reason = (f"load path stopped at load {self.problem.lam:.6f}: the "
+                                f"pseudo-arclength continuation around the fold at load "
+                                f"{lam_fold:.6f} found no point past it ({why}); the last "
+                                f"converged point is in result.h5")
         nneg = getattr(self.results[-1], "negative_eigenvalues", 0) if self.results else 0
         return ok, before, self.problem.lam, nneg or 0
 
