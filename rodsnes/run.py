@@ -166,6 +166,8 @@ class Run:
                 raise SceneError(f"-restart {rdir}: {why}", ("-restart",))
         self.lam0 = float(last["attrs"]["load"])
         self.nneg0 = int(last["attrs"].get("negative_eigenvalues", 0))
+        comp = last["attrs"].get("gauge_component")
+        self.problem.gauge_component = None if comp is None else int(comp)
         self.step = int(last["step"])
         self.problem.set_load(self.lam0)
         # the steps the interrupted run would have taken next: its next increment, and the
@@ -271,6 +273,8 @@ class Run:
         fields, energy, cattrs, qp, topo = self.observe()
         attrs = {"load": self.problem.lam, "energy": energy, "newton_iterations": 0,
                  "residual_norm": 0.0, **extra, **cattrs, **(topo or {}), **self._estimate(res)}
+        if self.problem.gauge is not None:   # the sliding gauge's held coordinate (a restart's)
+            attrs["gauge_component"] = self.problem.gauge[1]
         self.writer.write_step(self.step, attrs, self.layout.owned_nodes, fields,
                                qp_owned=qp.get("ids"), qp_fields=qp.get("fields"),
                                n_qp=qp.get("n"))

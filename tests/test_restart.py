@@ -190,3 +190,36 @@ def test_the_ranks_resume_from_rank_0s_reading(monkeypatch):
         comm.Barrier()
         if comm.rank == 0:
             shutil.rmtree(base, ignore_errors=True)
+
+
+def test_a_restart_holds_the_sliding_gauge_the_run_held(tmp_path):
+    """A closed ring's sliding gauge holds the coordinate of the node opposite node 0 that lay
+    most along its tangent when the run started; every step records which (result.h5
+    gauge_component), and a restart holds that one at its held value, not the one most along
+    the tangent of the writhed state it resumes (a turned tangent would pick another and pose
+    another gauge: not the run's path).  The record is changed here to a component the state
+    would not pick: the restart holds it."""
+    kw = dict(rod_nelem=12, load_path="minimize")
+    full = run_case("michell", outdir=str(tmp_path / "full"), **kw)
+    assert full.ok and full.problem.gauge is not None
+    node, comp, _ = full.problem.gauge
+    cut = tmp_path / "cut"
+    if MPI.COMM_WORLD.rank == 0:
+        shutil.copytree(tmp_path / "full", cut)
+        with h5py.File(cut / "result.h5", "r+") as f:
+            f.attrs["last_step"] = 3
+            assert all(f["steps"][k].attrs["gauge_component"] == comp
+                       for k in sorted(f["steps"])[1:])
+            f["steps"]["00003"].attrs["gauge_component"] = (comp + 1) % 3
+    MPI.COMM_WORLD.Barrier()
+    resumed = run_case("michell", outdir=str(cut), restart=str(cut), **kw)
+    assert resumed.problem.gauge[:2] == (node, (comp + 1) % 3)
+    again = tmp_path / "again"
+    if MPI.COMM_WORLD.rank == 0:
+        shutil.copytree(tmp_path / "full", again)
+        with h5py.File(again / "result.h5", "r+") as f:
+            f.attrs["last_step"] = 3
+    MPI.COMM_WORLD.Barrier()
+    same = run_case("michell", outdir=str(again), restart=str(again), **kw)
+    assert same.ok and same.problem.gauge[:2] == (node, comp)
+    assert np.abs(gathered_positions(same) - gathered_positions(full)).max() < 1e-9

@@ -268,6 +268,7 @@ class RodProblem:
         # term has a potential (loads.nonconservative)
         self.energy_descent = bool(limits) and all(t.conservative for t in self.terms)
         self.gauge = None                   # (node, component, global row) of hold_sliding
+        self.gauge_component = None         # the component a restart holds (the run's)
         # uniform stress-free strains of the perfect rod (the imperfection, a device to pick a
         # branch, only weakly breaks the sliding symmetry: hold_sliding's reaction shows how much)
         if rod.kappa0 is not None:
@@ -290,7 +291,8 @@ class RodProblem:
         equilibria come in one-parameter families; the discretisation pins them only weakly
         (lowest Hessian eigenvalue 2.8e-6 against 4.7e-5 next for the writhed Michell ring), and
         a descent or Newton creeps along that valley.  This holds the coordinate of the
-        node opposite node 0 that lies most along its tangent at its current value.  Called
+        node opposite node 0 that lies most along its tangent at its current value (a
+        restart: the one the run held, gauge_component from result.h5).  Called
         by the minimiser at the start of its load path; a circle does not feel it.  Its reaction (the force the discretisation's weak pinning would exert, zero in the
         continuous problem) is reported by gauge_report (summary.json ``gauge``).  Collective."""
         m = self.mesh
@@ -305,7 +307,9 @@ class RodProblem:
         comm = lay.comm.tompi4py()
         val = comm.allgather((r[li].copy(), so3.rot(q[li])[:, 2]) if own else None)
         x, t = next(v for v in val if v is not None)
-        comp = int(np.argmax(np.abs(t)))
+        # a restart holds the coordinate the run held (at its held value), not the one most
+        # along the tangent now
+        comp = int(np.argmax(np.abs(t))) if self.gauge_component is None else self.gauge_component
         self.constraints.hold(node, comp, float(x[comp]))
         self.gauge = (node, comp, NDOF * int(lay.nat2petsc[node]) + comp)
         return True
