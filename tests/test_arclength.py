@@ -169,3 +169,23 @@ def test_a_load_without_energy_leaves_the_continuation_past_the_fold(monkeypatch
     lam = np.array([r.lam for r in arc])
     assert len(arc) >= 3 and lam.min() < 0.43 and lam[-1] < 0.5 and lam[-1] > lam[-2], lam
     assert res[-1].lam == 1.0 and not getattr(res[-1], "arclength", False)
+
+
+def test_no_wall_raise_follows_the_continuations_last_point(monkeypatch):
+    """A penalty raise for the next step (RodProblem.ease_walls: where contact presses into its
+    wall) comes between arclength points and before load stepping goes on, never after the
+    last point of a continuation that stops (-load_arclength_max_steps 2: the run ends at its
+    second point, which no step follows)."""
+    from rodsnes.model.problem import RodProblem
+    calls = []
+    real = RodProblem.ease_walls
+
+    def ease_walls(self, lam):
+        calls.append(lam)
+        return real(self, lam)
+    monkeypatch.setattr(RodProblem, "ease_walls", ease_walls)
+    run = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=2,
+                   **TWISTED)
+    arc = [r.lam for r in run.solver.results if getattr(r, "arclength", False)]
+    assert not run.ok and len(arc) == 2
+    assert arc[0] in calls and arc[-1] not in calls

@@ -898,7 +898,8 @@ def xdmf_point_data(step, ref_positions, meta):
     """Point data of one step as exported to XDMF (all (n,) or (n,k) float64, global frame):
 
     ``displacement`` = positions - positions of the file's first step (the XDMF geometry is its
-    centreline: step 0 of a run, the resumed step of a restart into a new directory; apply
+    centreline: step 0 of a run; for a restart into a new directory the first step it wrote,
+    the one after the resumed step; apply
     ParaView's *Warp By Vector* with it to see the deformed rod), ``d1``, ``d2``, ``d3`` (the
     directors), every other node field under its own name ((n,3,3) fields as three columns
     ``name_1..3``), and every quadrature-point field except ``qp_s`` interpolated to the nodes by
@@ -977,7 +978,7 @@ def write_xdmf(outdir, cache=None):
 
     Serial (the writer calls it on rank 0); returns the number of steps written. The rod is a polyline
     (meshio cell type ``line``, one segment per pair of consecutive nodes, closing segment n-1 -> 0
-    for a closed rod) on step 0's centreline; time = load factor (or the step index if the loads are
+    for a closed rod) on the file's first step's centreline (xdmf_point_data); time = load factor (or the step index if the loads are
     not strictly increasing, e.g. after an unloading path; an ``Information`` element in the file
     says which). Point data: see :func:`xdmf_point_data`. Both files are written into a temporary
     directory inside DIR and moved into place with os.replace, .h5 first: datasets have names fixed

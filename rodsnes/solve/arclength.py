@@ -228,7 +228,11 @@ class Arclength:
             ds = nrm if ds is None else ds
         ds_min = 1e-6 * self.ds_max
         went_back = False
+        raise_wall = False          # a point was written: its wall raise before the next one
         while self.steps < self.max_steps:
+            if raise_wall:          # (none after the last point: the caller's, when it goes on)
+                solver.ease_walls(lam)
+                raise_wall = False
             res = self.corrector((tx, tl), ds, snap, lam)
             if res.converged and res.lam > 1.0:
                 # past the end of the load: the last point is solved at lambda = 1
@@ -275,7 +279,7 @@ class Arclength:
             results.append(res)
             if on_step is not None:
                 on_step(res)
-            solver.ease_walls(lam)
+            raise_wall = True
             if lam >= 1.0 - 1e-14:          # the end of the load, stable or not
                 return results, True, prev
             past = tl > 0 and (went_back or lam > lam_fold)

@@ -644,11 +644,17 @@ class EnergyMinimizer:
         tv, _ = self._move(v)
         if tv == 0.0:
             return d, 0
-        # downhill; where g is orthogonal to the mode to round-off (a symmetric saddle: either
-        # way is a branch) the mode's own orientation, the same on any number of ranks
+        # downhill; where g . v is below what it can tell (a symmetric saddle: either way is
+        # a branch) the mode's own orientation, the same on any number of ranks
         v = self._oriented(v)
         gv = self._same(g.dot(v))
-        sign = -1.0 if gv > 1e-8 * self._same(g.norm() * v.norm()) else 1.0
+        # what g . v cannot tell: the dot product's round-off, 1e3 eps sum |g_i v_i|, and a
+        # gradient at the tolerance (or the floor), whose direction is round-off itself
+        ga, va = g.getArray(readonly=True), v.getArray(readonly=True)
+        bound = (1e3 * np.finfo(float).eps * self._same(
+            self.comm.allreduce(float(np.abs(ga * va).sum()), op=MPI.SUM))
+            + max(self.tol, self.floor) * self._same(v.norm()))
+        sign = -1.0 if gv > bound else 1.0
         d.axpy(sign * reach / tv, v)
         return d, 1
 

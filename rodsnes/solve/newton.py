@@ -212,6 +212,7 @@ class NewtonSolver:
             if not ok:
                 return results, False
             dlam = nominal
+            self.ease_walls(lam, stop)
         while lam < stop - 1e-14:
             target = min(stop, lam + dlam)
             snap = p.state.snapshot()
@@ -257,6 +258,7 @@ class NewtonSolver:
                 ok, prev, lam, nneg = self._around_fold(target, on_step)
                 if not ok:
                     return results, False
+                self.ease_walls(lam, stop)   # load stepping goes on from the last point
                 dlam, cutbacks = nominal, 0
                 continue
             self.keep_penetration(res)
