@@ -180,9 +180,9 @@ def test_no_wall_raise_follows_the_continuations_last_point(monkeypatch):
     calls = []
     real = RodProblem.ease_walls
 
-    def ease_walls(self, lam):
+    def ease_walls(self, lam, *args, **kwargs):
         calls.append(lam)
-        return real(self, lam)
+        return real(self, lam, *args, **kwargs)
     monkeypatch.setattr(RodProblem, "ease_walls", ease_walls)
     run = run_case(None, stability=True, load_arclength=True, load_arclength_max_steps=2,
                    **TWISTED)

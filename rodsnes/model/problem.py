@@ -345,17 +345,21 @@ class RodProblem:
         """The terms that raise their penalty to keep a promise (-contact_penalty_adapt)."""
         return [t for t in self.terms if t.adapt]
 
-    def ease_walls(self, lam):
+    def ease_walls(self, lam, stop=1.0, say=None):
         """Before the step after a converged (and written) one at load lam, or a restart from
-        it: each adaptive term's penalty raised where the state presses into its wall
-        (Term.ease_wall), so that the step and the restart both start from it while the
-        written step keeps the penalty it was solved with.  The lines that say so.
-        Collective."""
+        it, where there is one (lam short of ``stop``): each adaptive term's penalty raised
+        where the state presses into its wall (Term.ease_wall), so that the step and the
+        restart both start from it while the written step keeps the penalty it was solved
+        with.  The lines that say so (each to ``say`` too).  Collective."""
         said = []
+        if lam >= stop - 1e-14:
+            return said
         for term in self.adaptive_terms():
             line = term.ease_wall(self.state.local_config()[0], lam)
             if line is not None:
                 said.append(line)
+                if say is not None:
+                    say(line)
         return said
 
     def limiting_terms(self):

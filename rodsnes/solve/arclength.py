@@ -231,7 +231,7 @@ class Arclength:
         raise_wall = False          # a point was written: its wall raise before the next one
         while self.steps < self.max_steps:
             if raise_wall:          # (none after the last point: the caller's, when it goes on)
-                solver.ease_walls(lam)
+                self.p.ease_walls(lam, say=solver.say)
                 raise_wall = False
             res = self.corrector((tx, tl), ds, snap, lam)
             if res.converged and res.lam > 1.0:

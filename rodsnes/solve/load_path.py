@@ -78,13 +78,6 @@ class LoadPath:
             q = self.problem.state.q_ref
             q[:] = so3.twisted(q, phi)
 
-    def _ease_walls(self, lam, stop):
-        """The penalty raised for the next step where the state presses into a contact wall
-        (RodProblem.ease_walls), when there is a next step.  Collective."""
-        if lam < stop - 1e-14:
-            for line in self.problem.ease_walls(lam):
-                self._say(line)
-
     def keep_promise(self, res, max_raises=4):
         """-contact_penalty_adapt: while the converged state's deepest penetration exceeds the
         promise p* (-contact_penetration, a fraction of the diameter), raise the penalty
@@ -215,7 +208,7 @@ class LoadPath:
         p.hold_sliding()
         cutbacks = 0
         prev = prev0                         # (snapshot, load) of the step before
-        self._ease_walls(lam, stop)          # a restart from a state pressing into a wall
+        p.ease_walls(lam, stop, self._say)   # a restart from a state pressing into a wall
         while lam < stop - 1e-14:
             dl = min(dlam, stop - lam)
             snap = st.snapshot()
@@ -241,7 +234,7 @@ class LoadPath:
                 self.results.append(res)
                 if on_step is not None:
                     on_step(res)
-                self._ease_walls(lam, stop)
+                p.ease_walls(lam, stop, self._say)
                 continue
             st.restore(snap)
             prev = None

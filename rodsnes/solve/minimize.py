@@ -266,14 +266,16 @@ class EnergyMinimizer:
         """v with the sign that makes its largest entry positive (the entry of lowest natural
         number among those within 1e-6 of the largest in size): the same on any number of
         ranks, where the sign inverse iteration leaves is round-off.  Collective."""
-        a = np.abs(v.getArray(readonly=True))
+        va = v.getArray(readonly=True)
+        a = np.abs(va)
         top = self.comm.allreduce(float(a.max()) if len(a) else 0.0, op=MPI.MAX)
         if top == 0.0:
             return v
         nat = self.problem.layout.natural_rows(len(a))
         near = np.flatnonzero(a >= (1.0 - 1e-6) * top)
-        mine = (int(nat[near].min()), float(v.getArray(readonly=True)[near[np.argmin(nat[near])]])) \
-            if len(near) else (np.iinfo(np.int64).max, 0.0)
+        first = near[np.argmin(nat[near])] if len(near) else None
+        mine = (int(nat[first]), float(va[first])) if first is not None \
+            else (np.iinfo(np.int64).max, 0.0)
         first = min(self.comm.allgather(mine))
         if first[1] < 0.0:
             v.scale(-1.0)

@@ -206,13 +206,13 @@ class NewtonSolver:
         results = self.results = []
         prev = prev0           # (snapshot, lambda) of the previous converged step
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
-        self.ease_walls(lam, stop)           # a restart from a state pressing into a wall
+        p.ease_walls(lam, stop, self.say)    # a restart from a state pressing into a wall
         if arc0 is not None:
             ok, prev, lam, nneg = self._around_fold(arc0, on_step, prev0, dlam0)
             if not ok:
                 return results, False
             dlam = nominal
-            self.ease_walls(lam, stop)
+            p.ease_walls(lam, stop, self.say)
         while lam < stop - 1e-14:
             target = min(stop, lam + dlam)
             snap = p.state.snapshot()
@@ -258,7 +258,7 @@ class NewtonSolver:
                 ok, prev, lam, nneg = self._around_fold(target, on_step)
                 if not ok:
                     return results, False
-                self.ease_walls(lam, stop)   # load stepping goes on from the last point
+                p.ease_walls(lam, stop, self.say)   # load stepping goes on from the last point
                 dlam, cutbacks = nominal, 0
                 continue
             self.keep_penetration(res)
@@ -271,15 +271,9 @@ class NewtonSolver:
             results.append(res)
             if on_step is not None:
                 on_step(res)
-            self.ease_walls(lam, stop)
+            p.ease_walls(lam, stop, self.say)
         return results, True
 
-    def ease_walls(self, lam, stop=1.0):
-        """The penalty raised for the next step (or arclength point) where the state presses
-        into a contact wall (RodProblem.ease_walls), when there is a next one.  Collective."""
-        if lam < stop - 1e-14:
-            for line in self.problem.ease_walls(lam):
-                self.say(line)
 
     def _no_equilibrium(self, lam, dlam):
         """Why the path stopped where no step, however short, found an equilibrium, and what

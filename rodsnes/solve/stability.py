@@ -89,19 +89,13 @@ def neutral_shift(problem, diagonal, metric, positions):
     return shift, tau
 
 
-def position_rows(problem, comps=slice(None)):
-    """The position rows among H's owned rows (the components ``comps`` of each node)."""
-    rows = np.zeros((problem.layout.n_owned, 6), dtype=bool)
-    rows[:, 0:3] = True
-    return rows[:, comps].ravel()
-
-
-def metric_of(problem, like, comps=slice(None), rows=None):
-    """stability_metric of the components ``comps`` of each node as a Vec like ``like`` (from
-    ``rows``, the metric's values of H's rows, where given)."""
-    M = like.duplicate()
-    M.setArray(stability_metric(problem)[:, comps].ravel() if rows is None else rows)
-    return M
+def metric_rows(problem, comps=slice(None)):
+    """(M, positions) of H's owned rows, the components ``comps`` of each node: the values of
+    stability_metric and which rows are positions (the round-off term's, neutral_shift).
+    Collective."""
+    positions = np.zeros((problem.layout.n_owned, 6), dtype=bool)
+    positions[:, 0:3] = True
+    return stability_metric(problem)[:, comps].ravel(), positions[:, comps].ravel()
 
 
 class ChainCount:
@@ -236,7 +230,7 @@ class Inertia:
         self.comps = slice(None)         # the components of each node H holds
         self.tau = None                  # the last count's tau (neutral_shift)
         self.metric = None               # M of H's rows (stability_metric), with H
-        self.metric_rows = None          # its values (lumped_weights: 13 ms at 10^4 elements)
+        self.metric_rows = None          # metric_rows (lumped_weights: 13 ms at 10^4 elements)
 
     @property
     def backward(self):
@@ -356,12 +350,13 @@ class Inertia:
         H = self.H
         d = self.diagonal.copy()
         if shift is None:
-            if self.metric is None:          # a Vec with H, its values once for the mesh
-                if self.metric_rows is None:
-                    self.metric_rows = stability_metric(self.problem)[:, self.comps].ravel()
-                self.metric = metric_of(self.problem, self.diagonal, rows=self.metric_rows)
+            if self.metric_rows is None:     # the mesh's: once
+                self.metric_rows = metric_rows(self.problem, self.comps)
+            if self.metric is None:          # a Vec with H
+                self.metric = self.diagonal.duplicate()
+                self.metric.setArray(self.metric_rows[0])
             shift, self.tau = neutral_shift(self.problem, self.diagonal, self.metric,
-                                            position_rows(self.problem, self.comps))
+                                            self.metric_rows[1])
             d.axpy(1.0, shift)
             shift.destroy()
         else:
@@ -462,8 +457,10 @@ def negative_eigenvalues_scaled(problem):
     A = H.convert(PETSc.Mat.Type.AIJ, PETSc.Mat())
     A.setOption(PETSc.Mat.Option.SYMMETRIC, True)
     d = A.getDiagonal()
-    M = metric_of(problem, d)
-    shift, _ = neutral_shift(problem, d, M, position_rows(problem))
+    values, positions = metric_rows(problem)
+    M = d.duplicate()
+    M.setArray(values)
+    shift, _ = neutral_shift(problem, d, M, positions)
     d.axpy(1.0, shift)
     A.setDiagonal(d)
     for v in (shift, d, M):
