@@ -10,6 +10,7 @@ from petsc4py import PETSc
 
 from conftest import build_run, coiled_rollup
 from rodsnes.model import partition
+from rodsnes.model import problem as problem_module
 from rodsnes.model.partition import NDOF, DirichletRows, add_position_blocks
 
 
@@ -305,7 +306,10 @@ def test_own_blocks_go_straight_into_the_diagonal_block(monkeypatch, scene):
     matrix's diagonal block directly (partition.OwnBlocksFirst), the others through the MPI
     matrix, in runs in their order: bit for bit the matrix of insertion through the MPI matrix
     alone (the reference of masked_against_reference), with the contact's split matrix too;
-    on one rank the matrix itself is used."""
+    on one rank the matrix itself is used.  Every element through the matrix's insertion here
+    (no ElementBlocks: the compiled kernel adds most of them into the value array itself, and
+    the rest by one MatSetValuesBlocked, RestElements)."""
+    monkeypatch.setattr(problem_module.assembly, "element_blocks", lambda *a, **k: None)
     sent = {"diag": 0, "mpi": 0}
     own = partition.OwnBlocksFirst
 
@@ -384,3 +388,14 @@ def test_the_block_pattern_of_the_row_elements_is_the_whole_rods(case, kw):
     want_i = np.concatenate([[0], np.cumsum(np.bincount(code // lay.n_global - lo,
                                                         minlength=hi - lo))])
     assert np.array_equal(ai, want_i) and np.array_equal(aj, code % lay.n_global)
+
+
+@pytest.mark.parametrize("shape", [(0, 4), (7, 1), (1000, 4), (33, 8), (5, 0)])
+def test_any_column_is_any_along_the_rows(shape):
+    """partition.any_column, the node groups' row-wise any column by column, is numpy's
+    B.any(axis=1)."""
+    from rodsnes.model.partition import any_column
+    B = np.random.default_rng(shape[0]).random(shape) < 0.15
+    got = any_column(B)
+    assert got.dtype == bool and np.array_equal(got, B.any(axis=1))
+    assert got.base is not B            # a new array, B untouched

@@ -218,14 +218,40 @@ def test_the_separator_taken_out(direction, s):
     ai, aj = A.getRowIJ(compressed=True)
     lu = chain.ChainLU.plan(ai, aj, bs, direction, out=[s])
     assert lu.factor(A)
-    ref = dense.copy()
-    idx = np.arange(s * bs, (s + 1) * bs)
-    ref[idx, :] = 0.0
-    ref[:, idx] = 0.0
-    ref[idx, idx] = 1.0
-    b = np.random.default_rng(4).standard_normal(dense.shape[0])
-    assert np.allclose(lu.solve(b.copy()), np.linalg.solve(ref, b), rtol=1e-11, atol=1e-13)
+    _solves_with_rows_taken_out(lu, dense, [s], bs, seed=4)
     assert np.array_equal(A.convert("dense").getDenseArray(), dense)
+
+
+def _solves_with_rows_taken_out(lu, dense, out, bs, seed):
+    """lu (factored) solves as the dense matrix with the block rows and columns ``out`` those
+    of the identity."""
+    ref = dense.copy()
+    for r in set(out):
+        idx = np.arange(r * bs, (r + 1) * bs)
+        ref[idx, :] = 0.0
+        ref[:, idx] = 0.0
+        ref[idx, idx] = 1.0
+    b = np.random.default_rng(seed).standard_normal(dense.shape[0])
+    assert np.allclose(lu.solve(b.copy()), np.linalg.solve(ref, b), rtol=1e-11, atol=1e-13)
+
+
+@pytest.mark.parametrize("out", [[0], [18], [7, 3], [3, 7, 3], [0, 1, 2, 17, 18]])
+def test_the_blocks_of_the_rows_taken_out(out):
+    """How each block enters the factorisation (ChainLU.kind), found from the taken rows' own
+    slots and a pass over the columns: 2 on a taken row's diagonal block, 1 on its other blocks
+    and on every block in a taken column, 0 elsewhere - the definition, for rows at the ends
+    and inside the chain, unsorted and repeated; and the solve is that of the matrix with
+    those rows and columns the identity's."""
+    bs = 3
+    A, dense = _chain_matrix(6, bs, seed=5)
+    ai, aj = A.getRowIJ(compressed=True)
+    n = len(ai) - 1
+    lu = chain.ChainLU.plan(ai, aj, bs, 1, out=out)
+    rows = np.repeat(np.arange(n), np.diff(ai))
+    taken = np.isin(rows, out) | np.isin(aj, out)
+    assert np.array_equal(lu.kind, np.where(taken, np.where(rows == aj, 2, 1), 0))
+    assert lu.factor(A)
+    _solves_with_rows_taken_out(lu, dense, out, bs, seed=6)
 
 
 @pytest.mark.parametrize("bs", [3, 6])

@@ -25,7 +25,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes import compiled, petsc_lib
-from rodsnes.model.partition import is_split, split_index
+from rodsnes.model.partition import any_column, is_split, split_index
 
 I32 = compiled.I32           # the places: block indices of one rank's block CSR
 ATTR = "rodsnes_element_blocks"     # the ElementBlocks kept on their matrix (PetscObjectCompose)
@@ -108,10 +108,11 @@ class ElementBlocks:
         G = np.asarray(groups, dtype=np.int64)
         B = np.asarray(split_index(G) if split else G, dtype=np.int64)   # the matrix's blocks
         n, k = B.shape
-        direct = ((B >= lo) & (B < hi)).all(axis=1) & ~touched[G].any(axis=1)
+        direct = ~any_column((B < lo) | (B >= hi)) & ~any_column(touched[G])
         L = np.ascontiguousarray(B - lo)
         ai, aj = seq.getRowIJ(compressed=True)      # the block CSR (columns sorted in a row)
         self.rest = np.flatnonzero(~direct)
+        self.rest_plan = None        # RodProblem._add_rest_tangents' (RestElements)
         self.bs, self.k = bs, k
         self.nblocks = len(aj)
         # the places; the first addition into each block, in the order (group, row, column)

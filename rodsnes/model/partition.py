@@ -13,6 +13,7 @@ natural <-> PETSc (a rod has at most millions of nodes: cheap, and it keeps cont
 bookkeeping simple).
 """
 import numpy as np
+import scipy.sparse as sp
 from mpi4py import MPI
 from petsc4py import PETSc
 
@@ -186,10 +187,14 @@ class Layout:
         rank = self.comm.getRank()
         lo, hi = self.starts[rank], self.starts[rank + 1]
         keep = (r >= lo) & (r < hi)
-        code = np.unique(r[keep] * self.n_global + c[keep])
-        r, c = code // self.n_global, code % self.n_global
-        ai = np.concatenate([[0], np.cumsum(np.bincount(r - lo, minlength=hi - lo))])
-        return ai.astype(PETSc.IntType), c.astype(PETSc.IntType)
+        # the distinct pairs row by row, columns sorted: scipy's COO -> CSR with its duplicates
+        # summed (per-row sorts in C++: 0.75 ms for 10^4 cubic elements, where numpy's unique
+        # of the pairs' codes, one sort of them all, took 3.8 ms)
+        ones = np.ones(int(keep.sum()), dtype=np.int32)
+        pattern = sp.coo_matrix((ones, (r[keep] - lo, c[keep])),
+                                shape=(hi - lo, self.n_global)).tocsr()
+        pattern.sum_duplicates()
+        return pattern.indptr.astype(PETSc.IntType), pattern.indices.astype(PETSc.IntType)
 
     def create_matrix(self, extra_pairs=None, symmetric=False, positions_only=False):
         """MPIBAIJ (block size 6; -mat_type overrides) with the exact block structure of the
@@ -477,6 +482,16 @@ def split_index(R):
     n = len(R)
     R2 = R.reshape(n, -1)
     return np.stack([2 * R2, 2 * R2 + 1], axis=2).reshape(n, -1).astype(PETSc.IntType)
+
+
+def any_column(B):
+    """B.any(axis=1) of a tall bool array of a few columns (node groups), column by column:
+    numpy's reduction along a short last axis is slow (120 us on the (10^4, 4) groups of 10^4
+    cubic elements, against 20 us)."""
+    out = B[:, 0].copy() if B.shape[1] else np.zeros(len(B), dtype=bool)
+    for j in range(1, B.shape[1]):
+        out |= B[:, j]
+    return out
 
 
 def _by_runs(runs, n, inside, outside):

