@@ -399,3 +399,39 @@ def test_any_column_is_any_along_the_rows(shape):
     got = any_column(B)
     assert got.dtype == bool and np.array_equal(got, B.any(axis=1))
     assert got.base is not B            # a new array, B untouched
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_the_rest_elements_follow_a_new_mask_at_the_same_nodes(monkeypatch, symmetric):
+    """The elements the compiled kernel leaves to the matrix's insertion (the supports', a
+    ranks' boundary's: problem.RestElements) keep their rows, columns and Dirichlet mask with
+    the element blocks' places; a constraint added at an already constrained node (the same
+    blocks touched, the places kept) is a new mask, and the next Jacobian masks by it: bit for
+    bit the matrix of every element through the matrix's own insertion.  On 1-3 ranks."""
+    from rodsnes.model import assembly
+    run = perturbed(build_run("mattiasson", rod_nelem=12, rod_error_estimate="off",
+                              bc_start="pinned", bc_end="sliding", bc_end_turns=1.0), lam=0.4)
+    p = run.problem
+    X = p.state.X
+    J = p.layout.create_matrix(p.node_groups(p.patterns), symmetric=True) if symmetric else p.J
+    p.jacobian(None, X, J, J, symmetric=symmetric)
+    blocks = J.getAttr(assembly.ATTR)
+    assert blocks is not None and blocks.rest_plan is not None
+    end = p.mesh.n_nodes - 1
+    free = [c for c in range(3) if not p.constraints.block_mask[p.layout.nat2petsc[end], c]]
+    assert free                            # a sliding end: a position component free
+    p.constraints.hold(end, free[0], 0.0)
+    p.jacobian(None, X, J, J, symmetric=symmetric)
+    assert J.getAttr(assembly.ATTR) is blocks                 # the places kept ...
+    A = owned_dense(J)
+    monkeypatch.setattr(problem_module.assembly, "element_blocks", lambda *a, **k: None)
+    ref = J.duplicate()
+    p.jacobian(None, X, ref, ref, symmetric=symmetric)
+    assert_bitwise_equal(A, owned_dense(ref))                 # ... the new mask taken
+    lo = J.getOwnershipRange()[0]
+    for r in p.constraints.rows_global:                       # (held rows: the identity's)
+        assert A[r - lo, r] == 1.0
+    ref.destroy()
+    if symmetric:
+        J.destroy()

@@ -188,8 +188,9 @@ class Layout:
         lo, hi = self.starts[rank], self.starts[rank + 1]
         keep = (r >= lo) & (r < hi)
         # the distinct pairs row by row, columns sorted: scipy's COO -> CSR with its duplicates
-        # summed (per-row sorts in C++: 0.75 ms for 10^4 cubic elements, where numpy's unique
-        # of the pairs' codes, one sort of them all, took 3.8 ms)
+        # summed (per-row sorts in C++), where numpy's unique of the pairs' codes sorted them
+        # all (10^4 cubic elements on one rank: 0.75 against 3.8 ms in isolation, the whole
+        # block pattern 2.0 against 2.95 ms in a run)
         ones = np.ones(int(keep.sum()), dtype=np.int32)
         pattern = sp.coo_matrix((ones, (r[keep] - lo, c[keep])),
                                 shape=(hi - lo, self.n_global)).tocsr()

@@ -186,6 +186,9 @@ class Constraints:
         self.is_rows = PETSc.IS().createGeneral(self.rows_global, comm=layout.comm)
         mask = np.zeros((layout.n_global, NDOF), dtype=bool)      # PETSc block numbering
         mask[layout.nat2petsc[nodes], comps] = True
+        # read-only: what is kept from it (the touched blocks, RestElements' masks) is keyed
+        # by its identity, so a change of the constraints is a new mask (hold, _build)
+        mask.setflags(write=False)
         self.block_mask = mask
 
     def apply(self, lam, state):

@@ -112,8 +112,8 @@ class ChainLU:
         self.kind = np.zeros(len(aj), dtype=I8)
         if len(out):
             # the blocks of the rows taken out and those in their columns: a pass over the
-            # columns and the rows' own slots, not a row index for every block (0.8 of 1.1 ms
-            # a plan on a planar stretch of 15000 nodes)
+            # columns and the rows' own slots, not a row index for every block (0.43 -> 0.15
+            # ms of a plan of 1.0 ms on a planar stretch of 15000 nodes)
             out = np.unique(np.asarray(out, dtype=np.int64))
             taken = np.zeros(self.n, dtype=bool)
             taken[out] = True

@@ -159,6 +159,7 @@ def component_cut(comps, constraints):
     constrained rows of the block (global indices)."""
     comps = np.asarray(comps)
     mask = constraints.block_mask[:, comps]
+    mask.setflags(write=False)          # kept by identity, as the constraints' own
     where = np.full(NDOF, -1)
     where[comps] = np.arange(3)
     rows = np.asarray(constraints.rows_global, dtype=np.int64)

@@ -196,7 +196,6 @@ def separator(problem, A):
     return sep, np.setdiff1d(near, sep).astype(np.int64)
 
 
-
 def _unknowns(blocks, size):
     """The unknowns (scalar indices) of the blocks of ``size`` unknowns, block by block."""
     return (np.asarray(blocks)[:, None] * size + np.arange(size)).ravel()
@@ -318,16 +317,13 @@ class RankSchur:
         # contact pairs are gathered to every rank) and the ownership ranges are global, and so
         # is every rank's interior size; a short rod goes to the whole matrix before any of it
         # (the separator of a contact-rich pattern costs 0.7 ms a set-up on the plectoneme).
-        # Whether a rank condenses anew or refreshes is its own (_condense makes objects of
-        # its own alone): a rank whose factorisation failed condenses anew, the others need not
+        # Whether a rank condenses anew or refreshes (above) is its own (_condense makes
+        # objects of its own alone): a rank whose factorisation failed condenses anew, the
+        # others need not
         condense = pays(self.problem.mesh.n_nodes, comm.Get_size(), self.package)
         if condense:
-            if k is not None and k["A"] == key:             # the same matrix: the same pattern
-                sep, near = k["sep"], k["near"]
-            else:
-                sep, near = separator(self.problem, A)
+            sep, near = separator(self.problem, A)
             mine = sep[(sep >= rs // bs) & (sep < re // bs)]
-            same = k is not None and k["A"] == key and np.array_equal(k["sep"], sep)
             first = np.asarray(A.getOwnershipRanges()) // bs
             interior = np.diff(first) - np.diff(np.searchsorted(sep, first))
             condense = 0 < len(sep) * bs <= SCHUR_MAX and interior.min() > 0
@@ -341,10 +337,7 @@ class RankSchur:
             self.negative = None
             self.structural = True
             return
-        if same:
-            self._refresh(A)
-        else:
-            self._condense(A, key, sep, mine, near)
+        self._condense(A, key, sep, mine, near)
         self._factor(A, comm)
         petsc_lib.set_pc_failed(pc, self.failed)        # the same on every rank (_factor)
         self.negative = self._count(comm) if self.inertia else None
