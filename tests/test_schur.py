@@ -601,3 +601,19 @@ def test_the_header_says_when_the_ranks_cannot_share_the_factorisation():
     said = "every rank factors the whole matrix" in short
     assert said == (PETSc.COMM_WORLD.getSize() > 1)
     assert "too few to share" not in build_run("mattiasson", rod_nelem=2000).header()
+
+
+def test_the_separators_dense_lu():
+    """The Schur complement's LU (LAPACK getrf and getrs called directly): the solve of a
+    regular matrix for vector and matrix right-hand sides, None for a singular or non-finite
+    one (the caller fails the PC)."""
+    from rodsnes.solve.schur import _dense_lu, _lu_solve
+    rng = np.random.default_rng(3)
+    S = rng.standard_normal((6, 6)) + 6 * np.eye(6)
+    lu = _dense_lu(S)
+    for b in (rng.standard_normal(6), rng.standard_normal((6, 3))):
+        assert np.allclose(S @ _lu_solve(lu, b), b, rtol=1e-12, atol=1e-12)
+    S[3] = 0.0                                   # an exact zero pivot
+    assert _dense_lu(S) is None
+    assert _dense_lu(np.array([[1.0, np.inf], [0.0, 1.0]])) is None
+    assert _dense_lu(np.array([[np.nan]])) is None

@@ -208,7 +208,8 @@ def _dense_lu(M):
     if not np.isfinite(M).all():
         return None
     lu, piv, info = lapack.dgetrf(M)
-    return (lu, piv) if info == 0 else None
+    # (a pivot that overflowed to NaN: singular too)
+    return (lu, piv) if info == 0 and not np.isnan(lu.diagonal()).any() else None
 
 
 def _lu_solve(lu, b):
