@@ -144,6 +144,27 @@ def options_file_problems(argv):
     return out
 
 
+def command_line_problems(argv):
+    """Messages for command-line words PETSc would take without a word: an option written with
+    two dashes (--rod_nelem 16 was stored as '--rod_nelem' and the run used 8 elements) and a
+    word that is neither an option nor the value of the option before it (a vector written
+    with spaces, a dash forgotten): both were ignored, exit 0."""
+    out = []
+    value_ok = False                # the word before was an option name, awaiting its value
+    for tok in argv[1:]:
+        if _is_option_token(tok):
+            if tok.startswith("--"):
+                out.append(f"'{tok}': an option takes one dash ({tok[1:]})")
+            value_ok = True
+            continue
+        if not value_ok:
+            out.append(f"'{tok}' is neither an option nor the value of the option before it "
+                       f"(an option starts with '-', one value follows it, and a vector is "
+                       f"written without spaces, e.g. 0,0,1)")
+        value_ok = False
+    return out
+
+
 def _options_file_problem(path):
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
@@ -474,7 +495,7 @@ def main(argv=None):
     argv = list(sys.argv if argv is None else argv)
     small_pages_for_numpy()
     rank = _rank_from_env()
-    problems = options_file_problems(argv)
+    problems = command_line_problems(argv) + options_file_problems(argv)
     if problems:
         _say(rank, "error", "\n".join(problems))
         return EXIT_REFUSED

@@ -113,6 +113,34 @@ REFUSALS = [
     ("pinned_end_gravity", MATT + ("-bc_start", "free", "-bc_end", "pinned", "-load_end_force",
                                    "0,0,0", "-load_gravity", "0,-1,0"),
      ["-load_gravity = 0,-1,0 with -bc_start free -bc_end pinned", "-bc_end clamped"]),
+    # a sliding end's held directions: the rod stayed unloaded, exit 0
+    ("sliding_end_lateral_force", MATT + ("-bc_end", "sliding"),
+     ["-load_end_force = 0,-10,0 with -bc_end sliding", "slides along its tangent (x) alone",
+      "the force's y component does nothing", "load it along x, or use -bc_end free"]),
+    ("sliding_end_moment", MATT + ("-bc_end", "sliding", "-load_end_force", "0,0,0",
+                                   "-load_end_moment", "0,0,5"),
+     ["-load_end_moment = 0,0,5 with -bc_end sliding", "the moment does nothing"]),
+    ("sliding_end_free_start", MATT + ("-bc_start", "free", "-bc_end", "sliding",
+                                       "-load_end_force", "0,0,0", "-load_gravity", "-1,0,0"),
+     ["-load_gravity = -1,0,0 with -bc_start free -bc_end sliding", "nothing holds the rod "
+      "along x", "-bc_start clamped or pinned"]),
+    # command-line words PETSc kept or dropped without a word (the run went on, exit 0)
+    ("two_dash_option", MATT + ("--rod_nelem", "16"),
+     ["'--rod_nelem': an option takes one dash (-rod_nelem)"]),
+    ("stray_word", MATT + ("-load_end_force", "0,-10", ",0"),
+     ["',0' is neither an option nor the value of the option before it",
+      "a vector is written without spaces, e.g. 0,0,1"]),
+    # an open arc of nearly a whole turn with contact: its ends start inside each other's tube
+    ("arc_ends_overlap", ("-rod_length", "1", "-rod_radius", "0.01", "-rod_EA", "1e6",
+                          "-rod_GA", "1e6", "-rod_EI", "1", "-rod_GJ", "1", "-rod_nelem", "64",
+                          "-rod_shape", "arc", "-rod_arc_angle", "355", "-contact", "-quiet"),
+     ["-rod_arc_angle = 355 with contact radius 0.01: the arc's ends start 0.0141 apart",
+      "use an angle below 352.9 degrees (or -rod_closed for a ring)"]),
+    # an absolute tolerance at the loads' size: the unloaded rod was accepted, exit 0
+    ("snes_atol_at_load_size", MATT + ("-load_path", "newton", "-snes_atol", "1"),
+     ["-snes_atol = 1: 0.0909 of the problem's force scale (11: EI/L^2 + loads)",
+      "the first load step's unloaded rod already meets it", "use -snes_rtol",
+      "an -snes_atol below 1.1e-05"]),
     ("imperfection_ten_lengths", EULER + ("-rod_imperfection", "10"),
      ["-rod_imperfection = 10 with -rod_length = 1", "10.1 times as long as the rod",
       "use |a| below 0.417"]),
@@ -783,3 +811,39 @@ def test_an_output_dir_rank_0_cannot_make_is_refused_on_every_rank():
         comm.Barrier()
         if comm.rank == 0:
             os.remove(blocker)
+
+
+def test_a_count_that_cannot_decide_claims_no_stability(capsys, tmp_path):
+    """Where the Hessian's round-off widens the neutral band beyond the rod's own bending scale
+    (stability.UNDETERMINED, EI_min/L^4), the count cannot tell a buckled state from one well
+    past a critical load: the perfect column with EA L^2/EI = 1e12 on 16 elements (band 16.8
+    EI/L^4) at twice its buckling load was left straight and certified "stable" (exit 0).  Its
+    stability is null now, and a warning says why and what decides it; the same column with
+    the case's EA (band 0.01) is certified as before."""
+    d = tmp_path / "slender"
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "euler.opts"),
+                           "-rod_imperfection", "0", "-rod_EI", "1e-6", "-rod_GJ", "1e-6",
+                           "-load_end_force", "-4.934802e-6,0,0", "-rod_error_estimate", "off",
+                           out=d)
+    s = summary(d)
+    assert s["neutral_band"] > 1.0 and s["stable"] is None, s
+    assert "rodsnes: warning: the stability of the equilibria is undetermined" in err, err
+    assert "-rod_nelem" in err and "-rod_EA" in err
+    d = tmp_path / "case"
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "euler.opts"),
+                           "-rod_error_estimate", "off", out=d)
+    assert rc == 0 and summary(d)["stable"] is True and "undetermined" not in err
+
+
+def test_a_snes_that_stops_short_fails_the_step(capsys, tmp_path):
+    """A step is converged only where the residual at its state meets the tolerance, whatever
+    the SNES says: -snes_type ksponly takes one linear step and reports CONVERGED_ITS (the
+    roll-up ended at the wrong tip, |F| NaN, exit 0).  Now the step fails (exit 3, the reason
+    in summary.json), and with -quiet the failure is still said on stderr."""
+    d = tmp_path / "ksponly"
+    rc, out, err = rodsnes(capsys, *ROLLUP, "-snes_type", "ksponly", "-load_max_cutbacks", "1",
+                           out=d)
+    assert rc == 3, err
+    s = summary(d)
+    assert s["converged"] is False and "Newton failed" in s["failure"], s
+    assert "rodsnes: failed: load path stopped" in err and not out.strip(), (out, err)

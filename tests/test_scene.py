@@ -392,8 +392,12 @@ def test_contact_options(read):
     assert s.contact.curvature is True                # the thickness bound on bending, by default
     assert read({"contact": None, "contact_curvature": "false"}).contact.curvature is False
     # a reference arc tighter than the contact radius is fine once the bound is off
-    read({"rod_shape": "arc", "rod_arc_radius": "0.2", "contact": None, "contact_radius": "0.25",
-          "contact_curvature": "false"})
+    read({"rod_shape": "arc", "rod_arc_radius": "0.2", "rod_length": "0.6", "contact": None,
+          "contact_radius": "0.25", "contact_curvature": "false"})
+    # (an arc of nearly a turn whose ends start inside each other's tube is refused)
+    with pytest.raises(SceneError, match="the arc's ends start 0.239 apart"):
+        read({"rod_shape": "arc", "rod_arc_radius": "0.2", "rod_length": "1", "contact": None,
+              "contact_radius": "0.25", "contact_curvature": "false"})
 
 
 def test_contact_law_auto(read):

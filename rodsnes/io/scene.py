@@ -334,7 +334,7 @@ class O:
     # --- output -----------------------------------------------------------------
     output_dir = Opt(STR, None, "output directory", "output", shown="out/<case name>",
                      metavar="DIR")
-    quiet = Opt(BOOL, False, "no progress output", "output")
+    quiet = Opt(BOOL, False, "no progress output (a failure is still said, on stderr)", "output")
     restart = Opt(STR, None, "restart from the state saved in DIR", "output", shown="none",
                   metavar="DIR")
     case_name = Opt(STR, None, "case name (default: basename of the last -options_file under a "
@@ -497,6 +497,7 @@ class Loads:
     path: str = "auto"
     max_it: int = 200
     rtol: float = 1e-10              # -snes_rtol: |g| <= rtol x the force scale
+    atol: float = 0.0                # -snes_atol: |F| <= atol accepted too (Newton path)
     predictor: bool = True           # the Newton path's secant predictor
     stagnation_its: int = 15
     arclength: bool = False          # pseudo-arclength continuation at folds
@@ -811,6 +812,14 @@ def _snes_rtol(options):
         return 1e-10
 
 
+def _snes_atol(options):
+    """-snes_atol as a number (0 when absent or malformed, as _snes_rtol)."""
+    try:
+        return float(options.getReal("snes_atol", 0.0))
+    except Exception:
+        return 0.0
+
+
 def helix_curvature(radius, pitch):
     """Curvature R / (R^2 + c^2) of a helix of radius R and rise per turn 2 pi c."""
     c = pitch / (2.0 * math.pi)
@@ -1075,7 +1084,8 @@ def _loads(c, rod, bc):
     else:
         if np.any(F != 0.0) and bc.end in ("clamped", "pinned"):
             c.fail("%s with -bc_end %s: the end cannot move, so the force does nothing; use "
-                   "-bc_end free or sliding" % (c.show(O.load_end_force), bc.end),
+                   "-bc_end free (or sliding, for a force along the end's tangent)"
+                   % (c.show(O.load_end_force), bc.end),
                    O.load_end_force, O.bc_end)
         if np.any(M != 0.0) and bc.end == "clamped":
             c.fail("%s with -bc_end clamped: the end cannot turn, so the moment does nothing; use "
@@ -1098,7 +1108,7 @@ def _loads(c, rod, bc):
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
                  twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]),
                  path=str(c[O.load_path]), max_it=int(c[O.load_max_it]),
-                 rtol=_snes_rtol(c.r.options),
+                 rtol=_snes_rtol(c.r.options), atol=_snes_atol(c.r.options),
                  predictor=bool(c[O.load_predictor]), stagnation_its=int(c[O.load_stagnation_its]),
                  arclength=bool(c[O.load_arclength]),
                  arclength_max_steps=int(c[O.load_arclength_max_steps]),
@@ -1115,6 +1125,30 @@ def _contact(c, rod, bc):
             c.fail("%s with contact radius %g: neighbouring turns interpenetrate in the reference "
                    "helix (|pitch| < 2 * contact radius), which self-contact cannot start from"
                    % (c.show(O.rod_helix_pitch), rcontact), O.rod_helix_pitch, O.contact_radius)
+    if enabled and rod["shape"] == "arc" and not rod["closed"] and \
+            rod["arc_radius"] is not None and rod["arc_angle_deg"] is not None:
+        # an open arc of nearly a whole turn: its ends start closer than the tube allows (the
+        # potential's start not finite, exit 3; the projection's ends pushed apart, exit 0)
+        theta = math.radians(abs(rod["arc_angle_deg"]))
+        gap = 2.0 * rod["arc_radius"] * abs(math.sin(0.5 * theta)) if theta < 2 * math.pi \
+            else 0.0
+        if theta > math.pi and gap < 2.0 * rcontact:
+            # the widest angle whose ends keep the diameter apart, the rod's length kept
+            # (R = L / angle): bisection of (L / t) sin(t / 2) = radius on (pi, 2 pi)
+            lo, hi = math.pi, 2.0 * math.pi
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if rod["length"] / mid * math.sin(0.5 * mid) > rcontact \
+                    else (lo, mid)
+            most = math.degrees(lo)
+            shown = (c.show(O.rod_arc_angle) if c.given(O.rod_arc_angle) else
+                     "-rod_shape arc of radius %.6g (%.4g degrees)"
+                     % (rod["arc_radius"], abs(rod["arc_angle_deg"])))
+            c.fail("%s with contact radius %g: the arc's ends start %.3g apart, closer than "
+                   "the tube's diameter (%.3g), which self-contact cannot start from; use an "
+                   "angle below %.4g degrees (or -rod_closed for a ring)"
+                   % (shown, rcontact, gap, 2.0 * rcontact, most),
+                   O.rod_arc_angle, O.rod_arc_radius, O.contact_radius)
     standoff = float(c[O.contact_standoff]) if enabled else 0.0
     rlaw, plaw = law_tube(rcontact, c[O.contact_penetration], standoff)
     if enabled:
@@ -1469,6 +1503,59 @@ def _check_supports(scene, fail):
          *(o for o, _ in loaded), O.bc_start, O.bc_end)
 
 
+# the largest -snes_atol, as a share of the force scale: an absolute tolerance above it accepts
+# states whose forces are off by more than that share of the problem's (at the force scale
+# itself, the unloaded rod of the first load step: exit 0, the rod unmoved)
+MAX_ATOL_SHARE = 1e-6
+_PETSC_ATOL = type("PetscOption", (), {"flag": "-snes_atol"})()     # for fail()'s option list
+
+
+def _check_atol(scene, fail):
+    """-snes_atol must not be a sizeable share of the forces the equilibrium is made of."""
+    from rodsnes.model.scales import force_scale
+    atol, scale = float(getattr(scene.loads, "atol", 0.0) or 0.0), force_scale(scene)
+    if atol > MAX_ATOL_SHARE * scale:
+        fail("-snes_atol = %s: %.3g of the problem's force scale (%.3g: EI/L^2 + loads), so a "
+             "residual that small may leave the forces off by that much - the first load step's "
+             "unloaded rod already meets it; the tolerance is relative to that scale: use "
+             "-snes_rtol (default 1e-10), or an -snes_atol below %.3g"
+             % (_fmt(atol), atol / scale, scale, MAX_ATOL_SHARE * scale), _PETSC_ATOL)
+
+
+def _check_sliding_end(scene, mesh, fail):
+    """A sliding end moves along its tangent alone, its cross-section held: an end load's other
+    components do nothing (the rod would stay unloaded, exit 0), and with a free start nothing
+    holds the rod along the tangent (a mechanism under any load along it)."""
+    r, bc, ld = scene.rod, scene.bc, scene.loads
+    if r.closed or bc.end != "sliding":
+        return
+    t = np.asarray(mesh.q_init[-1], dtype=float)
+    from rodsnes.model import so3
+    axis = int(np.argmax(np.abs(so3.rot(t)[:, 2])))
+    name = "xyz"[axis]
+    F = np.asarray(ld.end_force, dtype=float)
+    off = [c for c in range(3) if c != axis and F[c] != 0.0]
+    if off:
+        fail("%s with -bc_end sliding: the end slides along its tangent (%s) alone, so the "
+             "force's %s component%s do%s nothing; load it along %s, or use -bc_end free"
+             % (_show(O.load_end_force.flag, F), name, " and ".join("xyz"[c] for c in off),
+                "s" if len(off) > 1 else "", "" if len(off) > 1 else "es", name),
+             O.load_end_force, O.bc_end)
+    if np.any(np.asarray(ld.end_moment, dtype=float) != 0.0):
+        fail("%s with -bc_end sliding: the end's cross-section is held (it slides without "
+             "turning), so the moment does nothing; use -bc_end free or pinned (or -bc_end_turns "
+             "to turn it)" % _show(O.load_end_moment.flag, ld.end_moment),
+             O.load_end_moment, O.bc_end)
+    g = np.asarray(ld.gravity, dtype=float)
+    if bc.start == "free" and (F[axis] != 0.0 or g[axis] != 0.0):
+        loaded = [(o, v) for o, v in ((O.load_end_force, F), (O.load_gravity, g)) if v[axis] != 0.0]
+        fail("%s with -bc_start free -bc_end sliding: nothing holds the rod along %s (the end "
+             "slides, the start is free), so the load's %s component has no equilibrium; "
+             "support the start (-bc_start clamped or pinned)"
+             % (", ".join(_show(o.flag, v) for o, v in loaded), name, name),
+             *(o for o, _ in loaded), O.bc_start, O.bc_end)
+
+
 def _imperfection_limit(rod, bc, target):
     """The |amplitude| at which the imperfect centreline is ``target`` long (bisection)."""
     from dataclasses import replace
@@ -1630,11 +1717,13 @@ def check_solvable(scene, memory="machine"):
     if _check_memory(scene, fail, physical_memory() if memory == "machine" else memory):
         _check_stiffness(scene, fail)
         _check_supports(scene, fail)
+        _check_atol(scene, fail)
         _check_imperfection(scene, fail)
         _check_contact_reach(scene, fail)
         _check_contact_mesh(scene, fail)
         mesh = build_mesh(scene.rod, scene.bc)
         _check_element_turns(scene, mesh, fail)
+        _check_sliding_end(scene, mesh, fail)
         _check_planar(scene, mesh, fail)
     if msgs:
         raise SceneError("\n".join(msgs), opts)

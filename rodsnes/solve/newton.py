@@ -166,9 +166,21 @@ class NewtonSolver:
         hist, _ = self.snes.getConvergenceHistory()
         self.last_history = np.array(hist)
         its = self.snes.getIterationNumber()
-        p.state.recentre()
         ok = reason > 0 and np.all(np.isfinite(hist))
         fnorm = float(hist[-1]) if len(hist) else float("nan")
+        R = PETSc.SNES.ConvergedReason
+        if ok and not (reason in (R.CONVERGED_FNORM_ABS, R.CONVERGED_FNORM_RELATIVE)
+                       and self.snes.getType() == PETSc.SNES.Type.NEWTONLS):
+            # whatever the SNES (-snes_type) and the reason it gives, a step is converged only
+            # where the residual at its state meets the tolerance: ksponly stops after one
+            # linear solve and says CONVERGED_ITS (the roll-up left at the wrong tip, |F| NaN,
+            # exit 0), a step test (-snes_stol) may stop short of it.  (Newton's line search
+            # ending on convergence_test's own |F| test needs no second look.)
+            p.residual(None, p.state.X, p.F)
+            fnorm = float(p.F.norm())
+            if not (np.isfinite(fnorm) and fnorm <= self.tolerance()):
+                ok, reason = False, "residual above the tolerance"
+        p.state.recentre()
         if not ok and self.stagnated:
             reason = "stagnation"
             self.stagnations += 1
