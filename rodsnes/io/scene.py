@@ -1141,13 +1141,18 @@ def _contact(c, rod, bc):
                 lo, hi = (mid, hi) if rod["length"] / mid * math.sin(0.5 * mid) > rcontact \
                     else (lo, mid)
             most = math.degrees(lo)
-            shown = (c.show(O.rod_arc_angle) if c.given(O.rod_arc_angle) else
-                     "-rod_shape arc of radius %.6g (%.4g degrees)"
-                     % (rod["arc_radius"], abs(rod["arc_angle_deg"])))
+            if c.given(O.rod_arc_angle):
+                shown, fix = c.show(O.rod_arc_angle), "an angle below %.4g degrees" % most
+            else:           # the radius given: the length that keeps the ends apart
+                R = rod["arc_radius"]
+                longest = R * (2.0 * math.pi - 2.0 * math.asin(min(1.0, rcontact / R)))
+                shown = "-rod_shape arc of radius %.6g (%.4g degrees)" % (
+                    R, abs(rod["arc_angle_deg"]))
+                fix = "a -rod_length below %.4g" % longest
             c.fail("%s with contact radius %g: the arc's ends start %.3g apart, closer than "
-                   "the tube's diameter (%.3g), which self-contact cannot start from; use an "
-                   "angle below %.4g degrees (or -rod_closed for a ring)"
-                   % (shown, rcontact, gap, 2.0 * rcontact, most),
+                   "the tube's diameter (%.3g), which self-contact cannot start from; use %s "
+                   "(or -rod_shape circle -rod_closed for a ring)"
+                   % (shown, rcontact, gap, 2.0 * rcontact, fix),
                    O.rod_arc_angle, O.rod_arc_radius, O.contact_radius)
     standoff = float(c[O.contact_standoff]) if enabled else 0.0
     rlaw, plaw = law_tube(rcontact, c[O.contact_penetration], standoff)
@@ -1511,9 +1516,15 @@ _PETSC_ATOL = type("PetscOption", (), {"flag": "-snes_atol"})()     # for fail()
 
 
 def _check_atol(scene, fail):
-    """-snes_atol must not be a sizeable share of the forces the equilibrium is made of."""
+    """-snes_atol must not be a sizeable share of the forces the equilibrium is made of, where
+    the Newton path reads it (the minimiser does not: there it is an unused option)."""
+    from rodsnes.model.loads import nonconservative
     from rodsnes.model.scales import force_scale
-    atol, scale = float(getattr(scene.loads, "atol", 0.0) or 0.0), force_scale(scene)
+    ld = scene.loads
+    newton = ld.path == "newton" or (ld.path == "auto" and (nonconservative(ld) or ld.arclength))
+    if not newton:
+        return
+    atol, scale = float(getattr(ld, "atol", 0.0) or 0.0), force_scale(scene)
     if atol > MAX_ATOL_SHARE * scale:
         fail("-snes_atol = %s: %.3g of the problem's force scale (%.3g: EI/L^2 + loads), so a "
              "residual that small may leave the forces off by that much - the first load step's "
@@ -1529,9 +1540,11 @@ def _check_sliding_end(scene, mesh, fail):
     r, bc, ld = scene.rod, scene.bc, scene.loads
     if r.closed or bc.end != "sliding":
         return
-    t = np.asarray(mesh.q_init[-1], dtype=float)
     from rodsnes.model import so3
-    axis = int(np.argmax(np.abs(so3.rot(t)[:, 2])))
+    t = so3.rot(np.asarray(mesh.q_init[-1], dtype=float))[:, 2]
+    axis = int(np.argmax(np.abs(t)))
+    if abs(abs(t[axis]) - 1.0) > 1e-10:
+        return              # a tangent off the axes: refused as such (model.problem.Constraints)
     name = "xyz"[axis]
     F = np.asarray(ld.end_force, dtype=float)
     off = [c for c in range(3) if c != axis and F[c] != 0.0]
@@ -1547,12 +1560,15 @@ def _check_sliding_end(scene, mesh, fail):
              "to turn it)" % _show(O.load_end_moment.flag, ld.end_moment),
              O.load_end_moment, O.bc_end)
     g = np.asarray(ld.gravity, dtype=float)
-    if bc.start == "free" and (F[axis] != 0.0 or g[axis] != 0.0):
+    # the net load along the slide (the end force and gravity over the rod's length; both
+    # held by nothing), beyond round-off of the two
+    net, size = F[axis] + g[axis] * r.length, abs(F[axis]) + abs(g[axis]) * r.length
+    if bc.start == "free" and size > 0.0 and abs(net) > 1e-12 * size:
         loaded = [(o, v) for o, v in ((O.load_end_force, F), (O.load_gravity, g)) if v[axis] != 0.0]
         fail("%s with -bc_start free -bc_end sliding: nothing holds the rod along %s (the end "
-             "slides, the start is free), so the load's %s component has no equilibrium; "
-             "support the start (-bc_start clamped or pinned)"
-             % (", ".join(_show(o.flag, v) for o, v in loaded), name, name),
+             "slides, the start is free), so the load's net %s component (%.3g) has no "
+             "equilibrium; support the start (-bc_start clamped or pinned)"
+             % (", ".join(_show(o.flag, v) for o, v in loaded), name, name, net),
              *(o for o, _ in loaded), O.bc_start, O.bc_end)
 
 

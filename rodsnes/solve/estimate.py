@@ -30,6 +30,7 @@ order 2..4 made on the coarse mesh's final state.  Every trial writes into the o
 (the last one stays); summary.json ``tolerance`` lists them with their cost.
 """
 import math
+import sys
 import time
 from dataclasses import replace
 
@@ -500,6 +501,9 @@ def to_tolerance(run):
     s["wall_time_s"] = block["wall_time_s"]
     cur.write_summary(s)
     run.tolerance_result = (cur, block)
+    if cur.rank == 0 and cur.quiet and not met:
+        # -quiet leaves out the progress, not a failure
+        print(f"rodsnes: failed: {reason}", file=sys.stderr, flush=True)
     if cur.rank == 0 and not cur.quiet:
         what = (f"{last['nelem']} elements of order {last['order']}: estimated error "
                 f"{last['estimate_centreline']:.1e} <= {tol:g}" if met else "FAILED: " + reason)
