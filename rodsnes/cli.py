@@ -29,6 +29,7 @@ import tempfile
 import time
 
 from rodsnes import interrupts
+from rodsnes.errors import tell
 from rodsnes.interrupts import Interrupted
 
 # Nothing here imports petsc4py.PETSc at module level, and neither may any rodsnes module this
@@ -87,10 +88,8 @@ def _rank_from_env():
 
 def _say(rank, kind, text):
     """``rodsnes: <kind>: <line>`` on stderr, one per line of text, on rank 0 only."""
-    if rank != 0:
-        return
-    for line in str(text).splitlines() or [""]:
-        print(f"rodsnes: {kind}: {line}", file=sys.stderr, flush=True)
+    if rank == 0:
+        tell(kind, text)
 
 
 # --------------------------------------------------------------------------- -options_file
@@ -669,7 +668,7 @@ def _interrupted(run, sig):
         with interrupts.deferred(keep=False):   # a second signal: the run is ending already
             run.record_interruption(sig.name)
     except Exception as exc:  # noqa: BLE001 - the exit must happen whatever the disk says
-        print(f"rodsnes: warning: summary.json not marked interrupted: {exc}", file=sys.stderr)
+        tell("warning", f"summary.json not marked interrupted: {exc}")
     _say(run.rank, "error", f"interrupted by {sig.name}; the steps written stay in "
                             f"{run.outdir}/result.h5 and summary.json says so: go on with "
                             f"-restart {run.outdir}")

@@ -1,4 +1,13 @@
-"""Errors a user sees: a scene that cannot be run, with the options it concerns."""
+"""Errors a user sees: a scene that cannot be run, with the options it concerns, and the
+lines that tell of errors, failures and warnings."""
+import sys
+
+
+def tell(kind, text):
+    """``rodsnes: <kind>: <line>`` on stderr, one per line of text (the caller's rank decides
+    who tells)."""
+    for line in str(text).splitlines() or [""]:
+        print(f"rodsnes: {kind}: {line}", file=sys.stderr, flush=True)
 
 
 class SceneError(Exception):

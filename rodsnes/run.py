@@ -12,7 +12,6 @@ equilibria were asked for: by -load_arclength, which follows unstable branches, 
 and its last line says that the equilibrium is unstable.
 """
 import os
-import sys
 import time
 
 import numpy as np
@@ -32,8 +31,8 @@ from rodsnes.solve import estimate, linear, schur, stability
 from rodsnes.solve import planar
 from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
-from rodsnes.model.loads import nonconservative
-from rodsnes.errors import SceneError
+from rodsnes.model.loads import nonconservative, takes_newton_path
+from rodsnes.errors import SceneError, tell
 from rodsnes.io.scene import scene_record, record_mismatches
 
 # largest share of the wall time spent rewriting summary.json after load steps: its list of
@@ -138,7 +137,7 @@ class Run:
         path = scene.loads.path
         arclength = scene.loads.arclength
         if path == "auto":
-            return "newton" if (why or arclength) else "minimize"
+            return "newton" if takes_newton_path(scene.loads) else "minimize"
         if path == "minimize" and why:
             raise SceneError(f"-load_path minimize minimises the energy, and {why}: use "
                              "-load_path newton (or auto) with these loads", ("-load_path",))
@@ -435,16 +434,17 @@ class Run:
         nneg = self._last_count()
         unstable = bool(nneg) and self.conservative
         band = self.problem.stats.get("neutral_band", 0.0)
-        if band > stability.FALL * 0.05 and self.conservative and self.rank == 0:
-            # a band that hides more than 5 % of overload: a warning, with its size (the
+        if band > stability.FALL * stability.WARN_OVERLOAD and self.conservative and \
+                self.rank == 0:
+            # a band that hides more overload than that: a warning, with its size (the
             # perfect column with EA L^2/EI = 1e12 on 16 elements, band 16.8, was certified
             # straight at twice its buckling load)
-            print(f"rodsnes: warning: the stability count took eigenvalues of H v = lambda M v "
-                  f"above -{band:.3g} EI/L^4 as neutral (the round-off of the Hessian of "
-                  f"{self.mesh.nelem} elements, ~ EA / h^2): a state up to about "
-                  f"{100 * band / stability.FALL:.3g} % past a critical load may count as "
-                  f"stable; fewer elements (-rod_nelem) or a softer -rod_EA and -rod_GA "
-                  f"(nearly inextensible is enough) sharpen it", file=sys.stderr, flush=True)
+            tell("warning", f"the stability count took eigenvalues of H v = lambda M v above "
+                 f"-{band:.3g} EI/L^4 as neutral (the round-off of the Hessian of "
+                 f"{self.mesh.nelem} elements, ~ EA / h^2): a state up to about "
+                 f"{100 * band / stability.FALL:.3g} % past a critical load may count as "
+                 f"stable; fewer elements (-rod_nelem) or a softer -rod_EA and -rod_GA "
+                 f"(nearly inextensible is enough) sharpen it")
         elif band > stability.COARSE * stability.NEUTRAL:
             self._say(f"note: the stability count took eigenvalues of H v = lambda M v above "
                       f"-{band:.3g} EI/L^4 as neutral ({band / stability.NEUTRAL:.3g} x the "
@@ -462,8 +462,7 @@ class Run:
             self.writer.close()
         if self.rank == 0 and self.quiet and not ok:
             # -quiet leaves out the progress, not a failure (exit 3 said nothing)
-            print(f"rodsnes: failed: {reason}; results in {self.outdir}", file=sys.stderr,
-                  flush=True)
+            tell("failed", f"{reason}; results in {self.outdir}")
         if self.rank == 0 and not self.quiet:
             if not ok:
                 last = "FAILED: " + reason

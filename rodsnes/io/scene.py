@@ -30,6 +30,7 @@ import math
 import os
 import sys
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from pathlib import PurePath
 from typing import Optional, Tuple
 
@@ -803,21 +804,13 @@ def read_scene(argv=None, options=None):
                                  given=tuple(sorted(o.name for o in reader.raw))))
 
 
-def _snes_rtol(options):
-    """-snes_rtol as a number (1e-10 when absent; a malformed value is refused with its fix by
-    cli.petsc_option_problems)."""
+def _snes_tolerance(options, name, default):
+    """-snes_rtol or -snes_atol (``name``) as a number (``default`` when absent; a malformed
+    value is refused with its fix by cli.petsc_option_problems)."""
     try:
-        return float(options.getReal("snes_rtol", 1e-10))
+        return float(options.getReal(name, default))
     except Exception:
-        return 1e-10
-
-
-def _snes_atol(options):
-    """-snes_atol as a number (0 when absent or malformed, as _snes_rtol)."""
-    try:
-        return float(options.getReal("snes_atol", 0.0))
-    except Exception:
-        return 0.0
+        return default
 
 
 def helix_curvature(radius, pitch):
@@ -1108,7 +1101,8 @@ def _loads(c, rod, bc):
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
                  twist_turns=float(c[O.load_twist_turns]), stop=float(c[O.load_stop]),
                  path=str(c[O.load_path]), max_it=int(c[O.load_max_it]),
-                 rtol=_snes_rtol(c.r.options), atol=_snes_atol(c.r.options),
+                 rtol=_snes_tolerance(c.r.options, "snes_rtol", 1e-10),
+                 atol=_snes_tolerance(c.r.options, "snes_atol", 0.0),
                  predictor=bool(c[O.load_predictor]), stagnation_its=int(c[O.load_stagnation_its]),
                  arclength=bool(c[O.load_arclength]),
                  arclength_max_steps=int(c[O.load_arclength_max_steps]),
@@ -1512,19 +1506,17 @@ def _check_supports(scene, fail):
 # states whose forces are off by more than that share of the problem's (at the force scale
 # itself, the unloaded rod of the first load step: exit 0, the rod unmoved)
 MAX_ATOL_SHARE = 1e-6
-_PETSC_ATOL = type("PetscOption", (), {"flag": "-snes_atol"})()     # for fail()'s option list
+_PETSC_ATOL = SimpleNamespace(flag="-snes_atol")    # a PETSc option, for fail()'s option list
 
 
 def _check_atol(scene, fail):
     """-snes_atol must not be a sizeable share of the forces the equilibrium is made of, where
     the Newton path reads it (the minimiser does not: there it is an unused option)."""
-    from rodsnes.model.loads import nonconservative
-    from rodsnes.model.scales import force_scale
+    from rodsnes.model.loads import takes_newton_path
     ld = scene.loads
-    newton = ld.path == "newton" or (ld.path == "auto" and (nonconservative(ld) or ld.arclength))
-    if not newton:
+    if not takes_newton_path(ld):
         return
-    atol, scale = float(getattr(ld, "atol", 0.0) or 0.0), force_scale(scene)
+    atol, scale = ld.atol, force_scale(scene)
     if atol > MAX_ATOL_SHARE * scale:
         fail("-snes_atol = %s: %.3g of the problem's force scale (%.3g: EI/L^2 + loads), so a "
              "residual that small may leave the forces off by that much - the first load step's "
@@ -1540,10 +1532,9 @@ def _check_sliding_end(scene, mesh, fail):
     r, bc, ld = scene.rod, scene.bc, scene.loads
     if r.closed or bc.end != "sliding":
         return
-    from rodsnes.model import so3
-    t = so3.rot(np.asarray(mesh.q_init[-1], dtype=float))[:, 2]
-    axis = int(np.argmax(np.abs(t)))
-    if abs(abs(t[axis]) - 1.0) > 1e-10:
+    from rodsnes.model.problem import sliding_axis
+    axis = sliding_axis(np.asarray(mesh.q_init[-1], dtype=float))
+    if axis is None:
         return              # a tangent off the axes: refused as such (model.problem.Constraints)
     name = "xyz"[axis]
     F = np.asarray(ld.end_force, dtype=float)

@@ -97,6 +97,13 @@ class Loads(Term):
         return P
 
 
+def takes_newton_path(loads):
+    """Whether the load path is Newton's: asked for (-load_path newton), or chosen by
+    -load_path auto for loads without a potential or with -load_arclength."""
+    return loads.path == "newton" or (loads.path == "auto" and (
+        nonconservative(loads) is not None or bool(loads.arclength)))
+
+
 def nonconservative(loads):
     """Why energy is not a merit function for these loads (None if it is)."""
     if getattr(loads, "end_force_follower", False) and np.any(np.asarray(loads.end_force)):

@@ -123,6 +123,14 @@ class RodState:
         return r, so3.rotated(th, self.q_ref)
 
 
+def sliding_axis(q):
+    """The coordinate axis a sliding end of rotation q slides along (its tangent d3), or None
+    where the tangent lies along no axis."""
+    t = so3.rot(q)[:, 2]
+    axis = int(np.argmax(np.abs(t)))
+    return axis if abs(abs(t[axis]) - 1.0) <= 1e-10 else None
+
+
 class Constraints:
     """Fixed dofs and prescribed end rotation (bc_end_turns), stepped with lambda."""
 
@@ -143,11 +151,11 @@ class Constraints:
                 if kind in ("clamped", "sliding"):
                     fixed += [(node, c) for c in range(3, 6)]
                 if kind == "sliding":
-                    t = so3.rot(q_init[node])[:, 2]
-                    axis = int(np.argmax(np.abs(t)))
-                    if abs(abs(t[axis]) - 1.0) > 1e-10:
+                    axis = sliding_axis(q_init[node])
+                    if axis is None:
                         raise SceneError("-bc_end sliding: the end tangent must lie along a coordinate "
-                                         f"axis (it is {t}); use -bc_end clamped or a straight rod")
+                                         f"axis (it is {so3.rot(q_init[node])[:, 2]}); use "
+                                         "-bc_end clamped or a straight rod")
                     fixed += [(node, c) for c in range(3) if c != axis]
             if bc.start == "clamped":
                 self.rotation_targets.append((0, lambda lam: q_init[0]))

@@ -30,7 +30,6 @@ order 2..4 made on the coarse mesh's final state.  Every trial writes into the o
 (the last one stays); summary.json ``tolerance`` lists them with their cost.
 """
 import math
-import sys
 import time
 from dataclasses import replace
 
@@ -38,6 +37,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from rodsnes.errors import tell
 from rodsnes.model import mesh as rodmesh
 from rodsnes.model import partition, refine
 from rodsnes.model.partition import NDOF
@@ -503,7 +503,7 @@ def to_tolerance(run):
     run.tolerance_result = (cur, block)
     if cur.rank == 0 and cur.quiet and not met:
         # -quiet leaves out the progress, not a failure
-        print(f"rodsnes: failed: {reason}", file=sys.stderr, flush=True)
+        tell("failed", reason)
     if cur.rank == 0 and not cur.quiet:
         what = (f"{last['nelem']} elements of order {last['order']}: estimated error "
                 f"{last['estimate_centreline']:.1e} <= {tol:g}" if met else "FAILED: " + reason)

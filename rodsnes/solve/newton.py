@@ -286,7 +286,6 @@ class NewtonSolver:
             p.ease_walls(lam, stop, self.say)
         return results, True
 
-
     def _no_equilibrium(self, lam, dlam):
         """Why the path stopped where no step, however short, found an equilibrium, and what
         goes on from there (-load_arclength; for loads with an energy the minimiser)."""

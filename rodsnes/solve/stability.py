@@ -52,6 +52,8 @@ COARSE = 10.0
 # per unit of relative load for the clamped-free Euler column (the note of a wide band: the
 # overload a state may carry and still count as stable)
 FALL = 13.4
+# the overload a band may hide before the run warns of it (Run): 5 %
+WARN_OVERLOAD = 0.05
 
 
 def lumped_metric(problem, l2):
