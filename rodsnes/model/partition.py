@@ -74,6 +74,21 @@ def stretch_descends(elem_owner, closed, nranks):
     return (first > 0) & (last == ne - 1)
 
 
+def preallocate_blocks(mat, ai, aj):
+    """MatSetPreallocationCSR of a BAIJ or SBAIJ matrix with the block CSR (ai, aj): every
+    block present, an explicit zero.  A sequential matrix takes each block row in one
+    insertion, column-oriented meanwhile (of zeros the order is immaterial), where PETSc inserts
+    a row-oriented matrix's blocks one at a time (the in-plane matrix of 10^4 cubic elements:
+    3.7 -> 2.5 ms); a parallel one cannot take the option before its blocks exist (MPIBAIJ's
+    MatSetOption reaches into them)."""
+    sequential = mat.getComm().getSize() == 1
+    if sequential:
+        mat.setOption(PETSc.Mat.Option.ROW_ORIENTED, False)
+    mat.setPreallocationCSR((ai, aj))
+    if sequential:
+        mat.setOption(PETSc.Mat.Option.ROW_ORIENTED, True)
+
+
 def group_pairs(groups):
     """(rows, cols): every ordered pair of nodes within each group of ``groups`` (a list of
     (m, k) node arrays coupled all-to-all), concatenated; duplicates kept."""
@@ -244,11 +259,11 @@ class Layout:
         kind = J.getType()
         if kind in (PETSc.Mat.Type.SEQSBAIJ, PETSc.Mat.Type.MPISBAIJ):
             ai, aj = _upper_blocks(ai, aj, row0)
-            J.setPreallocationCSR((ai, aj))
+            preallocate_blocks(J, ai, aj)
             # only once the blocks exist (before it, MPISBAIJ crashes in MatSetOption)
             J.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
         elif kind in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.MPIBAIJ):
-            J.setPreallocationCSR((ai, aj))
+            preallocate_blocks(J, ai, aj)
         else:                     # -mat_type aij etc.: expand the block structure to scalars
             J.setPreallocationCSR(_scalar_csr(ai, aj, NDOF))
         J.setOption(PETSc.Mat.Option.NEW_NONZERO_ALLOCATION_ERR, False)

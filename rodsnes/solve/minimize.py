@@ -50,6 +50,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from rodsnes.model.assembly import set_diagonal
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults
@@ -596,7 +597,7 @@ class EnergyMinimizer:
             full, shift = shift, planar.restrict(shift)
             full.destroy()
         K = p.J if planar is None else planar.J
-        K.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)
+        set_diagonal(K, shift, add=True)
         self.factorizations += 1
         if planar is not None:
             ok = planar.solve_block(b, x)
@@ -608,7 +609,7 @@ class EnergyMinimizer:
             except PETSc.Error:
                 ok = False
         shift.scale(-1.0)
-        K.setDiagonal(shift, addv=PETSc.InsertMode.ADD_VALUES)          # K again
+        set_diagonal(K, shift, add=True)                                 # K again
         shift.destroy()
         self.by_ksp = self.by_plane = False
         return ok

@@ -35,7 +35,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
-from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks, kept
+from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks, kept, preallocate_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, is_default, option_default
@@ -97,7 +97,7 @@ def create_block_matrix(problem, patterns, symmetric):
     ai, aj = lay.block_pattern(problem.node_groups(patterns))
     if symmetric:
         ai, aj = _upper_blocks(ai, aj, lay.starts[lay.comm.getRank()])
-    A.setPreallocationCSR((ai, aj))
+    preallocate_blocks(A, ai, aj)
     if symmetric:
         A.setOption(PETSc.Mat.Option.IGNORE_LOWER_TRIANGULAR, True)
         A.setOption(PETSc.Mat.Option.SYMMETRIC, True)

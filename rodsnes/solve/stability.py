@@ -19,6 +19,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from rodsnes.collective import on_root
+from rodsnes.model.assembly import set_diagonal
 from rodsnes.model.term import same_patterns
 from rodsnes.solve import chain, schur
 from rodsnes.solve.linear import is_default, mumps_fill_room, mumps_ordering, option_default
@@ -367,7 +368,7 @@ class Inertia:
             shift.destroy()
         else:
             d.axpy(1.0, shift)
-        H.setDiagonal(d, addv=PETSc.InsertMode.INSERT_VALUES)
+        set_diagonal(H, d, add=False)
         d.destroy()
         self.counts += 1
         self.by_chain = False
