@@ -248,3 +248,25 @@ def test_restart_takes_the_steps_the_run_would_have_taken(tmp_path):
     assert resumed.ok and resumed.path == "minimize"
     assert [h["load"] for h in resumed.history] == [h["load"] for h in full.history[2:]]
     assert np.abs(gathered_positions(resumed) - gathered_positions(full)).max() < 1e-9
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("case, kw", [("mattiasson", dict(rod_nelem=9, rod_order=3)),
+                                      ("mattiasson", dict(rod_nelem=7, rod_order=2)),
+                                      ("rollup_contact", dict(rod_nelem=10, rod_order=4))])
+def test_lumped_weights_are_the_row_sums_of_the_mass_matrix(case, kw):
+    """The minimiser's metric (mesh.lumped_weights): int N_i ds of every owned node, the
+    element sums in element order (np.add.at's, bit for bit), the rod's length in all."""
+    from rodsnes.model import fe
+    from rodsnes.model.mesh import lumped_weights
+    p = build_run(case, **kw).problem
+    m, lay = p.mesh, p.layout
+    M = lumped_weights(m, lay)
+    xi, w = fe.gauss_legendre(m.order + 1)
+    we = (w * m.h / 2.0) @ fe.lagrange(m.order, xi)[0]
+    ref = np.zeros(m.n_nodes)
+    np.add.at(ref, m.conn, np.broadcast_to(we, m.conn.shape))
+    assert np.array_equal(M, ref[lay.owned_nodes])
+    total = PETSc.COMM_WORLD.tompi4py().allreduce(M.sum())
+    assert abs(total - m.length) <= 1e-12 * m.length
+    assert (M > 0).all()

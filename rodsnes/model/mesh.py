@@ -178,7 +178,11 @@ def lumped_weights(mesh, layout):
     N, _, _ = fe.lagrange(mesh.order, xi)
     we = (w * mesh.h / 2.0) @ N                       # (p+1,) per element node
     loc = np.zeros((len(layout.local_nodes), NDOF))
-    np.add.at(loc, layout.lconn, np.broadcast_to(we[None, :, None], layout.lconn.shape + (NDOF,)))
+    # the sums in the elements' order, as np.add.at's (12 ms at 10^4 elements, numpy's
+    # unbuffered loop) but by one bincount of the column that is read
+    conn = np.asarray(layout.lconn)
+    loc[:, 0] = np.bincount(conn.ravel(), weights=np.broadcast_to(we, conn.shape).ravel(),
+                            minlength=len(loc))
     V = layout.create_vec()
     layout.add_to_global(loc, V)
     M = V.getArray(readonly=True).reshape(-1, NDOF)[:, 0].copy()
