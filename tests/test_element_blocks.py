@@ -457,3 +457,15 @@ def assert_bitwise_equal_dense(A, B):
     a, b = owned_dense(A), owned_dense(B)
     assert np.count_nonzero(a) > a.shape[0]
     assert np.array_equal(a.view(np.int64), b.view(np.int64)), np.abs(a - b).max()
+
+
+@pytest.mark.parametrize("closed", [False, True])
+def test_chain_graph_is_the_elements_adjacency(closed):
+    """partition.chain_graph (the graph METIS partitions) row by row: each element's neighbours
+    on the rod, sorted, without repeats or the element itself, down to one and two elements."""
+    for n in (1, 2, 3, 4, 7, 50):
+        xadj, adj = partition.chain_graph(n, closed)
+        assert len(xadj) == n + 1 and xadj[0] == 0 and xadj[-1] == len(adj)
+        for k in range(n):
+            near = {(k - 1) % n, (k + 1) % n} if closed else {j for j in (k - 1, k + 1) if 0 <= j < n}
+            assert list(adj[xadj[k]:xadj[k + 1]]) == sorted(near - {k}), (n, k)

@@ -36,19 +36,28 @@ def metis_parts(nelem, closed, nparts):
         raise ValueError(f"-rod_nelem = {nelem} is smaller than the number of ranks {nparts}: "
                          f"use at least {nparts} elements or fewer ranks")
     import pymetis
-    xadj = [0]
-    adj = []
-    for k in range(nelem):
-        row = [(k - 1) % nelem, (k + 1) % nelem] if closed else [j for j in (k - 1, k + 1) if 0 <= j < nelem]
-        row = sorted(set(row) - {k})
-        adj.extend(row)
-        xadj.append(len(adj))
+    xadj, adj = chain_graph(nelem, closed)
     _, parts = pymetis.part_graph(nparts, adjacency=pymetis.CSRAdjacency(
-        adj_starts=np.asarray(xadj), adjacent=np.asarray(adj)))
+        adj_starts=xadj, adjacent=adj))
     parts = np.asarray(parts, dtype=np.int64)
     if len(np.unique(parts)) < nparts:  # METIS may leave a rank empty on tiny graphs
         parts = (np.arange(nelem) * nparts) // nelem
     return parts
+
+
+def chain_graph(nelem, closed):
+    """(xadj, adj): the elements' adjacency, each element's neighbours k - 1 and k + 1 (modulo
+    nelem on a closed rod) in CSR, every row sorted and without repeats or the element itself."""
+    k = np.arange(nelem)
+    nb = np.stack([k - 1, k + 1], axis=1)
+    if closed:
+        nb = np.sort(nb % max(nelem, 1), axis=1)
+        keep = nb != k[:, None]
+        keep[:, 1] &= nb[:, 1] != nb[:, 0]        # two elements: one neighbour, not twice
+    else:
+        keep = (nb >= 0) & (nb < nelem)
+    xadj = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
+    return xadj, nb[keep]
 
 
 def stretch_descends(elem_owner, closed, nranks):
