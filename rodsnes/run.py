@@ -15,11 +15,10 @@ import os
 import time
 
 import numpy as np
-from petsc4py import PETSc
 
 from rodsnes import interrupts, profiling
 from rodsnes.collective import on_root
-from rodsnes.model import fe, mesh as rodmesh
+from rodsnes.model import mesh as rodmesh
 from rodsnes.io import results as output
 from rodsnes.model import partition
 from rodsnes.model.partition import NDOF
