@@ -413,23 +413,32 @@ def test_a_rank_owning_no_node(monkeypatch):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("kind", ["3d", "3d-symmetric", "planar", "aij"])
+@pytest.mark.parametrize("kind", ["3d", "3d-symmetric", "planar", "planar-symmetric",
+                                  "split", "split-symmetric", "aij"])
 def test_set_diagonal_as_matdiagonalset(kind):
     """assembly.set_diagonal (the minimiser's shifted solves, the stability count's shift)
-    gives MatDiagonalSet's matrix bit for bit, adding and inserting, for BAIJ and SBAIJ on 1
-    and 2 ranks, and for a new matrix of the same pattern; AIJ goes through MatDiagonalSet."""
-    run = perturbed(build_run("mattiasson", rod_nelem=20))
+    gives MatDiagonalSet's matrix bit for bit, adding and inserting, for BAIJ and SBAIJ of
+    block size 6 and 3 (the planar block, a split contact matrix) on 1 and 2 ranks, and for a
+    new matrix of the same pattern; AIJ goes through MatDiagonalSet."""
+    symmetric = kind.endswith("symmetric")
+    if kind.startswith("split"):
+        run = coiled_rollup()
+        run.problem.ensure_pattern()
+        assert run.problem.positions_only()
+    else:
+        run = perturbed(build_run("mattiasson", rod_nelem=20))
     p = run.problem
     pl = p.planar
 
     def make():
-        symmetric = kind == "3d-symmetric"
-        if kind == "planar":
-            M = create_block_matrix(p, p.patterns, False)
-            p.jacobian(None, p.state.X, M, M,
+        if kind.startswith("planar"):
+            M = create_block_matrix(p, p.patterns, symmetric)
+            p.jacobian(None, p.state.X, M, M, symmetric=symmetric,
                        view=ComponentView(M, pl.plane.inplane, p.constraints))
             return M
-        M = p.layout.create_matrix(p.node_groups(p.patterns), symmetric=symmetric)
+        M = p.layout.create_matrix(p.node_groups(p.patterns), symmetric=symmetric,
+                                   positions_only=p.positions_only())
+        assert partition.is_split(M) == kind.startswith("split")
         p.jacobian(None, p.state.X, M, M, symmetric=symmetric)
         return M.convert(PETSc.Mat.Type.AIJ) if kind == "aij" else M
 
@@ -469,3 +478,53 @@ def test_chain_graph_is_the_elements_adjacency(closed):
         for k in range(n):
             near = {(k - 1) % n, (k + 1) % n} if closed else {j for j in (k - 1, k + 1) if 0 <= j < n}
             assert list(adj[xadj[k]:xadj[k + 1]]) == sorted(near - {k}), (n, k)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("mat_type", [None, "baij", "sbaij", "mpibaij", "mpisbaij"])
+@pytest.mark.parametrize("symmetric", [False, True])
+def test_preallocated_pattern_as_plain_csr(mat_type, symmetric):
+    """partition.preallocate_blocks (column-oriented while a sequential matrix takes its zeros)
+    gives the pattern MatSetPreallocationCSR gives, every block present, row-oriented after;
+    an MPI type on one rank (-mat_type mpibaij) goes the plain way (its MatSetOption before the
+    preallocation was a segmentation fault)."""
+    kw = {} if mat_type is None else {"mat_type": mat_type}
+    p = build_run("mattiasson", rod_nelem=8, **kw).problem
+    A = p.layout.create_matrix(p.node_groups(p.patterns), symmetric=symmetric)
+    B = PETSc.Mat().create(comm=A.getComm())    # the same type, by plain CSR
+    B.setSizes(A.getSizes(), bsize=A.getBlockSize())
+    B.setType(A.getType())
+    ai, aj = p.layout.block_pattern(p.node_groups(p.patterns))
+    if A.getType() in (PETSc.Mat.Type.SEQSBAIJ, PETSc.Mat.Type.MPISBAIJ):
+        ai, aj = partition._upper_blocks(ai, aj, p.layout.starts[PETSc.COMM_WORLD.getRank()])
+    B.setPreallocationCSR((ai, aj))
+    seq = [M.getDiagonalBlock() if M.getComm().getSize() > 1 else M for M in (A, B)]
+    (a1, j1), (a2, j2) = (S.getRowIJ(compressed=True) for S in seq)
+    assert np.array_equal(a1, a2) and np.array_equal(j1, j2)
+    assert A.getInfo()["nz_used"] == B.getInfo()["nz_used"] > 0
+    # row-oriented again: a block inserted row by row lands as given
+    lo = A.getOwnershipRange()[0] // A.getBlockSize()
+    bs = A.getBlockSize()
+    v = np.arange(bs * bs, dtype=float) + 1.0
+    A.setValuesBlocked([lo], [lo], v)
+    A.assemble()
+    got = A.getValues(range(lo * bs, lo * bs + bs), range(lo * bs, lo * bs + bs))
+    assert np.array_equal(got, v.reshape(bs, bs))    # (SBAIJ keeps a diagonal block whole)
+    A.destroy()
+    B.destroy()
+
+
+def test_set_diagonal_of_an_unassembled_matrix_as_matdiagonalset():
+    """A block inserted and not yet assembled moves the row's blocks under the kept places:
+    set_diagonal takes MatDiagonalSet's way there, with its result."""
+    A, B = small_baij(3, False, nodes=4), small_baij(3, False, nodes=4)
+    d = A.createVecLeft()
+    d.setArray(np.arange(1.0, 13.0))
+    assembly.set_diagonal(A, d, add=True)               # the places kept
+    B.setDiagonal(d, addv=PETSc.InsertMode.ADD_VALUES)
+    for M in (A, B):
+        M.setValuesBlocked([2], [0], np.arange(9.0), addv=PETSc.InsertMode.ADD)
+    assert not A.isAssembled()
+    assembly.set_diagonal(A, d, add=True)
+    B.setDiagonal(d, addv=PETSc.InsertMode.ADD_VALUES)
+    assert_bitwise_equal_dense(A, B)

@@ -220,8 +220,12 @@ def set_diagonal(mat, d, add):
     written in its value array (its diagonal block's on several ranks), at places found once
     per pattern: PETSc 3.18 has no MatDiagonalSet of these types and inserts entry by entry
     (3.4 ms for the in-plane Jacobian of 10^4 cubic elements, twice a shifted solve of the
-    minimiser).  Other types, or a row without its diagonal block: MatDiagonalSet."""
-    places = _diagonal_places(mat)
+    minimiser).  Other types, an unassembled matrix, or a row without its diagonal block:
+    MatDiagonalSet.  The places are kept while the value matrix, its nonzero state and its
+    stored blocks stay, as ElementBlocks' are: a pattern that changes in place keeping all
+    three would go unseen, and rodsnes changes none in place (a new pattern is a new matrix,
+    RodProblem._new_matrix)."""
+    places = _diagonal_places(mat) if mat.isAssembled() else None
     if places is None:
         mat.setDiagonal(d, addv=PETSc.InsertMode.ADD_VALUES if add
                         else PETSc.InsertMode.INSERT_VALUES)

@@ -88,9 +88,9 @@ def preallocate_blocks(mat, ai, aj):
     block present, an explicit zero.  A sequential matrix takes each block row in one
     insertion, column-oriented meanwhile (of zeros the order is immaterial), where PETSc inserts
     a row-oriented matrix's blocks one at a time (the in-plane matrix of 10^4 cubic elements:
-    3.7 -> 2.5 ms); a parallel one cannot take the option before its blocks exist (MPIBAIJ's
-    MatSetOption reaches into them)."""
-    sequential = mat.getComm().getSize() == 1
+    3.7 -> 2.5 ms); an MPI type, on one rank too (-mat_type mpibaij), cannot take the option
+    before its blocks exist (MPIBAIJ's MatSetOption reaches into them: a segmentation fault)."""
+    sequential = mat.getType() in (PETSc.Mat.Type.SEQBAIJ, PETSc.Mat.Type.SEQSBAIJ)
     if sequential:
         mat.setOption(PETSc.Mat.Option.ROW_ORIENTED, False)
     mat.setPreallocationCSR((ai, aj))
