@@ -253,10 +253,11 @@ def test_restart_takes_the_steps_the_run_would_have_taken(tmp_path):
 @pytest.mark.mpi
 @pytest.mark.parametrize("case, kw", [("mattiasson", dict(rod_nelem=9, rod_order=3)),
                                       ("mattiasson", dict(rod_nelem=7, rod_order=2)),
-                                      ("rollup_contact", dict(rod_nelem=10, rod_order=4))])
+                                      ("rollup_contact", dict(rod_nelem=10, rod_order=4)),
+                                      ("michell", dict(rod_nelem=6, rod_order=3))])
 def test_lumped_weights_are_the_row_sums_of_the_mass_matrix(case, kw):
-    """The minimiser's metric (mesh.lumped_weights): int N_i ds of every owned node, the
-    element sums in element order (np.add.at's, bit for bit), the rod's length in all."""
+    """The minimiser's metric (mesh.lumped_weights): int N_i ds of every owned node, np.add.at's
+    sums bit for bit, the rod's length in all; open rods and a ring (michell)."""
     from rodsnes.model import fe
     from rodsnes.model.mesh import lumped_weights
     p = build_run(case, **kw).problem
