@@ -610,8 +610,7 @@ def _failed(agree, run, message, trailer=None, code=EXIT_FAILED):
             return code
         if run is not None:
             run.record_error(message, by_this_rank=True)
-        for line in str(message).splitlines():
-            print(f"rodsnes: error: {line}", file=sys.stderr, flush=True)
+        tell("error", message)
         if trailer:
             print(trailer, file=sys.stderr, flush=True)
         print(f"rodsnes: error: the other ranks did not stop within {AGREE_SECONDS:g} s: the "
