@@ -298,6 +298,23 @@ def petsc_error_text():
     return msgs[-1] if msgs else ""
 
 
+def _unfit_factorisation(package, mtype, values, opts):
+    """The line for a factorisation package that cannot factor the Jacobian's matrix type:
+    with petsc or mumps, which factor rodsnes' block matrix, the user's -mat_type is the cause
+    (leave it out, or take mumps); another package is itself the cause (take one of those)."""
+    given = opts.getString("mat_type") if opts.hasName("mat_type") else None
+    if given and package in ("petsc", "mumps"):
+        fix = "leave -mat_type out (rodsnes' block matrix, which petsc and mumps factor)"
+        if package != "mumps":
+            fix += " or use -pc_factor_mat_solver_type mumps"
+        return (f"-mat_type {given}: the LU of {package} cannot factor the Jacobian as {mtype}; "
+                f"{fix}")
+    option = values.get(package, "pc_factor_mat_solver_type")
+    others = " or ".join(p for p in ("petsc (the default)", "mumps") if p.split()[0] != package)
+    return (f"-{option} {package}: {package} cannot factor rodsnes' Jacobian ({mtype}, blocks "
+            f"of a node's unknowns); use {others}")
+
+
 def petsc_error_message(exc, opts, comm):
     """One line for a PETSc error raised while setting up or running the solver, naming the
     option whose value caused it where the message allows."""
@@ -321,11 +338,11 @@ def petsc_error_message(exc, opts, comm):
         return (f"-{option} {m.group(1)}: this PETSc has no {m.group(2)} factorisation of "
                 f"rodsnes' Jacobian ({m.group(3)}) by {m.group(1)} (not built with it); use "
                 f"petsc (the default) or mumps")
-    m = re.search(r"MatSolverType (\S+) does not support matrix type (\S+)", text)
+    m = (re.search(r"MatSolverType (\S+) does not support factorization type \S+ for matrix "
+                   r"type (\S+)", text)
+         or re.search(r"MatSolverType (\S+) does not support matrix type (\S+)", text))
     if m:
-        option = values.get(m.group(1), "pc_factor_mat_solver_type")
-        return (f"-{option} {m.group(1)}: {m.group(1)} cannot factor rodsnes' Jacobian "
-                f"({m.group(2)}, 6 x 6 blocks); use petsc (the default) or mumps")
+        return _unfit_factorisation(m.group(1), m.group(2), values, opts)
     m = re.search(r"Unknown logical value: (\S+)", text)
     if m:
         option = values.get(m.group(1), "?")

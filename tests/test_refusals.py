@@ -188,6 +188,18 @@ REFUSALS = [
                                      "superlu"),
      ["-pc_factor_mat_solver_type superlu: superlu cannot factor rodsnes' Jacobian",
       "use petsc (the default) or mumps"]),
+    ("mat_type_unfit", MATT + ("-mat_type", "sbaij"),
+     ["-mat_type sbaij: the LU of petsc cannot factor the Jacobian as seqsbaij",
+      "leave -mat_type out", "or use -pc_factor_mat_solver_type mumps"]),
+    ("mat_type_mpi_one_rank", MATT + ("-mat_type", "mpibaij"),
+     ["-mat_type mpibaij: the LU of petsc cannot factor the Jacobian as mpibaij"]),
+    ("mat_type_unfit_mumps", MATT + ("-mat_type", "sbaij", "-pc_factor_mat_solver_type", "mumps"),
+     ["-mat_type sbaij: the LU of mumps cannot factor", "leave -mat_type out (rodsnes' block "
+      "matrix, which petsc and mumps factor)"]),
+    ("solver_package_unfit_with_mat_type", MATT + ("-mat_type", "baij",
+                                                   "-pc_factor_mat_solver_type", "superlu"),
+     ["-pc_factor_mat_solver_type superlu: superlu cannot factor", "use petsc (the default) or "
+      "mumps"]),
     ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
     # retired options say what replaced them
     ("retired_stability_switch", MATT + ("-stability", "-stability_switch", "0"),
