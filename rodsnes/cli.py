@@ -415,24 +415,75 @@ def _closest(word, names):
     return _or_list(["-" + c for c in close]) if close else ""
 
 
+# the factorising solvers a user may set under a prefix (README, Options: linear solves):
+# prefix -> (the matrix they factor: BAIJ block size, whether -mat_type makes it, the package
+# that must do it or None for any LU package)
+LU_PREFIXES = {"": (6, True), "planar_": (3, False), "estimate_": (6, True)}
+# the stability counts take the inertia from MUMPS's LDL^T (INFOG(12)) or rodsnes' own
+INERTIA_PREFIXES = ("stability_", "planar_stability_")
+
+
 def check_newton_linear_solver(comm):
-    """Set up the Newton path's linear solver as the options make it (NewtonSolver's defaults
-    preonly + LU, solve/linear.py, then the options database) on a small matrix of the Jacobian's type
-    (BAIJ, 6 x 6 blocks, or -mat_type's; three blocks per rank): a KSP, PC or factorisation package that does not exist
-    or cannot factor rodsnes' matrices raises its PETSc.Error here, before the Run is built and
-    writes anything, instead of failing every load step.  Collective."""
+    """Set up the linear solvers as the options make them, before the Run is built and writes
+    anything, instead of failing every load step or being dropped for another step in silence:
+    the Newton path's (preonly + LU, solve/linear.py, then the options database) on a small
+    matrix of the Jacobian's type (BAIJ, 6 x 6 blocks, or -mat_type's; three blocks per rank),
+    and each prefixed LU the user gave options to (-planar_: the in-plane step's, blocks of 3;
+    -estimate_: the error estimate's) on one of its own: a KSP, PC or factorisation package
+    that does not exist or cannot factor them raises its PETSc.Error here.  The stability
+    counts' solvers (-stability_ ...) must be MUMPS's LDL^T (check_inertia_solvers).
+    Collective."""
     from petsc4py import PETSc
-    ndof = 6
+    from rodsnes.solve.linear import user_chose
+    check_inertia_solvers()
+    opts = PETSc.Options()
+    for prefix, (bs, mat_type) in LU_PREFIXES.items():
+        given = [n for n in opts.getAll() if n.startswith(prefix + "pc_")
+                 or n.startswith(prefix + "ksp_")]
+        if prefix and not any(user_chose(n) for n in given):
+            continue
+        kind = opts.getString("mat_type", PETSc.Mat.Type.BAIJ) if mat_type else PETSc.Mat.Type.BAIJ
+        _check_linear_solver(comm, prefix, bs, kind)
+
+
+def check_inertia_solvers():
+    """The stability counts' factorisations (INERTIA_PREFIXES) count negative pivots: MUMPS's
+    LDL^T (PCCHOLESKY, INFOG(12)), or rodsnes' own where no solver option is given.  Another
+    preconditioner or package is refused, naming its option."""
+    from petsc4py import PETSc
+    from rodsnes.io.scene import SceneError
+    opts = PETSc.Options()
+    problems = []
+    for prefix in INERTIA_PREFIXES:
+        pc = opts.getString(prefix + "pc_type", "cholesky") if opts.hasName(prefix + "pc_type") \
+            else "cholesky"
+        package = opts.getString(prefix + "pc_factor_mat_solver_type", "mumps") \
+            if opts.hasName(prefix + "pc_factor_mat_solver_type") else "mumps"
+        if pc != "cholesky":
+            problems.append(f"-{prefix}pc_type {pc}: the stability count factors the Hessian "
+                            f"by an LDL^T and counts its negative pivots; use cholesky (or "
+                            f"leave it out)")
+        if package != "mumps":
+            problems.append(f"-{prefix}pc_factor_mat_solver_type {package}: the stability count "
+                            f"takes the negative pivots from MUMPS's LDL^T; use mumps (or leave "
+                            f"it out: rodsnes' own LDL^T where it applies, MUMPS elsewhere)")
+    if problems:
+        raise SceneError("\n".join(problems))
+
+
+def _check_linear_solver(comm, prefix, ndof, kind):
+    """The KSP of options prefix ``prefix`` set up as the options make it (its LU defaults
+    first, taken back after) on a small symmetric positive definite matrix of type ``kind`` and
+    block size ``ndof``, every node coupled to the first (an arrow, which a fill-reducing
+    ordering permutes): an ordering or a factorisation that cannot take the Jacobian's
+    couplings fails here too (PETSc's ICC of BAIJ refuses any ordering but natural)."""
+    from petsc4py import PETSc
     A = PETSc.Mat().create(comm=comm)
     A.setOptionsPrefix("rodsnes_solver_check_")         # no -mat_view of this matrix
     A.setSizes(((3 * ndof, None), (3 * ndof, None)), bsize=ndof)
-    # the Jacobian's type: BAIJ, or what -mat_type makes it (partition.Layout.create_matrix)
-    A.setType(PETSc.Options().getString("mat_type", PETSc.Mat.Type.BAIJ))
+    A.setType(kind)
     n = A.getSize()[0]
     A.setPreallocationNNZ((3 * ndof, n))
-    # symmetric positive definite, every node coupled to the first (an arrow, which a
-    # fill-reducing ordering permutes): an ordering or a factorisation that cannot take the
-    # Jacobian's couplings fails here too (PETSc's ICC of BAIJ refuses any ordering but natural)
     lo, hi = A.getOwnershipRange()
     for i in range(lo, hi):
         if i < ndof:                    # the first node: coupled to every other
@@ -445,9 +496,10 @@ def check_newton_linear_solver(comm):
     A.assemble()
     from rodsnes.solve.linear import lu_defaults
     added = []                      # the defaults go again once the check is done: the solver
-    lu_defaults(comm, added=added)  # sets them itself and must see what the user chose
+    lu_defaults(comm, prefix, added=added)  # sets them itself and must see what the user chose
     ksp = PETSc.KSP().create(comm=comm)
     try:
+        ksp.setOptionsPrefix(prefix)
         ksp.setFromOptions()
         ksp.setOperators(A)
         ksp.setUp()                     # the factorisation, without a solve's monitors and views

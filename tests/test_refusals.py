@@ -200,6 +200,18 @@ REFUSALS = [
                                                    "-pc_factor_mat_solver_type", "superlu"),
      ["-pc_factor_mat_solver_type superlu: superlu cannot factor", "use petsc (the default) or "
       "mumps"]),
+    # the prefixed solvers are checked as the Newton step's is (they fell back to another step
+    # in silence, or failed the run later as if the scene had no equilibrium)
+    ("planar_package_unfit", MATT + ("-planar_pc_factor_mat_solver_type", "superlu"),
+     ["-planar_pc_factor_mat_solver_type superlu: superlu cannot factor", "use petsc"]),
+    ("estimate_package_unfit", MATT + ("-estimate_pc_factor_mat_solver_type", "superlu"),
+     ["-estimate_pc_factor_mat_solver_type superlu: superlu cannot factor"]),
+    ("stability_package_unfit", MATT + ("-stability_pc_factor_mat_solver_type", "petsc"),
+     ["-stability_pc_factor_mat_solver_type petsc: the stability count takes the negative "
+      "pivots from MUMPS's LDL^T; use mumps"]),
+    ("planar_stability_pc_unfit", MATT + ("-planar_stability_pc_type", "lu"),
+     ["-planar_stability_pc_type lu: the stability count factors the Hessian by an LDL^T",
+      "use cholesky"]),
     ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
     # retired options say what replaced them
     ("retired_stability_switch", MATT + ("-stability", "-stability_switch", "0"),
