@@ -343,6 +343,17 @@ def petsc_error_message(exc, opts, comm):
          or re.search(r"MatSolverType (\S+) does not support matrix type (\S+)", text))
     if m:
         return _unfit_factorisation(m.group(1), m.group(2), values, opts)
+    m = re.search(r"Only MAT_SHIFT_NONE and MAT_SHIFT_INBLOCKS are supported for (\w+)", text)
+    if m:
+        value = next((v for v in ("nonzero", "positive_definite", "NONZERO",
+                                  "POSITIVE_DEFINITE") if v in values), "?")
+        option = values.get(value, "pc_factor_shift_type")
+        return (f"-{option} {value}: the LU of rodsnes' block matrix ({m.group(1)}) shifts none or "
+                f"inblocks; use inblocks, or -mat_type aij for {value}")
+    m = re.search(r"Unknown or unregistered type: (\S+)", text)
+    if m and m.group(1) in values:
+        return (f"-{values[m.group(1)]} {m.group(1)}: not a type PETSc knows there (a misspelling, "
+                f"or a package PETSc was built without)")
     m = re.search(r"Unknown logical value: (\S+)", text)
     if m:
         option = values.get(m.group(1), "?")
@@ -440,20 +451,42 @@ def check_newton_linear_solver(comm):
     for prefix, (bs, mat_type) in LU_PREFIXES.items():
         given = [n for n in opts.getAll() if n.startswith(prefix + "pc_")
                  or n.startswith(prefix + "ksp_")]
-        if prefix and not any(user_chose(n) for n in given):
+        # the estimate's matrix is of -mat_type's type too, whatever its solver's options
+        if prefix and not any(user_chose(n) for n in given) \
+                and not (mat_type and user_chose("mat_type")):
             continue
         kind = opts.getString("mat_type", PETSc.Mat.Type.BAIJ) if mat_type else PETSc.Mat.Type.BAIJ
         _check_linear_solver(comm, prefix, bs, kind)
 
 
 def check_inertia_solvers():
-    """The stability counts' factorisations (INERTIA_PREFIXES) count negative pivots: MUMPS's
-    LDL^T (PCCHOLESKY, INFOG(12)), or rodsnes' own where no solver option is given.  Another
-    preconditioner or package is refused, naming its option."""
+    """The factorisations whose kind rodsnes relies on, refused otherwise, naming the option:
+    the stability counts' (INERTIA_PREFIXES) count negative pivots, MUMPS's LDL^T (PCCHOLESKY,
+    INFOG(12)) or rodsnes' own where no solver option is given; the Newton steps' (LU_PREFIXES)
+    factor a tangent that is not symmetric away from equilibrium, so no Cholesky (PETSc's
+    reads one triangle: the helix failed, the cantilever took 986 iterations for 22); the
+    interiors' (-interior_) are MUMPS's LU, whose Schur complement the condensation takes."""
     from petsc4py import PETSc
     from rodsnes.io.scene import SceneError
     opts = PETSc.Options()
     problems = []
+
+    def given(name, default):
+        return opts.getString(name, default) if opts.hasName(name) else default
+
+    for prefix in LU_PREFIXES:
+        pc, ksp = given(prefix + "pc_type", ""), given(prefix + "ksp_type", "preonly")
+        if pc == "cholesky" or (pc == "icc" and ksp == "preonly"):
+            problems.append(f"-{prefix}pc_type {pc}: the Newton step's tangent is not symmetric "
+                            f"away from equilibrium, and {pc} factors one triangle of it; use "
+                            f"lu (the default)")
+    for name, want in (("interior_pc_type", "lu"), ("interior_pc_factor_mat_solver_type",
+                                                     "mumps")):
+        if given(name, want) != want:
+            problems.append(f"-{name} {given(name, want)}: where contact fills the Jacobian, "
+                            f"each rank's stretch is factored by MUMPS's LU, which also gives "
+                            f"the Schur complement where the stretches meet; leave -{name} out "
+                            f"(-interior_mat_mumps_* options are taken)")
     for prefix in INERTIA_PREFIXES:
         pc = opts.getString(prefix + "pc_type", "cholesky") if opts.hasName(prefix + "pc_type") \
             else "cholesky"

@@ -32,6 +32,10 @@ from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative, takes_newton_path
 from rodsnes.errors import SceneError, tell
+
+# Newton steps whose linear solve failed, at least, and at least half of those tried, before
+# the run warns that its linear solver may be the cause (Run._warn_failed_newton_steps)
+NEWTON_FAILURES = 3
 from rodsnes.io.scene import scene_record, record_mismatches
 
 # largest share of the wall time spent rewriting summary.json after load steps: its list of
@@ -432,6 +436,7 @@ class Run:
                 self.writer.add_step_attrs(self.step, {"negative_eigenvalues": n})
         nneg = self._last_count()
         unstable = bool(nneg) and self.conservative
+        self._warn_failed_newton_steps()
         band = self.problem.stats.get("neutral_band", 0.0)
         if band > stability.FALL * stability.WARN_OVERLOAD and self.conservative and \
                 self.rank == 0:
@@ -473,6 +478,21 @@ class Run:
             print(last + estimate.progress_text(self.last_estimate) + f"; results in {self.outdir}",
                   flush=True)
         return ok
+
+    def _warn_failed_newton_steps(self):
+        """The minimiser goes on with the Hessian's step where a Newton step's linear solve
+        fails (a singular tangent at an iterate), without a word; where most of them failed -
+        a linear solver option that cannot solve (-mat_mumps_icntl_23 too small, an
+        -interior_ or -planar_ option) - the run converged the slow way, and says so."""
+        m = getattr(self.solver, "minimizer", None)
+        if m is None or self.rank != 0:
+            return
+        tries, failed = m.newton_tries, m.newton_failures
+        if failed >= NEWTON_FAILURES and 2 * failed >= tries:
+            tell("warning", f"the Newton step's linear solve failed in {failed} of {tries} "
+                 f"iterations ({m.newton_failure}): the minimiser went on with its Hessian "
+                 f"steps, which converge slower; a linear solver option (-pc_*, -ksp_*, "
+                 f"-mat_mumps_*, -planar_*, -interior_*) may be the cause")
 
     def _last_count(self):
         """The last step's count of negative eigenvalues, None where it has none or the count

@@ -212,6 +212,18 @@ REFUSALS = [
     ("planar_stability_pc_unfit", MATT + ("-planar_stability_pc_type", "lu"),
      ["-planar_stability_pc_type lu: the stability count factors the Hessian by an LDL^T",
       "use cholesky"]),
+    # a Cholesky of the Newton step's tangent (not symmetric): PETSc's reads one triangle
+    ("newton_cholesky", MATT + ("-pc_type", "cholesky"),
+     ["-pc_type cholesky: the Newton step's tangent is not symmetric", "use lu (the default)"]),
+    ("planar_icc_direct", MATT + ("-planar_pc_type", "icc"),
+     ["-planar_pc_type icc: the Newton step's tangent is not symmetric"]),
+    ("interior_package", MATT + ("-interior_pc_factor_mat_solver_type", "petsc"),
+     ["-interior_pc_factor_mat_solver_type petsc: where contact fills the Jacobian",
+      "MUMPS's LU", "leave -interior_pc_factor_mat_solver_type out"]),
+    ("shift_type_unfit", MATT + ("-pc_factor_shift_type", "nonzero"),
+     ["-pc_factor_shift_type nonzero: the LU of rodsnes' block matrix", "use inblocks"]),
+    ("ordering_unknown", MATT + ("-pc_factor_mat_ordering_type", "foo"),
+     ["-pc_factor_mat_ordering_type foo: not a type PETSc knows"]),
     ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
     # retired options say what replaced them
     ("retired_stability_switch", MATT + ("-stability", "-stability_switch", "0"),
@@ -745,7 +757,8 @@ def test_petscs_lu_is_ordered_by_amd_and_no_other_preconditioner_is():
         linear.lu_defaults(PETSc.COMM_SELF)
         assert opts.getString("pc_factor_mat_ordering_type") == "amd" == linear.lu_ordering("")
         clear()
-        opts["pc_type"] = "icc"
+        opts["pc_type"] = "icc"         # a preconditioner (with preonly it is refused)
+        opts["ksp_type"] = "gmres"
         linear.lu_defaults(PETSc.COMM_SELF)
         assert not opts.hasName("pc_factor_mat_ordering_type") and linear.lu_ordering("") is None
         check_newton_linear_solver(PETSc.COMM_SELF)
@@ -894,3 +907,35 @@ def test_a_snes_that_stops_short_fails_the_step(capsys, tmp_path):
     s = summary(d)
     assert s["converged"] is False and "Newton failed" in s["failure"], s
     assert "rodsnes: failed: load path stopped" in err and not out.strip(), (out, err)
+
+
+def test_a_linear_solver_that_fails_every_newton_step_is_named(capsys, tmp_path):
+    """The minimiser takes the Hessian's step where a Newton step's linear solve fails; where
+    most of them fail (here MUMPS allowed 1 MB: -mat_mumps_icntl_23 1, which the in-plane step
+    takes over too) the run converges the slow way and warns, naming the linear solver's
+    options; a run whose Newton steps solve says nothing of it."""
+    rc, out, err = rodsnes(capsys, *MATT, "-rod_nelem", "400", "-pc_factor_mat_solver_type",
+                           "mumps", "-mat_mumps_icntl_23", "1", out=tmp_path / "capped")
+    assert rc == 0, err
+    assert "rodsnes: warning: the Newton step's linear solve failed in" in err, err
+    assert "a linear solver option" in err and "-mat_mumps_*" in err, err
+    rc, out, err = rodsnes(capsys, *MATT, "-rod_nelem", "400", "-pc_factor_mat_solver_type",
+                           "mumps", out=tmp_path / "plain")
+    assert rc == 0 and "linear solve failed" not in err, err
+
+
+def test_the_in_plane_step_takes_the_newton_steps_solver_options():
+    """A planar run's in-plane step takes every option of the Newton step's KSP, PC and
+    factorisation (options/iterative.opts: its tolerance, overlap and subdomain solver were
+    dropped, the cantilever of 200 elements took 122 iterations for 22); its own -planar_
+    options win."""
+    from petsc4py import PETSc
+    from conftest import run_case
+    run = run_case("mattiasson", load_steps=1, ksp_type="gmres", pc_type="asm",
+                   ksp_rtol=1e-12, pc_asm_overlap=2, sub_pc_type="lu", planar_ksp_max_it=77)
+    ksp = run.problem.planar.ksp
+    assert run.ok and ksp.getType() == "gmres" and ksp.getPC().getType() == "asm"
+    rtol, _, _, max_it = ksp.getTolerances()
+    assert rtol == 1e-12 and max_it == 77
+    assert PETSc.Options().getInt("planar_pc_asm_overlap") == 2
+    assert PETSc.Options().getString("planar_sub_pc_type") == "lu"

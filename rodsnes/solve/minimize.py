@@ -144,6 +144,10 @@ class EnergyMinimizer:
         self.sigma_last = 0.0
         self.total_its = 0
         self.factorizations = 0
+        # Newton steps tried and those whose linear solve failed (the iteration then takes the
+        # Hessian's step), with the first failure's reason: Run warns when most of them failed
+        self.newton_tries = self.newton_failures = 0
+        self.newton_failure = None
         self._mode = None
         self._trial = None          # (E, depth) of the line search's last evaluated trial
         self.last = None
@@ -191,25 +195,29 @@ class EnergyMinimizer:
     @logged("MinHessian")
     def _shifted_factor(self, nneg):
         """Factor H + sigma M with the smallest sigma of the sequence that has no negative
-        pivot; returns sigma (inf when none up to 1e8 |H| / |M| does)."""
+        pivot; returns sigma (inf when none up to 1e8 |H| / |M| does, nan when every
+        factorisation failed: a solver that cannot factor H, MUMPS out of the memory an option
+        allowed it - not a state without a positive definite shift)."""
         if nneg == 0:
             return 0.0
         scale = self._same(self.factor.diagonal.norm(PETSc.NormType.INFINITY)
                            / self.metric.norm(PETSc.NormType.INFINITY))
         sigma = max(0.5 * self.sigma_last, 1e-8 * scale)
         shift = self.metric.duplicate()
+        failed = nneg < 0
         while sigma < 1e8 * scale:
             self.metric.copy(shift)
             shift.scale(sigma)
             n = self._same(self.factor.factor(shift))
             self.factorizations += 1
+            failed = failed and n < 0
             if n == 0:
                 shift.destroy()
                 self.sigma_last = sigma
                 return sigma
             sigma *= 4.0
         shift.destroy()
-        return np.inf
+        return np.nan if failed else np.inf
 
     def _energy_roundoff(self, E0):
         """The round-off of an energy near E0 (absolute)."""
@@ -383,6 +391,11 @@ class EnergyMinimizer:
             prev = gnorm
             if not newton:
                 sigma = self._shifted_factor(nneg) if nneg != 0 else 0.0
+                if np.isnan(sigma):
+                    reason = ("the Hessian's factorisation failed at every shift, see its "
+                              "solver's -stability_* or -planar_stability_* options: MUMPS's "
+                              "memory, mat_mumps_icntl_14 or 23")
+                    break
                 if not np.isfinite(sigma):
                     reason = "no positive definite shift"
                     break
@@ -454,11 +467,12 @@ class EnergyMinimizer:
         of the energy (g . d < 0), else the step comes from the symmetric Hessian."""
         p = self.problem
         self.by_ksp = self.by_plane = False
+        self.newton_tries += 1
         if p.planar is not None and p.planar.holds(g):
             # the in-plane block of K (planar.py: the 3-D step, whose out-of-plane part is 0)
             self.factorizations += 1
             if not p.planar.tangent_solve(g, d):
-                return False
+                return self._newton_failed("the in-plane factorisation failed")
             self.by_plane = True
             d.scale(-1.0)
             slope = self._same(g.dot(d))
@@ -466,14 +480,21 @@ class EnergyMinimizer:
         ksp = self.tangent()
         try:
             ksp.solve(g, d)
-        except PETSc.Error:
-            return False
+        except PETSc.Error as err:
+            return self._newton_failed(f"PETSc error {err.ierr}")
         if ksp.getConvergedReason() < 0:
-            return False
+            return self._newton_failed(f"KSP reason {ksp.getConvergedReason()}")
         self.by_ksp = True
         d.scale(-1.0)
         slope = self._same(g.dot(d))
         return bool(np.isfinite(slope) and slope < 0.0)
+
+    def _newton_failed(self, reason):
+        """A Newton step whose linear solve failed: counted, the first reason kept; False."""
+        self.newton_failures += 1
+        if self.newton_failure is None:
+            self.newton_failure = reason
+        return False
 
     def _limited_step(self, g, d, slope, alpha):
         """Newton's step d that the move limits cut to alpha < LIMITED replaced by the step
