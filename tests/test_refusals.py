@@ -939,3 +939,14 @@ def test_the_in_plane_step_takes_the_newton_steps_solver_options():
     assert rtol == 1e-12 and max_it == 77
     assert PETSc.Options().getInt("planar_pc_asm_overlap") == 2
     assert PETSc.Options().getString("planar_sub_pc_type") == "lu"
+
+
+def test_a_hessian_that_cannot_be_factored_says_so(capsys, tmp_path):
+    """A stability count whose every factorisation fails (MUMPS allowed 1 MB:
+    -stability_mat_mumps_icntl_23 1) fails the step with that reason and its options, not as a
+    state without a positive definite shift."""
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "bench_coil.opts"),
+                           "-quiet", "-stability_mat_mumps_icntl_23", "1", out=tmp_path / "o")
+    assert rc == 3, err
+    assert "the Hessian's factorisation failed at every shift" in err, err
+    assert "-stability_*" in err and "no positive definite shift" not in err, err
