@@ -430,6 +430,8 @@ def _closest(word, names):
 # prefix -> (the matrix they factor: BAIJ block size, whether -mat_type makes it, the package
 # that must do it or None for any LU package)
 LU_PREFIXES = {"": (6, True), "planar_": (3, False), "estimate_": (6, True)}
+# the preconditioners that solve with -ksp_type preonly (a factorisation; python: rodsnes' own)
+DIRECT_PCS = ("", "lu", "redundant", "python")
 # the stability counts take the inertia from MUMPS's LDL^T (INFOG(12)) or rodsnes' own
 INERTIA_PREFIXES = ("stability_", "planar_stability_")
 
@@ -475,11 +477,24 @@ def check_inertia_solvers():
         return opts.getString(name, default) if opts.hasName(name) else default
 
     for prefix in LU_PREFIXES:
-        pc, ksp = given(prefix + "pc_type", ""), given(prefix + "ksp_type", "preonly")
+        # the in-plane step takes the Newton step's options where it has none of its own (its
+        # inherited ones are the Newton step's to refuse, once)
+        inherit = prefix == "planar_"
+        if inherit and not (opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "ksp_type")):
+            continue
+        pc = given(prefix + "pc_type", given("pc_type", "") if inherit else "")
+        ksp = given(prefix + "ksp_type", given("ksp_type", "preonly") if inherit else "preonly")
         if pc == "cholesky" or (pc == "icc" and ksp == "preonly"):
             problems.append(f"-{prefix}pc_type {pc}: the Newton step's tangent is not symmetric "
                             f"away from equilibrium, and {pc} factors one triangle of it; use "
                             f"lu (the default)")
+        elif ksp == "preonly" and pc not in DIRECT_PCS and _pc_exists(pc):
+            # one application of a preconditioner for the solve: no Newton step (the
+            # cantilever with -pc_type jacobi: 9680 iterations, then a failed path)
+            problems.append(f"-{prefix}pc_type {pc}: with -{prefix}ksp_type preonly (the "
+                            f"default) the Newton step would be one application of it, not a "
+                            f"solve; use lu (the default), or an iterative -{prefix}ksp_type "
+                            f"(gmres) with it")
     for name, want in (("interior_pc_type", "lu"), ("interior_pc_factor_mat_solver_type",
                                                      "mumps")):
         if given(name, want) != want:
@@ -502,6 +517,20 @@ def check_inertia_solvers():
                             f"it out: rodsnes' own LDL^T where it applies, MUMPS elsewhere)")
     if problems:
         raise SceneError("\n".join(problems))
+
+
+def _pc_exists(kind):
+    """Whether this PETSc has the preconditioner type ``kind`` (one it lacks is refused by the
+    set-up check, naming it)."""
+    from petsc4py import PETSc
+    pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
+    try:
+        pc.setType(kind)
+        return True
+    except PETSc.Error:
+        return False
+    finally:
+        pc.destroy()
 
 
 def _check_linear_solver(comm, prefix, ndof, kind):

@@ -224,7 +224,17 @@ REFUSALS = [
      ["-pc_factor_shift_type nonzero: the LU of rodsnes' block matrix", "use inblocks"]),
     ("ordering_unknown", MATT + ("-pc_factor_mat_ordering_type", "foo"),
      ["-pc_factor_mat_ordering_type foo: not a type PETSc knows"]),
-    ("pc_unfit", MATT + ("-load_path", "newton", "-pc_type", "ml"), ["PETSc: ", "ML"]),
+    ("pc_unfit", MATT + ("-load_path", "newton", "-ksp_type", "gmres", "-pc_type", "ml"),
+     ["PETSc: ", "ML"]),
+    # preonly (the default) with a preconditioner that does not factor: no Newton step at all
+    # (the cantilever with -pc_type jacobi: 9680 iterations, then a failed path)
+    ("preonly_jacobi", MATT + ("-pc_type", "jacobi"),
+     ["-pc_type jacobi: with -ksp_type preonly (the default) the Newton step would be one "
+      "application of it, not a solve", "an iterative -ksp_type (gmres) with it"]),
+    ("planar_preonly_none", MATT + ("-planar_pc_type", "none"),
+     ["-planar_pc_type none: with -planar_ksp_type preonly"]),
+    ("estimate_preonly_ilu", MATT + ("-estimate_pc_type", "ilu"),
+     ["-estimate_pc_type ilu: with -estimate_ksp_type preonly"]),
     # retired options say what replaced them
     ("retired_stability_switch", MATT + ("-stability", "-stability_switch", "0"),
      ["-stability_switch was retired with branch switching: conservative load steps are energy "
