@@ -410,13 +410,22 @@ def unused_petsc_warnings(given, late):
             continue
         shown = f"-{name}" + (f" {value}" if value else "")
         close = _closest(low, COMMON_PETSC_OPTIONS)
-        if low in COMMON_PETSC_OPTIONS or not close:
+        other = next((o + low[len(p):] for p, o in SIBLING_PREFIXES if low.startswith(p)), None)
+        if other is not None:
+            # the stability count of the other kind of run: a planar run's is -planar_stability_
+            hint = (f": this run's stability count takes -{other} (a planar run's "
+                    f"-planar_stability_, a 3-D run's -stability_)")
+        elif low in COMMON_PETSC_OPTIONS or not close:
             hint = " (nothing in this run reads it: it does not apply to this load path or " \
                    "scene, or is misspelt)"
         else:
             hint = f": did you mean {close}?"
         out.append(f"option {shown} was not used{hint}")
     return out
+
+
+# the stability counts' option prefixes: one of them runs, by the run's kind (planar or 3-D)
+SIBLING_PREFIXES = (("stability_", "planar_stability_"), ("planar_stability_", "stability_"))
 
 
 def _closest(word, names):
@@ -426,9 +435,8 @@ def _closest(word, names):
     return _or_list(["-" + c for c in close]) if close else ""
 
 
-# the factorising solvers a user may set under a prefix (README, Options: linear solves):
-# prefix -> (the matrix they factor: BAIJ block size, whether -mat_type makes it, the package
-# that must do it or None for any LU package)
+# the Newton steps' solvers a user may set under a prefix (README, Options: linear solves):
+# prefix -> the matrix they factor (BAIJ block size, whether -mat_type makes it)
 LU_PREFIXES = {"": (6, True), "planar_": (3, False), "estimate_": (6, True)}
 # the preconditioners that solve with -ksp_type preonly (a factorisation; python: rodsnes' own)
 DIRECT_PCS = ("", "lu", "redundant", "python")

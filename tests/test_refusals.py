@@ -493,6 +493,7 @@ def test_options_that_act_are_not_reported(capsys, tmp_path):
     rc, _, err = rodsnes(capsys, *MATT, "-stability_mat_mumps_icntl_14", "80",
                          "-load_stop", "0.2", out=tmp_path / "planar")
     assert rc == 0 and "-stability_mat_mumps_icntl_14 80 was not used" in err, err
+    assert "this run's stability count takes -planar_stability_mat_mumps_icntl_14" in err, err
     rc, _, err = rodsnes(capsys, *MATT, "-stability_mat_mumps_icntl_14", "80", "-rod_planar",
                          "off", "-load_stop", "0.2", out=tmp_path / "3d")
     assert rc == 0 and "warning" not in err, err
