@@ -285,7 +285,28 @@ def petsc_option_problems(opts):
                 except ValueError:
                     out.append(f"-{name} {value}: not a number (PETSc reads a number here, e.g. "
                                f"-{name} {'1e-8' if low.endswith('tol') else '10'})")
+            elif low.endswith(("view", "monitor")):
+                why = _viewer_file_problem(value)
+                if why:
+                    out.append(f"-{name} {value}: {why}")
+                    opts.delValue(name)     # else PETSc opens it at exit, its error block after
+
     return out
+
+
+def _viewer_file_problem(value):
+    """What keeps a viewer option's file (-log_view :DIR/FILE, ascii:FILE:format ...) from
+    being written, or None: PETSc opens it when it views, at the end of a solve or of the run,
+    and then prints its error block after the results."""
+    parts = value.split(":")
+    if len(parts) < 2 or parts[0] not in ("", "ascii", "binary", "hdf5", "vtk") or not parts[1]:
+        return None
+    folder = os.path.dirname(os.path.abspath(parts[1]))
+    if not os.path.isdir(folder):
+        return f"its file's directory {folder} does not exist; give one that does"
+    if not os.access(folder, os.W_OK):
+        return f"its file's directory {folder} cannot be written; give one that can"
+    return None
 
 
 def petsc_error_text():

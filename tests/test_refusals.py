@@ -228,6 +228,10 @@ REFUSALS = [
      ["PETSc: ", "ML"]),
     # preonly (the default) with a preconditioner that does not factor: no Newton step at all
     # (the cantilever with -pc_type jacobi: 9680 iterations, then a failed path)
+    # a viewer's file PETSc would open at exit, printing its error block after the results
+    ("log_view_missing_directory", MATT + ("-log_view", ":/nonexistent_rodsnes_dir/lv.txt"),
+     ["-log_view :/nonexistent_rodsnes_dir/lv.txt: its file's directory "
+      "/nonexistent_rodsnes_dir does not exist"]),
     ("preonly_jacobi", MATT + ("-pc_type", "jacobi"),
      ["-pc_type jacobi: with -ksp_type preonly (the default) the Newton step would be one "
       "application of it, not a solve", "an iterative -ksp_type (gmres) with it"]),
