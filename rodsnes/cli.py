@@ -375,6 +375,13 @@ def petsc_error_message(exc, opts, comm):
     if m and m.group(1) in values:
         return (f"-{values[m.group(1)]} {m.group(1)}: not a type PETSc knows there (a misspelling, "
                 f"or a package PETSc was built without)")
+    m = re.search(r"No method (\w+) for Mat of type (\S+)", text)
+    if m:
+        from rodsnes.solve.linear import is_default
+        pc = next((f"-{n} {v}" for n, v in sorted(opts.getAll().items())
+                   if n.endswith("pc_type") and v and not is_default(n)), "a preconditioner")
+        return (f"{pc}: it needs a matrix operation ({m.group(1)}) that rodsnes' block matrix "
+                f"({m.group(2)}) lacks; add -mat_type aij, or use lu (the default)")
     m = re.search(r"Unknown logical value: (\S+)", text)
     if m:
         option = values.get(m.group(1), "?")

@@ -224,6 +224,8 @@ REFUSALS = [
      ["-pc_factor_shift_type nonzero: the LU of rodsnes' block matrix", "use inblocks"]),
     ("ordering_unknown", MATT + ("-pc_factor_mat_ordering_type", "foo"),
      ["-pc_factor_mat_ordering_type foo: not a type PETSc knows"]),
+    ("pc_needs_aij", MATT + ("-rod_planar", "off", "-ksp_type", "gmres", "-pc_type", "gamg"),
+     ["-pc_type gamg: it needs a matrix operation (creategraph)", "add -mat_type aij"]),
     ("pc_unfit", MATT + ("-load_path", "newton", "-ksp_type", "gmres", "-pc_type", "ml"),
      ["PETSc: ", "ML"]),
     # preonly (the default) with a preconditioner that does not factor: no Newton step at all
