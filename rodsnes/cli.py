@@ -480,11 +480,11 @@ def check_newton_linear_solver(comm):
     and each prefixed LU the user gave options to (-planar_: the in-plane step's, blocks of 3;
     -estimate_: the error estimate's) on one of its own: a KSP, PC or factorisation package
     that does not exist or cannot factor them raises its PETSc.Error here.  The stability
-    counts' solvers (-stability_ ...) must be MUMPS's LDL^T (check_inertia_solvers).
+    counts' solvers (-stability_ ...) must be MUMPS's LDL^T (check_solver_kinds).
     Collective."""
     from petsc4py import PETSc
     from rodsnes.solve.linear import user_chose
-    check_inertia_solvers()
+    check_solver_kinds()
     opts = PETSc.Options()
     for prefix, (bs, mat_type) in LU_PREFIXES.items():
         given = [n for n in opts.getAll() if n.startswith(prefix + "pc_")
@@ -497,7 +497,7 @@ def check_newton_linear_solver(comm):
         _check_linear_solver(comm, prefix, bs, kind)
 
 
-def check_inertia_solvers():
+def check_solver_kinds():
     """The factorisations whose kind rodsnes relies on, refused otherwise, naming the option:
     the stability counts' (INERTIA_PREFIXES) count negative pivots, MUMPS's LDL^T (PCCHOLESKY,
     INFOG(12)) or rodsnes' own where no solver option is given; the Newton steps' (LU_PREFIXES)
@@ -539,10 +539,8 @@ def check_inertia_solvers():
                             f"the Schur complement where the stretches meet; leave -{name} out "
                             f"(-interior_mat_mumps_* options are taken)")
     for prefix in INERTIA_PREFIXES:
-        pc = opts.getString(prefix + "pc_type", "cholesky") if opts.hasName(prefix + "pc_type") \
-            else "cholesky"
-        package = opts.getString(prefix + "pc_factor_mat_solver_type", "mumps") \
-            if opts.hasName(prefix + "pc_factor_mat_solver_type") else "mumps"
+        pc = given(prefix + "pc_type", "cholesky")
+        package = given(prefix + "pc_factor_mat_solver_type", "mumps")
         if pc != "cholesky":
             problems.append(f"-{prefix}pc_type {pc}: the stability count factors the Hessian "
                             f"by an LDL^T and counts its negative pivots; use cholesky (or "
