@@ -299,8 +299,11 @@ def _viewer_file_problem(value):
     being written, or None: PETSc opens it when it views, at the end of a solve or of the run,
     and then prints its error block after the results."""
     parts = value.split(":")
-    if len(parts) < 2 or parts[0] not in ("", "ascii", "binary", "hdf5", "vtk") or not parts[1]:
+    if len(parts) < 2 or parts[0] not in ("", "ascii", "binary", "hdf5", "vtk") or not parts[1] \
+            or "$" in parts[1] or "~" in parts[1]:      # PETSc expands ${HOMEDIRECTORY} ...
         return None
+    if os.path.exists(parts[1]):
+        return None if os.access(parts[1], os.W_OK) else "its file cannot be written"
     folder = os.path.dirname(os.path.abspath(parts[1]))
     if not os.path.isdir(folder):
         return f"its file's directory {folder} does not exist; give one that does"
@@ -466,8 +469,11 @@ def _closest(word, names):
 # the Newton steps' solvers a user may set under a prefix (README, Options: linear solves):
 # prefix -> the matrix they factor (BAIJ block size, whether -mat_type makes it)
 LU_PREFIXES = {"": (6, True), "planar_": (3, False), "estimate_": (6, True)}
-# the preconditioners that solve with -ksp_type preonly (a factorisation; python: rodsnes' own)
-DIRECT_PCS = ("", "lu", "redundant", "python")
+# preconditioners that are no solve with -ksp_type preonly (one sweep, one cycle, an incomplete
+# factorisation): the Newton step would be garbage (others - lu, redundant, svd, ksp, bjacobi
+# with a factorisation in its block - may solve, and are left to the user)
+NOT_A_SOLVE = ("none", "jacobi", "pbjacobi", "vpbjacobi", "sor", "eisenstat", "ilu",
+               "kaczmarz", "gamg", "ml", "hypre", "mg")
 # the stability counts take the inertia from MUMPS's LDL^T (INFOG(12)) or rodsnes' own
 INERTIA_PREFIXES = ("stability_", "planar_stability_")
 
@@ -489,9 +495,7 @@ def check_newton_linear_solver(comm):
     for prefix, (bs, mat_type) in LU_PREFIXES.items():
         given = [n for n in opts.getAll() if n.startswith(prefix + "pc_")
                  or n.startswith(prefix + "ksp_")]
-        # the estimate's matrix is of -mat_type's type too, whatever its solver's options
-        if prefix and not any(user_chose(n) for n in given) \
-                and not (mat_type and user_chose("mat_type")):
+        if prefix and not any(user_chose(n) for n in given):
             continue
         kind = opts.getString("mat_type", PETSc.Mat.Type.BAIJ) if mat_type else PETSc.Mat.Type.BAIJ
         _check_linear_solver(comm, prefix, bs, kind)
@@ -512,35 +516,44 @@ def check_solver_kinds():
     def given(name, default):
         return opts.getString(name, default) if opts.hasName(name) else default
 
+    newton_refused = False
     for prefix in LU_PREFIXES:
         # the in-plane step takes the Newton step's options where it has none of its own (its
         # inherited ones are the Newton step's to refuse, once)
         inherit = prefix == "planar_"
-        if inherit and not (opts.hasName(prefix + "pc_type") or opts.hasName(prefix + "ksp_type")):
+        if inherit and (newton_refused and not opts.hasName(prefix + "pc_type")
+                        or not (opts.hasName(prefix + "pc_type")
+                                or opts.hasName(prefix + "ksp_type"))):
             continue
-        pc = given(prefix + "pc_type", given("pc_type", "") if inherit else "")
-        ksp = given(prefix + "ksp_type", given("ksp_type", "preonly") if inherit else "preonly")
+        before = len(problems)
+        pc = given(prefix + "pc_type", given("pc_type", "") if inherit else "").lower()
+        ksp = given(prefix + "ksp_type", given("ksp_type", "preonly") if inherit else
+                    "preonly").lower()
+        # the options as given (an inherited one is the unprefixed option)
+        pc_opt = prefix + "pc_type" if opts.hasName(prefix + "pc_type") else "pc_type"
+        ksp_opt = "ksp_type" if inherit and opts.hasName("ksp_type") \
+            and not opts.hasName(prefix + "ksp_type") else prefix + "ksp_type"
         if pc == "cholesky" or (pc == "icc" and ksp == "preonly"):
-            problems.append(f"-{prefix}pc_type {pc}: the Newton step's tangent is not symmetric "
+            problems.append(f"-{pc_opt} {pc}: the Newton step's tangent is not symmetric "
                             f"away from equilibrium, and {pc} factors one triangle of it; use "
                             f"lu (the default)")
-        elif ksp == "preonly" and pc not in DIRECT_PCS and _pc_exists(pc):
+        elif ksp == "preonly" and pc in NOT_A_SOLVE:
             # one application of a preconditioner for the solve: no Newton step (the
             # cantilever with -pc_type jacobi: 9680 iterations, then a failed path)
-            problems.append(f"-{prefix}pc_type {pc}: with -{prefix}ksp_type preonly (the "
-                            f"default) the Newton step would be one application of it, not a "
-                            f"solve; use lu (the default), or an iterative -{prefix}ksp_type "
-                            f"(gmres) with it")
+            problems.append(f"-{pc_opt} {pc}: with -{ksp_opt} preonly (the default) the "
+                            f"Newton step would be one application of it, not a solve; use lu "
+                            f"(the default), or an iterative -{ksp_opt} (gmres) with it")
+        newton_refused = newton_refused or (not prefix and len(problems) > before)
     for name, want in (("interior_pc_type", "lu"), ("interior_pc_factor_mat_solver_type",
                                                      "mumps")):
-        if given(name, want) != want:
+        if given(name, want).lower() != want:
             problems.append(f"-{name} {given(name, want)}: where contact fills the Jacobian, "
                             f"each rank's stretch is factored by MUMPS's LU, which also gives "
                             f"the Schur complement where the stretches meet; leave -{name} out "
                             f"(-interior_mat_mumps_* options are taken)")
     for prefix in INERTIA_PREFIXES:
-        pc = given(prefix + "pc_type", "cholesky")
-        package = given(prefix + "pc_factor_mat_solver_type", "mumps")
+        pc = given(prefix + "pc_type", "cholesky").lower()
+        package = given(prefix + "pc_factor_mat_solver_type", "mumps").lower()
         if pc != "cholesky":
             problems.append(f"-{prefix}pc_type {pc}: the stability count factors the Hessian "
                             f"by an LDL^T and counts its negative pivots; use cholesky (or "
@@ -551,20 +564,6 @@ def check_solver_kinds():
                             f"it out: rodsnes' own LDL^T where it applies, MUMPS elsewhere)")
     if problems:
         raise SceneError("\n".join(problems))
-
-
-def _pc_exists(kind):
-    """Whether this PETSc has the preconditioner type ``kind`` (one it lacks is refused by the
-    set-up check, naming it)."""
-    from petsc4py import PETSc
-    pc = PETSc.PC().create(comm=PETSc.COMM_SELF)
-    try:
-        pc.setType(kind)
-        return True
-    except PETSc.Error:
-        return False
-    finally:
-        pc.destroy()
 
 
 def _check_linear_solver(comm, prefix, ndof, kind):

@@ -967,3 +967,28 @@ def test_a_hessian_that_cannot_be_factored_says_so(capsys, tmp_path):
     assert rc == 3, err
     assert "the Hessian's factorisation failed at every shift" in err, err
     assert "-stability_*" in err and "no positive definite shift" not in err, err
+
+
+@pytest.mark.parametrize("options", [
+    {"pc_type": "svd"}, {"pc_type": "ksp"}, {"pc_type": "bjacobi", "sub_pc_type": "lu"},
+    {"pc_type": "redundant", "redundant_pc_factor_mat_solver_type": "mumps"},
+    {"mat_type": "mpiaij", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps"},
+    {"ksp_type": "gmres", "pc_type": "ilu"}, {"ksp_type": "gmres", "pc_type": "jacobi"},
+    {"stability_pc_factor_mat_solver_type": "MUMPS"},
+    {"interior_pc_factor_mat_solver_type": "MUMPS"},
+    {"planar_pc_factor_mat_solver_type": "mumps"},
+    {"log_view": ":${HOMEDIRECTORY}/rodsnes_log.txt"}, {"log_view": ":/dev/null"},
+    {"log_view": ""}, {"log_view": "::ascii_info_detail"}, {"snes_monitor_short": ""}],
+    ids=lambda o: " ".join(f"-{k} {v}" for k, v in o.items()))
+def test_solver_neighbours_of_the_refusals_are_accepted(options):
+    """What the solver refusals must let through: preconditioners that are a whole solve with
+    preonly (svd, an inner KSP, block Jacobi with LU in its block, redundant), MUMPS of an
+    MPI type on one rank (the estimate keeps its own LU), iterative solves with any
+    preconditioner, package names in any case, viewer files PETSc can write or expands."""
+    from petsc4py import PETSc
+    from rodsnes import cli
+    opts = PETSc.Options()
+    for k, v in options.items():
+        opts[k] = v
+    assert cli.petsc_option_problems(opts) == []
+    cli.check_newton_linear_solver(PETSc.COMM_WORLD)

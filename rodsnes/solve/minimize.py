@@ -472,7 +472,7 @@ class EnergyMinimizer:
             # the in-plane block of K (planar.py: the 3-D step, whose out-of-plane part is 0)
             self.factorizations += 1
             if not p.planar.tangent_solve(g, d):
-                return self._newton_failed("the in-plane factorisation failed")
+                return self._newton_failed("the in-plane solve failed")
             self.by_plane = True
             d.scale(-1.0)
             slope = self._same(g.dot(d))

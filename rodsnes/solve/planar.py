@@ -48,6 +48,7 @@ GUARD = 1e-8
 PREFIX = "planar_"                 # the in-plane Newton step's KSP (the run's LU, solve/linear.py)
 STABILITY_PREFIX = "planar_stability_"   # the in-plane and out-of-plane LDL^T
 # the unprefixed options of the Newton step's linear solver that the in-plane step takes over
+# (not its monitors and views: the user's would print twice, once for each solver)
 CARRIED = ("ksp_", "pc_", "sub_", "redundant_", "mat_mumps_")
 
 _INSERT = int(PETSc.InsertMode.INSERT_VALUES)
@@ -372,7 +373,9 @@ class PlanarSystem:
             # every option of its KSP, PC and factorisation (options/iterative.opts' tolerance,
             # overlap and subdomain solver too: with its type alone the cantilever of 200
             # elements took 122 iterations for 22); a solver of its own (-estimate_*) its own
-            keys = [k for k in opts.getAll() if k.startswith(CARRIED)] if pre == PREFIX else ()
+            keys = [k for k in opts.getAll() if k.startswith(CARRIED) and not
+                    any(w in k for w in ("monitor", "view", "converged_reason"))] \
+                if pre == PREFIX else ()
             for key in keys:
                 if opts.hasName(key):
                     if is_default(key):
