@@ -326,7 +326,7 @@ def _unfit_factorisation(package, mtype, values, opts):
     """The line for a factorisation package that cannot factor the Jacobian's matrix type:
     with petsc or mumps, which factor rodsnes' block matrix, the user's -mat_type is the cause
     (leave it out, or take mumps); another package is itself the cause (take one of those)."""
-    given = opts.getString("mat_type") if opts.hasName("mat_type") else None
+    given = opts.getString("mat_type", "")
     if given and package in ("petsc", "mumps"):
         fix = "leave -mat_type out (rodsnes' block matrix, which petsc and mumps factor)"
         if package != "mumps":
@@ -511,28 +511,24 @@ def check_solver_kinds():
     from petsc4py import PETSc
     from rodsnes.io.scene import SceneError
     opts = PETSc.Options()
+    given = opts.getString          # (name, default): the default where it is not set
     problems = []
-
-    def given(name, default):
-        return opts.getString(name, default) if opts.hasName(name) else default
-
     newton_refused = False
     for prefix in LU_PREFIXES:
         # the in-plane step takes the Newton step's options where it has none of its own (its
         # inherited ones are the Newton step's to refuse, once)
         inherit = prefix == "planar_"
-        if inherit and (newton_refused and not opts.hasName(prefix + "pc_type")
-                        or not (opts.hasName(prefix + "pc_type")
-                                or opts.hasName(prefix + "ksp_type"))):
+        own_pc, own_ksp = (opts.hasName(prefix + n) for n in ("pc_type", "ksp_type"))
+        if inherit and not (own_pc or (own_ksp and not newton_refused)):
             continue
         before = len(problems)
         pc = given(prefix + "pc_type", given("pc_type", "") if inherit else "").lower()
         ksp = given(prefix + "ksp_type", given("ksp_type", "preonly") if inherit else
                     "preonly").lower()
         # the options as given (an inherited one is the unprefixed option)
-        pc_opt = prefix + "pc_type" if opts.hasName(prefix + "pc_type") else "pc_type"
-        ksp_opt = "ksp_type" if inherit and opts.hasName("ksp_type") \
-            and not opts.hasName(prefix + "ksp_type") else prefix + "ksp_type"
+        pc_opt = prefix + "pc_type" if own_pc else "pc_type"
+        ksp_opt = "ksp_type" if inherit and not own_ksp and opts.hasName("ksp_type") \
+            else prefix + "ksp_type"
         if pc == "cholesky" or (pc == "icc" and ksp == "preonly"):
             problems.append(f"-{pc_opt} {pc}: the Newton step's tangent is not symmetric "
                             f"away from equilibrium, and {pc} factors one triangle of it; use "

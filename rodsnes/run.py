@@ -32,11 +32,11 @@ from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative, takes_newton_path
 from rodsnes.errors import SceneError, tell
+from rodsnes.io.scene import scene_record, record_mismatches
 
 # Newton steps whose linear solve failed, at least, and at least half of those tried, before
 # the run warns that its linear solver may be the cause (Run._warn_failed_newton_steps)
 NEWTON_FAILURES = 3
-from rodsnes.io.scene import scene_record, record_mismatches
 
 # largest share of the wall time spent rewriting summary.json after load steps: its list of
 # steps grows with the run (12 ms a write at 526 steps), so a write after every step would

@@ -56,6 +56,23 @@ def available():
     return bool(_load())
 
 
+def value_matrix(mat):
+    """(seq, info, key) of the sequential matrix whose value array holds this rank's rows of
+    ``mat`` (mat itself, or on several ranks its diagonal block, the ownership square): its
+    local MatInfo and the key of its pattern - the value matrix itself (its handle: what is
+    kept on mat holds no wrapper), PETSc's nonzero state, and the stored entries (in PETSc
+    3.18 a new nonzero of a BAIJ matrix leaves the state as it was).  None where there is no
+    such value array."""
+    parallel = mat.getComm().getSize() > 1
+    if parallel and mat.getOwnershipRange() != mat.getOwnershipRangeColumn():
+        return None
+    seq = mat.getDiagonalBlock() if parallel else mat
+    if not petsc_lib.has_value_array(seq):
+        return None
+    info = seq.getInfo(PETSc.Mat.InfoType.LOCAL)
+    return seq, info, (seq.handle, petsc_lib.nonzero_state(seq), info["nz_used"])
+
+
 def element_blocks(mat, dirichlet, groups, size):
     """The ElementBlocks of the node groups ``groups`` (n, k) (global PETSc node numbers) in
     ``mat``, the matrix under ``dirichlet`` (partition.DirichletRows: the groups touching its
@@ -66,19 +83,12 @@ def element_blocks(mat, dirichlet, groups, size):
     if kind not in _TYPES or not available() or \
             mat.getBlockSize() * (2 if split else 1) != size:
         return None
-    comm = mat.getComm()
-    if comm.getSize() > 1 and mat.getOwnershipRange() != mat.getOwnershipRangeColumn():
+    values = value_matrix(mat)
+    if values is None:
         return None
-    seq = mat.getDiagonalBlock() if comm.getSize() > 1 else mat
-    if not petsc_lib.has_value_array(seq):
-        return None
-    info = seq.getInfo(PETSc.Mat.InfoType.LOCAL)
+    seq, info, state = values
     if info["nz_allocated"] >= 2 ** 31:         # beyond the places' int32
         return None
-    # the pattern's key: the value matrix itself (its handle: ElementBlocks keeps no wrapper),
-    # PETSc's nonzero state, and the stored entries (in PETSc 3.18 a new nonzero of a BAIJ
-    # matrix leaves the state as it was)
-    state = (seq.handle, petsc_lib.nonzero_state(seq), info["nz_used"])
     kept = mat.getAttr(ATTR)
     if kept is not None and kept.fits(groups, dirichlet.touched, state):
         return kept
@@ -248,16 +258,10 @@ def _diagonal_places(mat):
     """((handle, type, values) of the value matrix, the places of the diagonal entries of
     this rank's rows in its value array) for set_diagonal, kept on ``mat`` while its pattern
     stays; None where they cannot be used."""
-    if mat.getType() not in _TYPES:
+    values = value_matrix(mat) if mat.getType() in _TYPES else None
+    if values is None:
         return None
-    parallel = mat.getComm().getSize() > 1
-    if parallel and mat.getOwnershipRange() != mat.getOwnershipRangeColumn():
-        return None
-    seq = mat.getDiagonalBlock() if parallel else mat
-    if not petsc_lib.has_value_array(seq):
-        return None
-    info = seq.getInfo(PETSc.Mat.InfoType.LOCAL)
-    key = (seq.handle, petsc_lib.nonzero_state(seq), info["nz_used"])
+    seq, _, key = values
     kept = mat.getAttr(DIAGONAL_ATTR)
     if kept is not None and kept[0] == key:
         return kept[1]
