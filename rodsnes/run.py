@@ -405,7 +405,10 @@ class Run:
                     with self._summary_budget.spent():
                         output.write_summary(self.outdir, self.mpi, self._last_summary)
 
+        last_failure = []
+
         def on_fail(res, dlam):
+            last_failure.append(res)
             if not self.quiet and self.rank == 0:
                 if res.reason == "stability":
                     why = "it lands on a less stable equilibrium"
@@ -414,16 +417,20 @@ class Run:
                            f"{res.its} its")
                 elif self.path == "minimize":
                     why = f"{res.reason}, {res.its} its, |g| {res.fnorm:.3e}"
+                elif getattr(res, "linear_failure", None):
+                    why = f"the linear solve failed, {res.linear_failure}; {res.its} Newton its"
+                elif isinstance(res.reason, int):
+                    why = f"SNES {linear.reason_name('SNES', res.reason)}, {res.its} its"
                 else:
-                    why = f"SNES reason {res.reason}, {res.its} its"
+                    why = f"{res.reason}, {res.its} its"
                 print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
                       f"{dlam:.3e} in half", flush=True)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
                                        arc0=self.arc0, stop=ld.stop)
-        reason = None if ok else self.solver.fail_reason or (f"load path stopped at load {self.problem.lam:.6f}: Newton failed "
-                                  f"after {ld.max_cutbacks} cut-backs; the last converged step is in result.h5")
+        reason = None if ok else self.solver.fail_reason or self._newton_failed(
+            ld.max_cutbacks, last_failure)
         if ok and self.path == "newton" and self.conservative and self._last_count() is None:
             # the Newton path counts every step only with -stability; its end is counted
             # anyway (one LDL^T), so that a zero of the residual that is unstable says so
@@ -478,6 +485,24 @@ class Run:
             print(last + estimate.progress_text(self.last_estimate) + f"; results in {self.outdir}",
                   flush=True)
         return ok
+
+    def _newton_failed(self, cutbacks, failed):
+        """Why the Newton path stopped after every cut-back failed (``failed``: the results of
+        the failed tries): the linear solve of its steps where the last (shortest) try failed
+        there - a linear solver option that cannot solve the tangent (-ksp_type gmres
+        -pc_type none: SNES reason -3 at every cut-back, and the run said only "Newton
+        failed")."""
+        where = f"load path stopped at load {self.problem.lam:.6f}"
+        tail = "; the last converged step is in result.h5"
+        failure = getattr(failed[-1], "linear_failure", None) if failed else None
+        if failure:
+            every = all(getattr(r, "linear_failure", None) for r in failed)
+            return (f"{where}: the Newton step's linear solve failed "
+                    f"{'at every try' if every else 'at the shortest step tried'} "
+                    f"({failure}): the linear solver options (-ksp_*, -pc_*, -planar_*, "
+                    f"-mat_mumps_*) cannot solve this tangent; without them rodsnes solves "
+                    f"it by a direct LU{tail}")
+        return f"{where}: Newton failed after {cutbacks} cut-backs{tail}"
 
     def _warn_failed_newton_steps(self):
         """The minimiser goes on with the Hessian's step where a Newton step's linear solve

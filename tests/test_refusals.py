@@ -936,9 +936,35 @@ def test_a_linear_solver_that_fails_every_newton_step_is_named(capsys, tmp_path)
     assert rc == 0, err
     assert "rodsnes: warning: the Newton step's linear solve failed in" in err, err
     assert "a linear solver option" in err and "-mat_mumps_*" in err, err
+    # which solve, in its options' words (it said "the in-plane solve failed")
+    assert ("the in-plane solve failed: KSP DIVERGED_PCSETUP_FAILED; -planar_ksp_type "
+            "preonly, -planar_pc_type lu") in err, err
     rc, out, err = rodsnes(capsys, *MATT, "-rod_nelem", "400", "-pc_factor_mat_solver_type",
                            "mumps", out=tmp_path / "plain")
     assert rc == 0 and "linear solve failed" not in err, err
+
+
+@pytest.mark.parametrize("planar", ["on", "off"])
+def test_a_newton_path_whose_linear_solve_fails_names_it(capsys, tmp_path, planar):
+    """An iterative linear solve that cannot solve the Newton step's tangent (GMRES without a
+    preconditioner, 20 iterations) fails every try: each cut-back and the run's end name the
+    linear solve, its reason and its options (they said "SNES reason -3" and "Newton failed
+    after 1 cut-backs"); a step that fails otherwise keeps the plain line
+    (test_a_newton_path_out_of_cut_backs_is_no_fold)."""
+    d = tmp_path / "out"
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "mattiasson.opts"),
+                           "-rod_planar", planar, "-load_path", "newton", "-ksp_type", "gmres",
+                           "-pc_type", "none", "-ksp_max_it", "20", "-load_max_cutbacks", "1",
+                           out=d)
+    assert rc == 3, err
+    pre = "-planar_" if planar == "on" else "-"
+    step = [ln for ln in out.splitlines() if "not accepted" in ln]
+    assert len(step) == 2 and all(
+        f"the linear solve failed, KSP DIVERGED_MAX_IT after 20 iterations; {pre}ksp_type "
+        f"gmres, {pre}pc_type none" in ln for ln in step), out
+    failure = summary(d)["failure"]
+    assert "the Newton step's linear solve failed at every try (KSP DIVERGED_MAX_IT" in failure
+    assert "cannot solve this tangent" in failure and "Newton failed" not in failure, failure
 
 
 def test_the_in_plane_step_takes_the_newton_steps_solver_options():

@@ -365,3 +365,30 @@ class LUChoice:
                 self.auto = False       # contact couples much of the rod: MUMPS from now
             elif not use_chain_lu(ksp, problem):
                 use_rank_schur(ksp, problem)
+
+
+def reason_name(kind, value):
+    """The name of a PETSc converged reason (kind: "SNES" or "KSP"), e.g.
+    DIVERGED_LINEAR_SOLVE for SNES's -3; the number where PETSc has no name for it."""
+    reasons = getattr(PETSc, kind).ConvergedReason
+    for name in dir(reasons):
+        if name.isupper() and getattr(reasons, name) == value and name != "ITERATING":
+            return name
+    return str(value)
+
+
+def failed_solve(ksp, error=None):
+    """Why a linear solve by ``ksp`` failed, in words a user can act on: its converged reason's
+    name and iterations (an iterative solve that did not converge: DIVERGED_MAX_IT after 10000),
+    or the PETSc error number; with the solver's KSP and PC types and options prefix."""
+    if error is not None:
+        what = f"PETSc error {error.ierr}"
+    else:
+        what = f"KSP {reason_name('KSP', ksp.getConvergedReason())}"
+        if ksp.getType() != PETSc.KSP.Type.PREONLY:
+            what += f" after {ksp.getIterationNumber()} iterations"
+    pre = ksp.getOptionsPrefix() or ""
+    pc = ksp.getPC().getType()
+    if pc == PETSc.PC.Type.PYTHON:          # rodsnes' own LU (chain, ranks' Schur complement)
+        return f"{what}, rodsnes' direct solve"
+    return f"{what}; -{pre}ksp_type {ksp.getType()}, -{pre}pc_type {pc}"

@@ -53,7 +53,7 @@ from petsc4py import PETSc
 from rodsnes.model.assembly import set_diagonal
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
-from rodsnes.solve.linear import LUChoice, direct_solver_defaults
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve
 from rodsnes.solve.stability import Inertia, lumped_metric
 from rodsnes.solve.valley import ValleyFollower
 
@@ -472,7 +472,7 @@ class EnergyMinimizer:
             # the in-plane block of K (planar.py: the 3-D step, whose out-of-plane part is 0)
             self.factorizations += 1
             if not p.planar.tangent_solve(g, d):
-                return self._newton_failed("the in-plane solve failed")
+                return self._newton_failed(f"the in-plane solve failed: {p.planar.failure}")
             self.by_plane = True
             d.scale(-1.0)
             slope = self._same(g.dot(d))
@@ -481,9 +481,9 @@ class EnergyMinimizer:
         try:
             ksp.solve(g, d)
         except PETSc.Error as err:
-            return self._newton_failed(f"PETSc error {err.ierr}")
+            return self._newton_failed(failed_solve(ksp, err))
         if ksp.getConvergedReason() < 0:
-            return self._newton_failed(f"KSP reason {ksp.getConvergedReason()}")
+            return self._newton_failed(failed_solve(ksp))
         self.by_ksp = True
         d.scale(-1.0)
         slope = self._same(g.dot(d))

@@ -27,7 +27,7 @@ import numpy as np
 from petsc4py import PETSc
 
 from rodsnes.solve.arclength import Arclength
-from rodsnes.solve.linear import LUChoice, direct_solver_defaults, option_default
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve, option_default
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.stability import negative_eigenvalues
@@ -158,6 +158,8 @@ class NewtonSolver:
         t0 = time.perf_counter()
         p.set_load(lam)
         self.snes.setConvergenceHistory(length=1000, reset=True)
+        if p.planar is not None:
+            p.planar.failure = None         # set by its solves that fail (the SNES's PC's)
         try:
             self.snes.solve(None, p.state.X)
             reason = self.snes.getConvergedReason()
@@ -184,7 +186,15 @@ class NewtonSolver:
         if not ok and self.stagnated:
             reason = "stagnation"
             self.stagnations += 1
-        return StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
+        failure = None
+        if reason == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE:
+            # the linear solve of a Newton step failed: why, in the user's options' words (an
+            # iterative solve that did not converge said only "SNES reason -3")
+            reason = "linear solve"
+            failure = getattr(p.planar, "failure", None) or failed_solve(self.snes.getKSP())
+        res = StepResult(lam, ok, its, reason, fnorm, np.array(hist), time.perf_counter() - t0)
+        res.linear_failure = failure
+        return res
 
     def run(self, lam0, steps, max_cutbacks, min_step, on_step=None, on_fail=None, nneg0=0,
             dlam0=None, prev0=None, arc0=None, stop=1.0):

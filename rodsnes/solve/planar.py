@@ -38,7 +38,8 @@ from petsc4py import PETSc
 from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks, kept, preallocate_blocks
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
-from rodsnes.solve.linear import LUChoice, direct_solver_defaults, is_default, option_default
+from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve, is_default,
+                                  option_default)
 from rodsnes import petsc_lib
 from rodsnes.solve import petsc_exit
 from rodsnes.solve.stability import Inertia
@@ -264,6 +265,7 @@ class PlanarSystem:
         self._patterns = None
         self.ksp = None                   # its LU (prefix planar_)
         self.full_ksp = None              # the 3-D solve of the Newton path after leave()
+        self.failure = None               # why the last failed solve failed (linear.failed_solve)
         self.inertia = PlanarInertia(self)
         self.out_inertia = BlockInertia(problem, plane.outplane)
         self.stats = {"planar_solves": 0, "out_of_plane_counts": 0}
@@ -401,7 +403,10 @@ class PlanarSystem:
         try:
             ksp.solve(bi, xi)
             ok = ksp.getConvergedReason() >= 0
-        except PETSc.Error:
+            if not ok:
+                self.failure = failed_solve(ksp)
+        except PETSc.Error as err:
+            self.failure = failed_solve(ksp, err)
             ksp.reset()
             ok = False
         if ok:
@@ -457,10 +462,13 @@ class PlanarSystem:
         self.full_ksp.setOperators(self.problem.J)
         try:
             self.full_ksp.solve(b, x)
-            return self.full_ksp.getConvergedReason() >= 0
-        except PETSc.Error:
+            if self.full_ksp.getConvergedReason() >= 0:
+                return True
+            self.failure = failed_solve(self.full_ksp)
+        except PETSc.Error as err:
+            self.failure = failed_solve(self.full_ksp, err)
             self.full_ksp.reset()
-            return False
+        return False
 
     # -- stability -----------------------------------------------------------------------
     def out_of_plane_count(self):
