@@ -446,6 +446,11 @@ def unused_petsc_warnings(given, late):
             # the stability count of the other kind of run: a planar run's is -planar_stability_
             hint = (f": this run's stability count takes -{other} (a planar run's "
                     f"-planar_stability_, a 3-D run's -stability_)")
+        elif low.startswith(tuple(SOLVER_RUNS_WHEN)):
+            # a solver of rodsnes' own that this run does not make (a "did you mean" the
+            # unprefixed option sent the user to the Newton step's solver)
+            pre = next(p for p in SOLVER_RUNS_WHEN if low.startswith(p))
+            hint = f" (the -{pre} solver runs {SOLVER_RUNS_WHEN[pre]}: this run has none)"
         elif low in COMMON_PETSC_OPTIONS or not close:
             hint = " (nothing in this run reads it: it does not apply to this load path or " \
                    "scene, or is misspelt)"
@@ -457,6 +462,12 @@ def unused_petsc_warnings(given, late):
 
 # the stability counts' option prefixes: one of them runs, by the run's kind (planar or 3-D)
 SIBLING_PREFIXES = (("stability_", "planar_stability_"), ("planar_stability_", "stability_"))
+# rodsnes' other solvers (scene.SOLVER_PREFIXES) and when a run makes them
+SOLVER_RUNS_WHEN = {
+    "interior_": "on several ranks where contact fills the Jacobian, MUMPS's LU of each "
+                 "rank's stretch",
+    "estimate_": "after the last load step where the error estimate is on (-rod_error_estimate)",
+    "planar_": "in a planar run (-rod_planar)"}
 
 
 def _closest(word, names):

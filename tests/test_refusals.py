@@ -469,6 +469,10 @@ WARNINGS = [
      "-load_max_it = 50 does nothing: it acts on -load_path minimize only"),
     ("view_read_after_the_solve", MATT + ("-load_path", "minimize", "-snes_view"),
      "option -snes_view was not used"),
+    ("solver_this_run_does_not_make", MATT + ("-interior_mat_mumps_icntl_14", "80"),
+     "option -interior_mat_mumps_icntl_14 80 was not used (the -interior_ solver runs on "
+     "several ranks where contact fills the Jacobian, MUMPS's LU of each rank's stretch: this "
+     "run has none)"),
 ]
 
 
