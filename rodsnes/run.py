@@ -450,8 +450,8 @@ class Run:
             # a band that hides more overload than that: a warning, with its size (the
             # perfect column with EA L^2/EI = 1e12 on 16 elements, band 16.8, was certified
             # straight at twice its buckling load)
-            tell("warning", f"the stability count took eigenvalues of H v = lambda M v above "
-                 f"-{band:.3g} EI/L^4 as neutral (the round-off of the Hessian of "
+            tell("warning", f"the stability count{self._on_mesh()} took eigenvalues of H v = "
+                 f"lambda M v above -{band:.3g} EI/L^4 as neutral (the round-off of the Hessian of "
                  f"{self.mesh.nelem} elements, ~ EA / h^2): a state up to about "
                  f"{100 * band / stability.FALL:.3g} % past a critical load may count as "
                  f"stable; fewer elements (-rod_nelem) or a softer -rod_EA and -rod_GA "
@@ -486,6 +486,14 @@ class Run:
                   flush=True)
         return ok
 
+    def _on_mesh(self):
+        """' on the -rod_tolerance mesh of N elements of order p' for a warning of one of the
+        runs -rod_tolerance makes (each mesh warns for itself), else ''."""
+        if not self.tolerance_trial:
+            return ""
+        return (f" on the -rod_tolerance mesh of {self.mesh.nelem} elements of order "
+                f"{self.mesh.order}")
+
     def _newton_failed(self, cutbacks, failed):
         """Why the Newton path stopped after every cut-back failed (``failed``: the results of
         the failed tries): the linear solve of its steps where the last (shortest) try failed
@@ -515,8 +523,8 @@ class Run:
         tries, failed = m.newton_tries, m.newton_failures
         if failed >= NEWTON_FAILURES and 2 * failed >= tries:
             tell("warning", f"the Newton step's linear solve failed in {failed} of {tries} "
-                 f"iterations ({m.newton_failure}): the minimiser went on with its Hessian "
-                 f"steps, which converge slower; a linear solver option (-pc_*, -ksp_*, "
+                 f"iterations{self._on_mesh()} ({m.newton_failure}): the minimiser went on "
+                 f"with its Hessian steps, which converge slower; a linear solver option (-pc_*, -ksp_*, "
                  f"-mat_mumps_*, -planar_*, -interior_*) may be the cause")
 
     def _last_count(self):

@@ -948,6 +948,18 @@ def test_a_linear_solver_that_fails_every_newton_step_is_named(capsys, tmp_path)
     assert rc == 0 and "linear solve failed" not in err, err
 
 
+def test_each_tolerance_mesh_warns_for_itself(capsys, tmp_path):
+    """-rod_tolerance makes a run per mesh, and each warns of its own failed Newton steps
+    (GMRES with Jacobi breaks down on the in-plane tangent): the warnings name their mesh
+    (two identical lines before)."""
+    rc, out, err = rodsnes(capsys, *MATT, "-rod_tolerance", "1e-6", "-pc_type", "jacobi",
+                           "-ksp_type", "gmres", "-ksp_max_it", "20", out=tmp_path / "o")
+    assert rc == 0, err
+    warned = [ln for ln in err.splitlines() if "linear solve failed" in ln]
+    meshes = [ln.split("-rod_tolerance mesh of ")[1].split(" (")[0] for ln in warned]
+    assert len(warned) >= 2 and len(set(meshes)) == len(warned), err
+
+
 @pytest.mark.parametrize("planar", ["on", "off"])
 def test_a_newton_path_whose_linear_solve_fails_names_it(capsys, tmp_path, planar):
     """An iterative linear solve that cannot solve the Newton step's tangent (GMRES without a
