@@ -809,6 +809,7 @@ class PotentialKernel:
         ctx = g._context(own_ids, x_own, other_ids, x_other, pairs)
         _, gap, out["sbar"] = g.report_points(ctx, no)
         out["gap"] = gap
+        out["end_depth"] = g.end_depth(ctx)     # the ends of an open rod
         out["zones"] = int(np.count_nonzero(gap > 0.0))
         f = self._report_force(c, x_own, no)
         out["force"] = np.linalg.norm(f, axis=2)

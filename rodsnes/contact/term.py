@@ -623,12 +623,14 @@ class ContactTerm(Term):
     def deepest_local(out, report=False):
         """max d over this rank's points of an evaluation ``out``: its ``depth``, at the points
         of the law's own quadrature (the closest-point law's Gauss and zone points, the pair
-        potential's point couples); with ``report`` (out has it) the report's gap and d_active
-        (the report points, and the law's own points in contact).  The mounts count in both."""
+        potential's point couples); with ``report`` (out has it) the report's gap, end_depth
+        and d_active (the report points, an open rod's ends, and the law's own points in
+        contact).  The mounts count in both."""
         if report:
             gap = out["gap"]
             deep = max(float(gap.max()) if gap.size else -np.inf,
-                       float(out["d_active"].max()) if len(out["d_active"]) else -np.inf)
+                       float(out["d_active"].max()) if len(out["d_active"]) else -np.inf,
+                       out.get("end_depth", -np.inf))
         else:
             deep = out["depth"]
         if "support" in out:            # the tube pressing into a clamp's mount (support.py)
