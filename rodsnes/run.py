@@ -444,6 +444,7 @@ class Run:
         nneg = self._last_count()
         unstable = bool(nneg) and self.conservative
         self._warn_failed_newton_steps()
+        self._warn_broken_promise()
         band = self.problem.stats.get("neutral_band", 0.0)
         if band > stability.FALL * stability.WARN_OVERLOAD and self.conservative and \
                 self.rank == 0:
@@ -526,6 +527,23 @@ class Run:
                  f"iterations{self._on_mesh()} ({m.newton_failure}): the minimiser went on "
                  f"with its Hessian steps, which converge slower; a linear solver option (-pc_*, -ksp_*, "
                  f"-mat_mumps_*, -planar_*, -interior_*) may be the cause")
+
+    def _warn_broken_promise(self):
+        """A last state deeper in contact than -contact_penetration promises: a penalty kept as
+        given (-contact_penalty without -contact_penalty_adapt: the plectoneme with
+        -contact_penalty 2e4 -contact_wall 0 ended 15.8 % deep, exit 0, summary.json saying
+        1 % promised), or raises that did not bring it back, says so."""
+        c = self.contact
+        rep = (getattr(self, "last_reports", None) or {}).get("contact") if c is not None else None
+        pen = None if rep is None else rep.get("max_penetration")
+        if pen is None or self.rank != 0 or not pen > c.penetration * (1.0 + 1e-6):
+            return
+        why = (f"-contact_penalty {c.mu:g} was kept as given (-contact_penalty_adapt raises it "
+               f"where a step goes deeper; or leave -contact_penalty out)" if not c.adapt else
+               f"the penalty's raises (now {c.mu:.4g}) did not bring it back; a larger "
+               f"-contact_penalty, or more load steps")
+        tell("warning", f"the last state presses {pen:.3%} of the contact diameter deep, beyond "
+             f"-contact_penetration {c.penetration:g}: {why}")
 
     def _last_count(self):
         """The last step's count of negative eigenvalues, None where it has none or the count

@@ -948,6 +948,21 @@ def test_a_linear_solver_that_fails_every_newton_step_is_named(capsys, tmp_path)
     assert rc == 0 and "linear solve failed" not in err, err
 
 
+def test_a_penalty_kept_as_given_that_breaks_the_promise_says_so(capsys, tmp_path):
+    """-contact_penalty given (not adapted: -contact_penalty_adapt is off then) that lets the
+    roll-up sink 8 % of the diameter into itself: the run converges (the answer for that
+    penalty) and warns that the promise -contact_penetration is not kept, naming the way to
+    keep it (the plectoneme with -contact_penalty 2e4 -contact_wall 0 ended 15.8 % deep
+    without a word, summary.json saying 1 % promised)."""
+    rc, out, err = rodsnes(capsys, *ROLLUP_CONTACT, "-contact_penalty", "1e2",
+                           out=tmp_path / "soft")
+    assert rc == 0, err
+    assert "rodsnes: warning: the last state presses 8.3" in err, err
+    assert ("beyond -contact_penetration 0.01: -contact_penalty 100 was kept as given "
+            "(-contact_penalty_adapt raises it") in err, err
+    assert summary(tmp_path / "soft")["contact"]["max_penetration"] > 0.08
+
+
 def test_each_tolerance_mesh_warns_for_itself(capsys, tmp_path):
     """-rod_tolerance makes a run per mesh, and each warns of its own failed Newton steps
     (GMRES with Jacobi breaks down on the in-plane tangent): the warnings name their mesh
