@@ -203,6 +203,39 @@ def test_the_estimate_leaves_the_plane_with_the_run():
     assert run.estimator.count == len(run.history) >= 3
 
 
+def test_an_estimate_that_grew_on_the_finer_mesh_refines_at_the_nominal_rate():
+    """Two trials whose estimates grew with the mesh (ltb on 4 linear elements unbuckled, on
+    10 buckled: an observed rate of -3.3) measure no rate: the next mesh comes from the
+    order's nominal rate p + 1 (1290 elements for 1e-5), where the rate clamped to 1 asked
+    for more than MAX_NELEM and -rod_tolerance failed, blaming the tolerance."""
+    from rodsnes.solve import estimate
+    trials = [{"order": 1, "nelem": 4, "estimate_centreline": 2.5e-5},
+              {"order": 1, "nelem": 10, "estimate_centreline": 7.5e-2}]
+    p, n = estimate.next_mesh(trials, 1e-5, True, None)
+    want = 10 * (7.5e-2 / (estimate.AIM * 1e-5)) ** 0.5
+    assert p == 1 and want < n <= 1.06 * want + 1 < estimate.MAX_NELEM
+
+
+def test_the_estimate_leaves_the_plane_where_its_finer_discretisation_buckles():
+    """ltb at 1.01 P_cr on 8 linear elements: the run's discretisation is stiffer out of the
+    plane than the continuum and stays planar, stable for its mesh; the order p+1 one buckles
+    sideways.  Its in-plane minimum is a saddle out of the plane: the estimate leaves the plane
+    as the run's steps do and measures the buckled answer, 0.093 L away (it said 5.3e-6 while
+    the true error was 9.4e-2, and -rod_tolerance 'met' 1e-4 on 4 elements).  Against a fine
+    3-D run (64 cubic elements, itself within 1e-6), the estimate is within 10 %."""
+    force = "0,-4.052726,0"
+    run = run_case("ltb", rod_order=1, rod_nelem=8, load_end_force=force)
+    assert run.ok and run.problem.planar.active                 # the run: planar, stable
+    assert not run.estimator.enriched.problem.planar.active     # the estimate: buckled
+    fine = run_case("ltb", rod_order=3, rod_nelem=64, load_end_force=force,
+                    rod_error_estimate="off")
+    x = run.layout.allgather_nodes(run.last_fields["positions"])
+    xf = fine.layout.allgather_nodes(fine.last_fields["positions"])
+    true = np.linalg.norm(xf[-1] - x[-1])
+    est = run.last_estimate["tip"]
+    assert true > 0.05 and 0.9 < est / true < 1.1, (est, true)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("order, nelem", [(3, 16), (2, 32)])
 def test_contact_estimate_within_a_factor_3(order, nelem):

@@ -44,6 +44,7 @@ from rodsnes.model.partition import NDOF
 from rodsnes.model.problem import RodProblem
 from rodsnes.model.scales import force_scale
 from rodsnes.solve.minimize import EnergyMinimizer
+from rodsnes.solve.load_path import leave_plane_if_unstable
 from rodsnes.solve.planar import PlanarSystem
 from rodsnes.terms import scene_terms
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, option_default
@@ -224,6 +225,10 @@ class EnrichedProblem:
         if stage == "whole" and self.minimizer is not None:
             n0 = self.minimizer.factorizations
             res = self.minimizer.solve_at(self.problem.lam)
+            if res.converged:
+                # in the plane, a stable minimum out of it too, as the run's steps are (the
+                # order p+1 discretisation may buckle sideways where the run's did not)
+                leave_plane_if_unstable(self.minimizer, res, "the order p+1 solution")
             self.factorisations += self.minimizer.factorizations - n0
             return res.its, res.converged
         try:
@@ -447,7 +452,10 @@ def next_mesh(trials, tol, order_fixed, run):
         if same:
             t = same[-1]
             observed = math.log(t["estimate_centreline"] / eta) / math.log(n / t["nelem"])
-            rate = min(max(observed, 1.0), p + 2)
+            # an estimate that did not fall on the finer mesh measures no rate (two trials on
+            # two branches: ltb on 4 linear elements unbuckled, on 10 buckled, gave -3.3, and
+            # at the rate 1 it was clamped to, 1e-5 asked for more than MAX_NELEM): the nominal
+            rate = min(max(observed, 1.0), p + 2) if observed > 0.0 else p + 1
         nelem = elements_for(eta, n, rate, target, n + 1)
     return None if nelem > MAX_NELEM else (p, nelem)
 

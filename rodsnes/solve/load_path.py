@@ -25,6 +25,40 @@ TARGET_ITS = 80
 PREDICTOR = True
 
 
+def leave_plane_if_unstable(minimizer, res, why="the planar equilibrium"):
+    """A minimisation ``res`` of a planar problem (problem.planar active): the out-of-plane
+    block of the Hessian factored (planar.PlanarSystem.out_of_plane_count), its negative
+    eigenvalues added to the step's (res.out_of_plane_negative_eigenvalues).  A planar minimum
+    that is a saddle out of the plane (lateral-torsional buckling) is not what the minimiser
+    promises: the problem leaves the plane and minimises again at the same load in 3-D from
+    that state, which leaves the saddle along its negative curvature
+    (EnergyMinimizer._escape); res takes the iterations and the outcome.  The run's load steps
+    (LoadPath.check_plane) and the error estimate's order p+1 solve (estimate.py: a planar
+    estimate that stayed in the plane reported 5e-6 for an unbuckled answer 0.09 L from the
+    buckled one).  Collective."""
+    planar = minimizer.problem.planar
+    if planar is None or not planar.active:
+        return
+    n_out = planar.out_of_plane_count()
+    res.out_of_plane_negative_eigenvalues = n_out
+    res.negative_eigenvalues += n_out
+    if n_out == 0:
+        return
+    planar.leave("%s is UNSTABLE out of plane (%d negative eigenvalue%s of the out-of-plane "
+                 "Hessian)" % (why, n_out, "" if n_out == 1 else "s"), "unstable out of plane")
+    again = minimizer.solve_at(res.lam)
+    res.its += again.its
+    res.seconds += again.seconds
+    res.history = np.concatenate([res.history, again.history])
+    res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
+    res.escapes += again.escapes
+    res.valley_points += again.valley_points
+    res.shifts += again.shifts
+    res.line_search_cuts += again.line_search_cuts
+    if not again.converged:
+        res.converged, res.reason = False, f"in 3-D after leaving the plane: {again.reason}"
+
+
 class LoadPath:
     """Load stepping by minimisation (module docstring): the same contract as
     newton.NewtonSolver.run."""
@@ -112,34 +146,10 @@ class LoadPath:
         return True
 
     def check_plane(self, res):
-        """A planar run's converged step: the out-of-plane block of the Hessian factored
-        (planar.PlanarSystem.out_of_plane_count), its negative eigenvalues added to the step's
-        (res.out_of_plane_negative_eigenvalues).  A planar minimum that is a saddle out of the
-        plane (lateral-torsional buckling) is not what the minimiser promises: the run leaves
-        the plane and minimises again at the same load in 3-D from that state, which leaves
-        the saddle along its negative curvature (EnergyMinimizer._escape).  Collective."""
-        planar = self.problem.planar
-        if planar is None or not planar.active:
-            return
-        n_out = planar.out_of_plane_count()
-        res.out_of_plane_negative_eigenvalues = n_out
-        res.negative_eigenvalues += n_out
-        if n_out == 0:
-            return
-        planar.leave("the planar equilibrium is UNSTABLE out of plane (%d negative eigenvalue%s "
-                     "of the out-of-plane Hessian)" % (n_out, "" if n_out == 1 else "s"),
-                     "unstable out of plane")
-        again = self.minimizer.solve_at(res.lam)
-        res.its += again.its
-        res.seconds += again.seconds
-        res.history = np.concatenate([res.history, again.history])
-        res.fnorm, res.negative_eigenvalues = again.fnorm, again.negative_eigenvalues
-        res.escapes += again.escapes
-        res.valley_points += again.valley_points
-        res.shifts += again.shifts
-        res.line_search_cuts += again.line_search_cuts
-        if not again.converged:
-            res.converged, res.reason = False, f"in 3-D after leaving the plane: {again.reason}"
+        """A planar run's converged step: unstable out of the plane (lateral-torsional
+        buckling), it leaves the plane and minimises again at the same load in 3-D
+        (leave_plane_if_unstable).  Collective."""
+        leave_plane_if_unstable(self.minimizer, res)
 
     def predict(self, prev, lam, dl):
         """The start of the step lam -> lam + dl: the secant through the last two converged
