@@ -483,9 +483,18 @@ class Run:
                         f"({nneg} negative eigenvalues of the energy Hessian)")
             else:
                 last = "converged"
-            print(last + estimate.progress_text(self.last_estimate) + f"; results in {self.outdir}",
-                  flush=True)
+            print(last + estimate.progress_text(self.last_estimate, self.penetration_length())
+                  + f"; results in {self.outdir}", flush=True)
         return ok
+
+    def penetration_length(self):
+        """The last state's deepest contact penetration in length units (max_penetration x the
+        contact diameter), None without contact: the penalty's error, which the error
+        estimate (the discretisation's, at the run's penalty) does not count."""
+        rep = (getattr(self, "last_reports", None) or {}).get("contact")
+        if self.contact is None or rep is None or rep.get("max_penetration") is None:
+            return None
+        return rep["max_penetration"] * 2.0 * self.contact.radius
 
     def _on_mesh(self):
         """' on the -rod_tolerance mesh of N elements of order p' for a warning of one of the

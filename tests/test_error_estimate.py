@@ -203,6 +203,24 @@ def test_the_estimate_leaves_the_plane_with_the_run():
     assert run.estimator.count == len(run.history) >= 3
 
 
+def test_a_contact_runs_estimate_says_what_it_does_not_count():
+    """With contact the estimate is the mesh's error at the run's penalty: the last line says
+    how deep strands in contact sink into each other, the penalty's own error, which it does
+    not count (rollup_contact: 'estimated error ... 3.6e-07' stood 8e-4 from the hard
+    contact's answer, and its strands sank 8.0e-4); without contact it says nothing of it."""
+    from rodsnes.solve import estimate
+    est = {"tip": 6.7e-9, "centreline": 3.6e-7, "converged": True}
+    text = estimate.progress_text(est, 8.0e-4)
+    assert text == ("; estimated error tip 6.7e-09, centreline 3.6e-07 (the mesh's, at this "
+                    "penalty; strands in contact sink up to 8.0e-04 into each other)")
+    assert estimate.progress_text(est) == "; estimated error tip 6.7e-09, centreline 3.6e-07"
+    run = run_case("rollup_contact", rod_nelem=16, rod_error_estimate="off")
+    rep = run.last_reports["contact"]
+    assert run.penetration_length() == pytest.approx(
+        rep["max_penetration"] * 2 * run.contact.radius) and run.penetration_length() > 0
+    assert run_case("rollup", rod_nelem=4).penetration_length() is None
+
+
 def test_an_estimate_that_grew_on_the_finer_mesh_refines_at_the_nominal_rate():
     """Two trials whose estimates grew with the mesh (ltb on 4 linear elements unbuckled, on
     10 buckled: an observed rate of -3.3) measure no rate: the next mesh comes from the
