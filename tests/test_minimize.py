@@ -271,3 +271,19 @@ def test_lumped_weights_are_the_row_sums_of_the_mass_matrix(case, kw):
     total = PETSc.COMM_WORLD.tompi4py().allreduce(M.sum())
     assert abs(total - m.length) <= 1e-12 * m.length
     assert (M > 0).all()
+
+
+def test_a_long_load_step_says_how_it_goes(capsys, monkeypatch):
+    """A load step's minimisation prints a progress line every HEARTBEAT seconds (not with
+    -quiet): a step that crawled for minutes said nothing.  Here every iteration is past it."""
+    from rodsnes.solve import minimize
+    monkeypatch.setattr(minimize, "HEARTBEAT", 0.0)
+    run = run_case("mattiasson", rod_nelem=8, load_steps=1, quiet=False,
+                   rod_error_estimate="off")
+    lines = [ln for ln in capsys.readouterr().out.splitlines()
+             if ln.startswith("  load 1.000000: ")]
+    assert run.ok and len(lines) == run.solver.total_its + 1, lines
+    assert lines[0].startswith("  load 1.000000: 0 iterations in 0 s, |g| ")
+    assert ", E " in lines[-1]
+    run = run_case("mattiasson", rod_nelem=8, load_steps=1, rod_error_estimate="off")
+    assert "iterations in" not in capsys.readouterr().out
