@@ -954,13 +954,19 @@ def test_a_penalty_kept_as_given_that_breaks_the_promise_says_so(capsys, tmp_pat
     penalty) and warns that the promise -contact_penetration is not kept, naming the way to
     keep it (the plectoneme with -contact_penalty 2e4 -contact_wall 0 ended 15.8 % deep
     without a word, summary.json saying 1 % promised)."""
-    rc, out, err = rodsnes(capsys, *ROLLUP_CONTACT, "-contact_penalty", "1e2",
-                           out=tmp_path / "soft")
+    rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "rollup_contact.opts"),
+                           "-contact_penalty", "1e2", out=tmp_path / "soft")
     assert rc == 0, err
     assert "rodsnes: warning: the last state presses 8.3" in err, err
     assert ("beyond -contact_penetration 0.01: -contact_penalty 100 was kept as given "
             "(-contact_penalty_adapt raises it") in err, err
-    assert summary(tmp_path / "soft")["contact"]["max_penetration"] > 0.08
+    s = summary(tmp_path / "soft")
+    pen = s["contact"]["max_penetration"]
+    assert pen > 0.08
+    # the last line: what the error estimate does not count, the penalty's (its depth)
+    last = out.strip().splitlines()[-1]
+    assert (f"(the mesh's, at this penalty; strands in contact sink up to "
+            f"{pen * 2 * s['contact']['radius']:.1e} into each other)") in last, last
 
 
 def test_each_tolerance_mesh_warns_for_itself(capsys, tmp_path):
