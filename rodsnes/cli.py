@@ -422,12 +422,14 @@ def options_left():
     return out
 
 
-def unused_petsc_warnings(given, late):
+def unused_petsc_warnings(given, late, made=None):
     """Warnings for the options of ``given`` (the names the user set) that nothing has read:
     ``late`` False: before the solve, leaving out those read only at the end of a solve
     or by a solver made during the run (LATE_READ, scene.SOLVER_PREFIXES); True: after the
-    run, those.  Options read at PetscFinalize are left alone."""
+    run, those.  Options read at PetscFinalize are left alone.  ``made``: the prefixes of
+    rodsnes' own solvers the run made (linear.solvers_made; None: not known)."""
     from rodsnes.io import scene as scn
+    from rodsnes.io.scene import _suggest, _or_list
     left = options_left()
     if left is None:
         return []
@@ -447,10 +449,19 @@ def unused_petsc_warnings(given, late):
             hint = (f": this run's stability count takes -{other} (a planar run's "
                     f"-planar_stability_, a 3-D run's -stability_)")
         elif low.startswith(tuple(SOLVER_RUNS_WHEN)):
-            # a solver of rodsnes' own that this run does not make (a "did you mean" the
-            # unprefixed option sent the user to the Newton step's solver)
+            # a solver of rodsnes' own: one this run did not make (a "did you mean" of the
+            # unprefixed option sent the user to the Newton step's solver), or one it made
+            # that does not read it (another kind of solver, or misspelt)
             pre = next(p for p in SOLVER_RUNS_WHEN if low.startswith(p))
-            hint = f" (the -{pre} solver runs {SOLVER_RUNS_WHEN[pre]}: this run has none)"
+            rest = low[len(pre):]
+            near = _suggest(rest, list(COMMON_PETSC_OPTIONS))
+            if made is not None and pre not in made:
+                hint = f" (the -{pre} solver runs {SOLVER_RUNS_WHEN[pre]}: this run made none)"
+            elif near and rest not in COMMON_PETSC_OPTIONS:
+                hint = f": did you mean {_or_list(['-' + pre + n for n in near])}?"
+            else:
+                hint = (f" (this run's -{pre} solver does not read it: not an option of its "
+                        f"kind of solver)")
         elif low in COMMON_PETSC_OPTIONS or not close:
             hint = " (nothing in this run reads it: it does not apply to this load path or " \
                    "scene, or is misspelt)"
@@ -466,7 +477,7 @@ SIBLING_PREFIXES = (("stability_", "planar_stability_"), ("planar_stability_", "
 SOLVER_RUNS_WHEN = {
     "interior_": "on several ranks where contact fills the Jacobian, MUMPS's LU of each "
                  "rank's stretch",
-    "estimate_": "after the last load step where the error estimate is on (-rod_error_estimate)",
+    "estimate_": "where the error estimate is on (-rod_error_estimate)",
     "planar_": "in a planar run (-rod_planar)"}
 
 
@@ -716,7 +727,8 @@ def main(argv=None):
                 return _failed(agree, run, *_internal(exc, run, agree), code=EXIT_INTERNAL)
     finally:
         agree.Free()            # every rank is here (a rank that stopped alone aborted)
-    for line in unused_petsc_warnings(given, late=True):
+    from rodsnes.solve.linear import solvers_made
+    for line in unused_petsc_warnings(given, late=True, made=solvers_made()):
         _say(rank, "warning", line)
     _release_petsc_objects(comm)
     return 0 if ok else EXIT_FAILED

@@ -390,7 +390,10 @@ class Run:
             self.observe()        # a restart that fails at once still reports its state
         ld = self.scene.loads
 
+        failed = []             # the failed tries since the last converged step (on_fail)
+
         def on_step(res):
+            failed.clear()
             # the step written and recorded whole: a signal meanwhile waits (interrupts.py)
             with interrupts.deferred():
                 self.step += 1
@@ -405,10 +408,8 @@ class Run:
                     with self._summary_budget.spent():
                         output.write_summary(self.outdir, self.mpi, self._last_summary)
 
-        last_failure = []
-
         def on_fail(res, dlam):
-            last_failure.append(res)
+            failed.append(res)
             if not self.quiet and self.rank == 0:
                 if res.reason == "stability":
                     why = "it lands on a less stable equilibrium"
@@ -430,7 +431,7 @@ class Run:
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,
                                        arc0=self.arc0, stop=ld.stop)
         reason = None if ok else self.solver.fail_reason or self._newton_failed(
-            ld.max_cutbacks, last_failure)
+            ld.max_cutbacks, failed)
         if ok and self.path == "newton" and self.conservative and self._last_count() is None:
             # the Newton path counts every step only with -stability; its end is counted
             # anyway (one LDL^T), so that a zero of the residual that is unstable says so
@@ -515,11 +516,19 @@ class Run:
         failure = getattr(failed[-1], "linear_failure", None) if failed else None
         if failure:
             every = all(getattr(r, "linear_failure", None) for r in failed)
+            from petsc4py import PETSc
+            given = [n for n in sorted(PETSc.Options().getAll())
+                     if n.startswith(("ksp_", "pc_", "planar_ksp_", "planar_pc_", "mat_mumps_",
+                                      "planar_mat_mumps_")) and linear.user_chose(n)]
+            # the in-plane step's copies of the Newton step's options (planar.CARRIED) are not
+            # the user's
+            given = [n for n in given if not (n.startswith("planar_") and n[7:] in given)]
+            why = (f"the linear solver options given ({', '.join('-' + n for n in given)}) "
+                   f"cannot solve this tangent; without them rodsnes solves it by a direct LU"
+                   if given else "the tangent is singular there, or its factorisation failed")
             return (f"{where}: the Newton step's linear solve failed "
                     f"{'at every try' if every else 'at the shortest step tried'} "
-                    f"({failure}): the linear solver options (-ksp_*, -pc_*, -planar_*, "
-                    f"-mat_mumps_*) cannot solve this tangent; without them rodsnes solves "
-                    f"it by a direct LU{tail}")
+                    f"({failure}): {why}{tail}")
         return f"{where}: Newton failed after {cutbacks} cut-backs{tail}"
 
     def _warn_failed_newton_steps(self):
@@ -551,8 +560,8 @@ class Run:
                f"where a step goes deeper; or leave -contact_penalty out)" if not c.adapt else
                f"the penalty's raises (now {c.mu:.4g}) did not bring it back; a larger "
                f"-contact_penalty, or more load steps")
-        tell("warning", f"the last state presses {pen:.3%} of the contact diameter deep, beyond "
-             f"-contact_penetration {c.penetration:g}: {why}")
+        tell("warning", f"the last state{self._on_mesh()} presses {pen:.3%} of the contact "
+             f"diameter deep, beyond -contact_penetration {c.penetration:g}: {why}")
 
     def _last_count(self):
         """The last step's count of negative eigenvalues, None where it has none or the count

@@ -204,16 +204,20 @@ def test_the_estimate_leaves_the_plane_with_the_run():
 
 
 def test_a_contact_runs_estimate_says_what_it_does_not_count():
-    """With contact the estimate is the mesh's error at the run's penalty: the last line says
-    how deep strands in contact sink into each other, the penalty's own error, which it does
-    not count (rollup_contact: 'estimated error ... 3.6e-07' stood 8e-4 from the hard
-    contact's answer, and its strands sank 8.0e-4); without contact it says nothing of it."""
+    """With contact in touch the estimate is the mesh's error at the run's penalty: the last
+    line says how deep the contact sinks, the penalty's own error, which it does not count
+    (rollup_contact: 'estimated error ... 3.6e-07' stood 8e-4 from the hard contact's answer,
+    and it sank 8.0e-4); where nothing touches, or without contact, it says nothing of it; an
+    estimate whose order p+1 solution left the plane says so."""
     from rodsnes.solve import estimate
     est = {"tip": 6.7e-9, "centreline": 3.6e-7, "converged": True}
-    text = estimate.progress_text(est, 8.0e-4)
-    assert text == ("; estimated error tip 6.7e-09, centreline 3.6e-07 (the mesh's, at this "
-                    "penalty; strands in contact sink up to 8.0e-04 into each other)")
-    assert estimate.progress_text(est) == "; estimated error tip 6.7e-09, centreline 3.6e-07"
+    plain = "; estimated error tip 6.7e-09, centreline 3.6e-07"
+    assert estimate.progress_text(est, 8.0e-4) == (
+        plain + " (the mesh's, at this penalty; the contact sinks up to 8.0e-04 deep)")
+    assert estimate.progress_text(est) == estimate.progress_text(est, 0.0) == plain
+    assert estimate.progress_text(dict(est, left_plane=True)) == (
+        plain + "; its order p+1 solution buckles out of the plane, this one does not: the "
+        "mesh is too stiff out of plane")
     # a run's (Run.penetration_length): test_refusals.py, a penalty kept as given
     assert run_case("rollup", rod_nelem=4).penetration_length() is None
 
@@ -229,6 +233,12 @@ def test_an_estimate_that_grew_on_the_finer_mesh_refines_at_the_nominal_rate():
     p, n = estimate.next_mesh(trials, 1e-5, True, None)
     want = 10 * (7.5e-2 / (estimate.AIM * 1e-5)) ** 0.5
     assert p == 1 and want < n <= 1.06 * want + 1 < estimate.MAX_NELEM
+    # one that barely fell (a rate of 0.01) likewise; one that fell at a rate of 1.5 by it
+    trials[0]["estimate_centreline"] = 7.5e-2 * 2.5 ** 0.01
+    assert estimate.next_mesh(trials, 1e-5, True, None) == (p, n)
+    trials[0]["estimate_centreline"] = 7.5e-2 * 2.5 ** 1.5
+    want = 10 * (7.5e-2 / (estimate.AIM * 1e-3)) ** (1 / 1.5)
+    assert want < estimate.next_mesh(trials, 1e-3, True, None)[1] <= 1.06 * want + 1
 
 
 def test_the_estimate_leaves_the_plane_where_its_finer_discretisation_buckles():
@@ -242,6 +252,7 @@ def test_the_estimate_leaves_the_plane_where_its_finer_discretisation_buckles():
     run = run_case("ltb", rod_order=1, rod_nelem=8, load_end_force=force)
     assert run.ok and run.problem.planar.active                 # the run: planar, stable
     assert not run.estimator.enriched.problem.planar.active     # the estimate: buckled
+    assert run.last_estimate["left_plane"]                      # ... and says so
     fine = run_case("ltb", rod_order=3, rod_nelem=64, load_end_force=force,
                     rod_error_estimate="off")
     x = run.layout.allgather_nodes(run.last_fields["positions"])

@@ -472,7 +472,12 @@ WARNINGS = [
     ("solver_this_run_does_not_make", MATT + ("-interior_mat_mumps_icntl_14", "80"),
      "option -interior_mat_mumps_icntl_14 80 was not used (the -interior_ solver runs on "
      "several ranks where contact fills the Jacobian, MUMPS's LU of each rank's stretch: this "
-     "run has none)"),
+     "run made none)"),
+    ("option_of_a_solver_this_run_makes", MATT + ("-planar_mat_mumps_icntl_14", "80"),
+     "option -planar_mat_mumps_icntl_14 80 was not used (this run's -planar_ solver does not "
+     "read it: not an option of its kind of solver)"),
+    ("misspelt_option_of_a_solver_this_run_makes", MATT + ("-estimate_snes_max_iy", "3"),
+     "option -estimate_snes_max_iy 3 was not used: did you mean -estimate_snes_max_it?"),
 ]
 
 
@@ -942,7 +947,7 @@ def test_a_linear_solver_that_fails_every_newton_step_is_named(capsys, tmp_path)
     assert "a linear solver option" in err and "-mat_mumps_*" in err, err
     # which solve, in its options' words (it said "the in-plane solve failed")
     assert ("the in-plane solve failed: KSP DIVERGED_PCSETUP_FAILED; -planar_ksp_type "
-            "preonly, -planar_pc_type lu") in err, err
+            "preonly, -planar_pc_type lu by mumps") in err, err
     rc, out, err = rodsnes(capsys, *MATT, "-rod_nelem", "400", "-pc_factor_mat_solver_type",
                            "mumps", out=tmp_path / "plain")
     assert rc == 0 and "linear solve failed" not in err, err
@@ -965,8 +970,8 @@ def test_a_penalty_kept_as_given_that_breaks_the_promise_says_so(capsys, tmp_pat
     assert pen > 0.08
     # the last line: what the error estimate does not count, the penalty's (its depth)
     last = out.strip().splitlines()[-1]
-    assert (f"(the mesh's, at this penalty; strands in contact sink up to "
-            f"{pen * 2 * s['contact']['radius']:.1e} into each other)") in last, last
+    assert (f"(the mesh's, at this penalty; the contact sinks up to "
+            f"{pen * 2 * s['contact']['radius']:.1e} deep)") in last, last
 
 
 def test_each_tolerance_mesh_warns_for_itself(capsys, tmp_path):
@@ -1001,7 +1006,8 @@ def test_a_newton_path_whose_linear_solve_fails_names_it(capsys, tmp_path, plana
         f"gmres, {pre}pc_type none" in ln for ln in step), out
     failure = summary(d)["failure"]
     assert "the Newton step's linear solve failed at every try (KSP DIVERGED_MAX_IT" in failure
-    assert "cannot solve this tangent" in failure and "Newton failed" not in failure, failure
+    assert ("the linear solver options given (-ksp_max_it, -ksp_type, -pc_type) cannot solve "
+            "this tangent") in failure and "Newton failed" not in failure, failure
 
 
 def test_the_in_plane_step_takes_the_newton_steps_solver_options():

@@ -206,12 +206,12 @@ class ContactKernel:
 
     @staticmethod
     def _depth(out):
-        """``depth`` (the deepest d of the Gauss and zone points, and of the rod's ends) and
-        ``reported`` of an output."""
+        """``depth`` (the deepest d of the Gauss and zone points: the law's own, which the
+        step limits watch; the rod's ends, end_depth, are the report's) and ``reported`` of an
+        output."""
         gap, dact = out["gap"], out["d_active"]
         out["depth"] = max(float(gap.max()) if gap.size else -np.inf,
-                           float(dact.max()) if len(dact) else -np.inf,
-                           out.get("end_depth", -np.inf))
+                           float(dact.max()) if len(dact) else -np.inf)
         out["reported"] = True
         return out
 

@@ -47,7 +47,7 @@ from rodsnes.solve.minimize import EnergyMinimizer
 from rodsnes.solve.load_path import leave_plane_if_unstable
 from rodsnes.solve.planar import PlanarSystem
 from rodsnes.terms import scene_terms
-from rodsnes.solve.linear import LUChoice, direct_solver_defaults, option_default
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, option_default, solver_made
 
 PREFIX = "estimate_"          # options prefix of the enriched problem's SNES (-estimate_snes_*)
 
@@ -122,6 +122,7 @@ class EnrichedProblem:
         # ranks each rank's stretch with the Schur complement where they meet (linear.LUChoice;
         # without it the whole matrix on every rank: 2 ranks took longer than one)
         self.lu = LUChoice(direct_solver_defaults(p, PREFIX))
+        solver_made(PREFIX)
         snes = PETSc.SNES().create(comm=self.layout.comm)
         snes.setOptionsPrefix(PREFIX)
         snes.setType("newtonls")
@@ -348,8 +349,10 @@ class ErrorEstimator:
         self.count += 1
         # a non-finite difference is no estimate, whatever the solve said
         ok = bool(ok) and all(np.isfinite(v) for v in (line, tip if tip is not None else 0.0))
+        # the run in its plane, its order p+1 solution buckled out of it (solve_stage)
+        left = bool(planar and mine is not None and not mine.active)
         return {"tip": tip, "centreline": line, "order": rod.order + 1, "nelem": rod.nelem,
-                "load": problem.lam,
+                "load": problem.lam, "left_plane": left,
                 "newton_iterations": its, "factorisations": nf, "converged": ok, "seconds": dt}
 
 
@@ -378,22 +381,26 @@ def summary_entry(est, estimator, wall_time):
         return None
     return {"tip": est["tip"], "centreline": est["centreline"], "units": "length",
             "method": f"order {est['order']} on the same {est['nelem']} elements",
-            "converged": est["converged"], "load": est["load"], "steps_estimated": estimator.count,
+            "converged": est["converged"], "load": est["load"],
+            "left_plane": est.get("left_plane", False), "steps_estimated": estimator.count,
             "seconds": estimator.seconds,
             "share_of_run": estimator.seconds / wall_time if wall_time > 0 else None}
 
 
 def progress_text(est, penetration=None):
-    """The estimate for the last progress line; with contact (``penetration``: the deepest, in
-    length units) what it does not count, the penalty's: an estimate of 3.6e-7 on
+    """The estimate for the last progress line; with contact in touch (``penetration``: the
+    deepest, in length units) what it does not count, the penalty's: an estimate of 3.6e-7 on
     rollup_contact stood 8e-4 from the hard contact's answer."""
     if est is None:
         return ""
     tip = "" if est["tip"] is None else f"tip {est['tip']:.1e}, "
     warn = "" if est["converged"] else " (unreliable: the order p+1 solve did not converge)"
-    pen = "" if penetration is None else (f" (the mesh's, at this penalty; strands in contact "
-                                         f"sink up to {penetration:.1e} into each other)")
-    return f"; estimated error {tip}centreline {est['centreline']:.1e}{warn}{pen}"
+    pen = "" if not penetration else (f" (the mesh's, at this penalty; the contact sinks up "
+                                      f"to {penetration:.1e} deep)")
+    # the order p+1 solution buckled out of the plane where the run's did not (estimate())
+    side = ("; its order p+1 solution buckles out of the plane, this one does not: the mesh is "
+            "too stiff out of plane" if est.get("left_plane") else "")
+    return f"; estimated error {tip}centreline {est['centreline']:.1e}{warn}{pen}{side}"
 
 
 # ------------------------------------------------------------------------------------------------
@@ -456,10 +463,11 @@ def next_mesh(trials, tol, order_fixed, run):
         if same:
             t = same[-1]
             observed = math.log(t["estimate_centreline"] / eta) / math.log(n / t["nelem"])
-            # an estimate that did not fall on the finer mesh measures no rate (two trials on
-            # two branches: ltb on 4 linear elements unbuckled, on 10 buckled, gave -3.3, and
-            # at the rate 1 it was clamped to, 1e-5 asked for more than MAX_NELEM): the nominal
-            rate = min(max(observed, 1.0), p + 2) if observed > 0.0 else p + 1
+            # an estimate that did not fall by a rate of 1/2 on the finer mesh measures no
+            # rate (two trials on two branches: ltb on 4 linear elements unbuckled, on 10
+            # buckled, gave -3.3, and at the rate 1 it was clamped to, 1e-5 asked for more
+            # than MAX_NELEM): the nominal one
+            rate = min(max(observed, 1.0), p + 2) if observed >= 0.5 else p + 1
         nelem = elements_for(eta, n, rate, target, n + 1)
     return None if nelem > MAX_NELEM else (p, nelem)
 
@@ -520,9 +528,9 @@ def to_tolerance(run):
         pen = cur.penetration_length()
         what = (f"{last['nelem']} elements of order {last['order']}: estimated error "
                 f"{last['estimate_centreline']:.1e} <= {tol:g}" if met else "FAILED: " + reason)
-        if met and pen is not None:
-            what += (f" (the mesh's error at the contact penalty; strands in contact sink up to "
-                     f"{pen:.1e} into each other, which it does not count)")
+        if met and pen:
+            what += (f" (the mesh's error at the contact penalty; the contact sinks up to "
+                     f"{pen:.1e} deep, which it does not count)")
         print(f"-rod_tolerance {tol:g}: {what} after {len(trials)} mesh(es), "
               f"{block['wall_time_s']:.1f} s in all ({100 * block['last_trial_share']:.0f} % "
               f"in the last)", flush=True)

@@ -56,6 +56,7 @@ ORDERING = "amd"        # PETSc's LU: approximate minimum degree (module docstri
 
 
 DEFAULTED = {}          # name -> value of the options rodsnes set (option_default)
+MADE = set()            # options prefixes of rodsnes' own solvers this run made (solver_made)
 
 
 def option_default(name, value):
@@ -71,8 +72,24 @@ def option_default(name, value):
 
 def forget_defaults():
     """A new run: the options database is the user's again (a test or an in-process caller
-    removes the last run's options), so no option counts as set by option_default."""
+    removes the last run's options), so no option counts as set by option_default, and no
+    solver of rodsnes' own is made yet."""
     DEFAULTED.clear()
+    MADE.clear()
+    schur.MADE.clear()
+
+
+def solver_made(prefix):
+    """A solver of rodsnes' own under the options ``prefix`` (-planar_, -estimate_,
+    -interior_) was made: an unused option of it is then not for a solver the run lacks
+    (cli.unused_petsc_warnings)."""
+    MADE.add(prefix)
+
+
+def solvers_made():
+    """The options prefixes of rodsnes' own solvers this run made (solver_made; the ranks'
+    interiors by MUMPS: schur.MADE)."""
+    return MADE | schur.MADE
 
 
 def take_back_defaults():
@@ -388,7 +405,14 @@ def failed_solve(ksp, error=None):
         if ksp.getType() != PETSc.KSP.Type.PREONLY:
             what += f" after {ksp.getIterationNumber()} iterations"
     pre = ksp.getOptionsPrefix() or ""
-    pc = ksp.getPC().getType()
-    if pc == PETSc.PC.Type.PYTHON:          # rodsnes' own LU (chain, ranks' Schur complement)
+    pc = ksp.getPC()
+    kind = pc.getType()
+    if kind == PETSc.PC.Type.PYTHON:        # rodsnes' own LU (chain, ranks' Schur complement)
         return f"{what}, rodsnes' direct solve"
-    return f"{what}; -{pre}ksp_type {ksp.getType()}, -{pre}pc_type {pc}"
+    package = ""
+    if kind in (PETSc.PC.Type.LU, PETSc.PC.Type.CHOLESKY):
+        try:
+            package = f" by {pc.getFactorSolverType()}"
+        except PETSc.Error:
+            pass
+    return f"{what}; -{pre}ksp_type {ksp.getType()}, -{pre}pc_type {kind}{package}"

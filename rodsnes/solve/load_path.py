@@ -41,9 +41,9 @@ def leave_plane_if_unstable(minimizer, res, why="the planar equilibrium"):
         return
     n_out = planar.out_of_plane_count()
     res.out_of_plane_negative_eigenvalues = n_out
-    res.negative_eigenvalues += n_out
-    if n_out == 0:
+    if n_out <= 0:          # stable out of the plane, or a count that failed (-1): no claim
         return
+    res.negative_eigenvalues += n_out
     planar.leave("%s is UNSTABLE out of plane (%d negative eigenvalue%s of the out-of-plane "
                  "Hessian)" % (why, n_out, "" if n_out == 1 else "s"), "unstable out of plane")
     again = minimizer.solve_at(res.lam)

@@ -39,7 +39,7 @@ from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks, kept, pr
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve, is_default,
-                                  option_default)
+                                  option_default, solver_made)
 from rodsnes import petsc_lib
 from rodsnes.solve import petsc_exit
 from rodsnes.solve.stability import Inertia
@@ -385,6 +385,7 @@ class PlanarSystem:
                     elif not opts.hasName(pre + key):
                         opts.setValue(pre + key, opts.getString(key))
             self.lu = LUChoice(direct_solver_defaults(self.problem, pre))
+            solver_made(pre)
             ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
             ksp.setOptionsPrefix(pre)
             ksp.setFromOptions()

@@ -111,6 +111,7 @@ WHOLE_PREFIX = "rodsnes_whole_"     # the options of that whole-matrix LU (RankS
 WHOLE_MUMPS_PREFIX = WHOLE_PREFIX + "mumps_"    # ... by MUMPS over the ranks (package mumps)
 _WHOLE_DEFAULTS = {}    # prefix -> {"users": live RankSchurs, "set": the defaults they put in}
 INTERIOR_PREFIX = "interior_"   # the options of the interiors' MUMPS LU (-interior_mat_mumps_*)
+MADE = set()                    # INTERIOR_PREFIX once this run made such an LU (linear.solvers_made)
 
 
 # -- MUMPS's Schur complement (PETSc's MatFactorSetSchurIS ..., which petsc4py 3.18 lacks) ----
@@ -455,6 +456,7 @@ class RankSchur:
             # (-interior_mat_mumps_icntl_*, rodsnes' defaults from linear.py or the user's,
             # are read at its analysis)
             ksp.setOptionsPrefix(INTERIOR_PREFIX)
+            MADE.add(INTERIOR_PREFIX)
             pc.setFactorSolverType("mumps")
             ksp.setFromOptions()
             pc.setFactorSetUpSolverType()
