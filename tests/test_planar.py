@@ -234,6 +234,19 @@ def test_ltb_above_critical_goes_on_in_3d_to_a_stable_buckled_state():
     assert abs(d[2, 0]) > 0.1                      # d1 (e_y at rest) turned out of the x-y plane
 
 
+def test_a_hidden_out_of_plane_saddle_is_not_called_stable():
+    """ltb with EA = 1e12 EI/L^2: the planar minimum at 1.1 P_cr is a saddle out of the plane
+    (the out-of-plane block's count, 1); in 3-D the count's neutral band (the Hessian's
+    round-off, 16.8 EI/L^4, warned) hides it and the minimisation stops at once on the planar
+    state, which the run called stable (exit 0; the buckled answer is 0.28 L away).  The
+    out-of-plane count stands: an unstable end, said, exit 3."""
+    run = run_case("ltb", rod_EA=1e12, rod_error_estimate="off")
+    s = run.summary(run.ok)
+    assert not run.ok and s["stable"] is False and s["negative_eigenvalues"] == 1, s
+    assert s["steps"][-1]["out_of_plane_negative_eigenvalues"] == 1
+    assert abs(s["tip_position"][2]) < 1e-9            # the planar state, not buckled
+
+
 def _lowest_out_of_plane(run, factor):
     """The lowest eigenvalue of H_oo at the planar equilibrium under factor x P_cr (the
     minimiser at that load from the unloaded rod, no out-of-plane check)."""
