@@ -400,37 +400,16 @@ def _known(kind):
         return ()
 
 
-def options_left():
-    """(name, value) of every option in PETSc's database that nothing has read yet
-    (PetscOptionsLeftGet, as -options_left reports at the end); None where PETSc's library
-    cannot be reached."""
-    import ctypes
-    import numpy as np
-    from petsc4py import PETSc
-    from rodsnes import petsc_lib
-    lib = petsc_lib.library()
-    if lib is None or not hasattr(lib, "PetscOptionsLeftGet"):
-        return None
-    pint = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
-    n = pint(0)
-    names = ctypes.POINTER(ctypes.c_char_p)()
-    values = ctypes.POINTER(ctypes.c_char_p)()
-    if lib.PetscOptionsLeftGet(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values)):
-        return None
-    out = [(names[i].decode(), values[i].decode() if values[i] else None) for i in range(n.value)]
-    lib.PetscOptionsLeftRestore(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values))
-    return out
-
-
 def unused_petsc_warnings(given, late, made=None):
     """Warnings for the options of ``given`` (the names the user set) that nothing has read:
     ``late`` False: before the solve, leaving out those read only at the end of a solve
     or by a solver made during the run (LATE_READ, scene.SOLVER_PREFIXES); True: after the
     run, those.  Options read at PetscFinalize are left alone.  ``made``: the prefixes of
     rodsnes' own solvers the run made (linear.solvers_made; None: not known)."""
+    from rodsnes import petsc_lib
     from rodsnes.io import scene as scn
     from rodsnes.io.scene import _suggest, _or_list
-    left = options_left()
+    left = petsc_lib.options_left()
     if left is None:
         return []
     rodsnes = {o.name.lower() for o in scn.OPTIONS}

@@ -1,5 +1,5 @@
 """The PETSc library petsc4py runs on, reached through ctypes for the few functions petsc4py
-3.18 does not wrap: the options nobody read (cli.options_left), MUMPS's Schur complement
+3.18 does not wrap: the options nobody read (options_left), MUMPS's Schur complement
 (solve/schur.py), a block matrix's value array and nonzero state (model/assembly.py).
 """
 import contextlib
@@ -122,3 +122,23 @@ def set_pc_failed(pc, failed):
              argtypes=[ctypes.c_void_p, ctypes.c_int])
     except RuntimeError:
         pass
+
+
+def options_left():
+    """(name, value) of every option in PETSc's database that nothing has read yet
+    (PetscOptionsLeftGet, as -options_left reports at the end); None where PETSc's library
+    cannot be reached."""
+    import numpy as np
+    from petsc4py import PETSc
+    lib = library()
+    if lib is None or not hasattr(lib, "PetscOptionsLeftGet"):
+        return None
+    pint = ctypes.c_int64 if np.dtype(PETSc.IntType).itemsize == 8 else ctypes.c_int32
+    n = pint(0)
+    names = ctypes.POINTER(ctypes.c_char_p)()
+    values = ctypes.POINTER(ctypes.c_char_p)()
+    if lib.PetscOptionsLeftGet(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values)):
+        return None
+    out = [(names[i].decode(), values[i].decode() if values[i] else None) for i in range(n.value)]
+    lib.PetscOptionsLeftRestore(None, ctypes.byref(n), ctypes.byref(names), ctypes.byref(values))
+    return out

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from rodsnes import interrupts, profiling
+from rodsnes import interrupts, petsc_lib, profiling
 from rodsnes.collective import on_root
 from rodsnes.model import mesh as rodmesh
 from rodsnes.io import results as output
@@ -521,8 +521,10 @@ class Run:
                      if n.startswith(("ksp_", "pc_", "planar_ksp_", "planar_pc_", "mat_mumps_",
                                       "planar_mat_mumps_")) and linear.user_chose(n)]
             # the in-plane step's copies of the Newton step's options (planar.CARRIED) are not
-            # the user's
-            given = [n for n in given if not (n.startswith("planar_") and n[7:] in given)]
+            # the user's, nor do options nothing read (misspelt: warned as unused) take part
+            unread = {name for name, _ in (petsc_lib.options_left() or ())}
+            given = [n for n in given if not (n.startswith("planar_") and n[7:] in given)
+                     and n not in unread]
             why = (f"the linear solver options given ({', '.join('-' + n for n in given)}) "
                    f"cannot solve this tangent; without them rodsnes solves it by a direct LU"
                    if given else "the tangent is singular there, or its factorisation failed")

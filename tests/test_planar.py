@@ -230,6 +230,7 @@ def test_ltb_above_critical_goes_on_in_3d_to_a_stable_buckled_state():
     assert all(h["out_of_plane_negative_eigenvalues"] == 0 for h in s["steps"][:-1])
     tip = np.array(s["tip_position"])
     assert abs(tip[2]) > 0.1                       # sideways by > 10 % of L
+    assert not run.problem.planar.in_plane()
     d = run.layout.allgather_nodes(run.last_fields["directors"])[-1]
     assert abs(d[2, 0]) > 0.1                      # d1 (e_y at rest) turned out of the x-y plane
 
@@ -245,6 +246,12 @@ def test_a_hidden_out_of_plane_saddle_is_not_called_stable():
     assert not run.ok and s["stable"] is False and s["negative_eigenvalues"] == 1, s
     assert s["steps"][-1]["out_of_plane_negative_eigenvalues"] == 1
     assert abs(s["tip_position"][2]) < 1e-9            # the planar state, not buckled
+    assert run.problem.planar.in_plane() and not run.problem.planar.active
+    # an error estimate whose order p+1 solution stops on such a saddle is no estimate (it
+    # said 'converged', and that the p+1 solution buckled, while it stayed planar)
+    run = run_case("ltb", rod_EA=1e12, rod_order=1, rod_nelem=4, load_end_force="0,-4.05,0")
+    est = run.last_estimate
+    assert not est["converged"] and not est["left_plane"], est
 
 
 def _lowest_out_of_plane(run, factor):

@@ -478,6 +478,8 @@ WARNINGS = [
      "read it: not an option of its kind of solver)"),
     ("misspelt_option_of_a_solver_this_run_makes", MATT + ("-estimate_snes_max_iy", "3"),
      "option -estimate_snes_max_iy 3 was not used: did you mean -estimate_snes_max_it?"),
+    ("misspelt_in_plane_ksp_option", MATT + ("-planar_ksp_typ", "gmres"),
+     "option -planar_ksp_typ gmres was not used: did you mean -planar_ksp_type?"),
 ]
 
 
@@ -997,7 +999,7 @@ def test_a_newton_path_whose_linear_solve_fails_names_it(capsys, tmp_path, plana
     rc, out, err = rodsnes(capsys, "-options_file", os.path.join(CASES, "mattiasson.opts"),
                            "-rod_planar", planar, "-load_path", "newton", "-ksp_type", "gmres",
                            "-pc_type", "none", "-ksp_max_it", "20", "-load_max_cutbacks", "1",
-                           out=d)
+                           "-ksp_typo", "x", out=d)
     assert rc == 3, err
     pre = "-planar_" if planar == "on" else "-"
     step = [ln for ln in out.splitlines() if "not accepted" in ln]

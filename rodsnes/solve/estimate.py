@@ -226,12 +226,12 @@ class EnrichedProblem:
         if stage == "whole" and self.minimizer is not None:
             n0 = self.minimizer.factorizations
             res = self.minimizer.solve_at(self.problem.lam)
-            if res.converged:
-                # in the plane, a stable minimum out of it too, as the run's steps are (the
-                # order p+1 discretisation may buckle sideways where the run's did not)
-                leave_plane_if_unstable(self.minimizer, res, "the order p+1 solution")
+            # in the plane, a stable minimum out of it too, as the run's steps are (the order
+            # p+1 discretisation may buckle sideways where the run's did not); a state its
+            # count finds unstable is no estimate
+            leave_plane_if_unstable(self.minimizer, res, "the order p+1 solution")
             self.factorisations += self.minimizer.factorizations - n0
-            return res.its, res.converged
+            return res.its, res.converged and res.negative_eigenvalues <= 0
         try:
             self.snes.solve(None, self.problem.state.X)
             ok = self.snes.getConvergedReason() > 0
@@ -349,8 +349,8 @@ class ErrorEstimator:
         self.count += 1
         # a non-finite difference is no estimate, whatever the solve said
         ok = bool(ok) and all(np.isfinite(v) for v in (line, tip if tip is not None else 0.0))
-        # the run in its plane, its order p+1 solution buckled out of it (solve_stage)
-        left = bool(planar and mine is not None and not mine.active)
+        # the run in its plane, its order p+1 solution out of it (solve_stage): buckled
+        left = bool(planar and mine is not None and not mine.active and not mine.in_plane())
         return {"tip": tip, "centreline": line, "order": rod.order + 1, "nelem": rod.nelem,
                 "load": problem.lam, "left_plane": left,
                 "newton_iterations": its, "factorisations": nf, "converged": ok, "seconds": dt}
@@ -394,7 +394,8 @@ def progress_text(est, penetration=None):
     if est is None:
         return ""
     tip = "" if est["tip"] is None else f"tip {est['tip']:.1e}, "
-    warn = "" if est["converged"] else " (unreliable: the order p+1 solve did not converge)"
+    warn = "" if est["converged"] else (" (unreliable: the order p+1 solve did not converge "
+                                        "to a stable state)")
     pen = "" if not penetration else (f" (the mesh's, at this penalty; the contact sinks up "
                                       f"to {penetration:.1e} deep)")
     # the order p+1 solution buckled out of the plane where the run's did not (estimate())

@@ -105,15 +105,26 @@ def take_back_defaults():
     DEFAULTED.clear()
 
 
+_UNSET = object()
+
+
+def _value(name):
+    """-name's value ("" for a flag), _UNSET where it is not set; read from the whole database
+    (PetscOptionsGetAll), which marks no option used: a question about an option is no use of
+    it (the misspelt -planar_ksp_typ, asked about, went unreported as unused)."""
+    value = PETSc.Options().getAll().get(name, _UNSET)
+    return "" if value is None else value
+
+
 def is_default(name):
     """Whether -name holds the value option_default set (not one the user gave)."""
-    opts = PETSc.Options()
-    return opts.hasName(name) and DEFAULTED.get(name) == opts.getString(name)
+    value = _value(name)
+    return value is not _UNSET and name in DEFAULTED and DEFAULTED[name] == value
 
 
 def user_chose(name):
     """Whether the user gave -name (it is set, and not by option_default)."""
-    return PETSc.Options().hasName(name) and not is_default(name)
+    return _value(name) is not _UNSET and not is_default(name)
 
 
 def mumps_fill_room(problem, prefix=""):

@@ -23,24 +23,29 @@ MAX_TURN_STEP = 1.0
 # 6351, 93 s with 4 cut-backs on the plectoneme
 TARGET_ITS = 80
 PREDICTOR = True
-# a state whose nodes moved out of the plane by less than this share of L has not left it
-# (leave_plane_if_unstable: the 3-D minimisation at a hidden saddle moves them by round-off)
-IN_PLANE = 1e-9
 
 
 def leave_plane_if_unstable(minimizer, res, why="the planar equilibrium"):
-    """A minimisation ``res`` of a planar problem (problem.planar active): the out-of-plane
-    block of the Hessian factored (planar.PlanarSystem.out_of_plane_count), its negative
-    eigenvalues added to the step's (res.out_of_plane_negative_eigenvalues).  A planar minimum
-    that is a saddle out of the plane (lateral-torsional buckling) is not what the minimiser
-    promises: the problem leaves the plane and minimises again at the same load in 3-D from
-    that state, which leaves the saddle along its negative curvature
-    (EnergyMinimizer._escape); res takes the iterations and the outcome.  The run's load steps
-    (LoadPath.check_plane) and the error estimate's order p+1 solve (estimate.py: a planar
-    estimate that stayed in the plane reported 5e-6 for an unbuckled answer 0.09 L from the
-    buckled one).  Collective."""
+    """A minimisation ``res`` of a planar problem (problem.planar): the out-of-plane block of
+    the Hessian factored (planar.PlanarSystem.out_of_plane_count), its negative eigenvalues
+    added to the step's (res.out_of_plane_negative_eigenvalues).  A planar minimum that is a
+    saddle out of the plane (lateral-torsional buckling) is not what the minimiser promises:
+    the problem leaves the plane and minimises again at the same load in 3-D from that state,
+    which leaves the saddle along its negative curvature (EnergyMinimizer._escape); res takes
+    the iterations and the outcome.  The run's load steps (LoadPath.check_plane) and the error
+    estimate's order p+1 solve (estimate.py: a planar estimate that stayed in the plane
+    reported 5e-6 for an unbuckled answer 0.09 L from the buckled one).
+    Once left, a state that is still in the plane keeps being counted out of it
+    (_count_out_of_plane): the 3-D count's neutral band (the Hessian's round-off, ~ EA / h^2:
+    ltb with EA = 1e12 took -16.8 EI/L^4 as neutral) can hide the saddle that the block's own
+    count, with its narrower band, finds; the 3-D minimisation then stopped at once on the
+    planar state, which the run called stable (exit 0, 0.28 L from the buckled answer).
+    Collective."""
     planar = minimizer.problem.planar
-    if planar is None or not planar.active:
+    if planar is None or not res.converged:
+        return
+    if not planar.active:
+        _count_out_of_plane(planar, res)
         return
     n_out = planar.out_of_plane_count()
     res.out_of_plane_negative_eigenvalues = n_out
@@ -49,20 +54,7 @@ def leave_plane_if_unstable(minimizer, res, why="the planar equilibrium"):
     res.negative_eigenvalues += n_out
     planar.leave("%s is UNSTABLE out of plane (%d negative eigenvalue%s of the out-of-plane "
                  "Hessian)" % (why, n_out, "" if n_out == 1 else "s"), "unstable out of plane")
-    p = minimizer.problem
-    z0 = _out_of_plane_coordinates(p, planar.plane)
     again = minimizer.solve_at(res.lam)
-    if again.converged and again.negative_eigenvalues == 0 and \
-            _out_of_plane_coordinates(p, planar.plane) <= z0 + IN_PLANE * p.mesh.length:
-        # the 3-D minimisation stopped at once on the planar state it left: its count's neutral
-        # band (the Hessian's round-off, ~ EA / h^2: ltb with EA = 1e12 took -16.8 EI/L^4 as
-        # neutral) hides the out-of-plane saddle that the out-of-plane block's own count, with
-        # its narrower band, found.  That count stands: not a stable minimum (the state is
-        # planar, so the block is still the out-of-plane Hessian).  Stable and exit 0 before.
-        n_again = planar.out_of_plane_count()
-        if n_again > 0:
-            again.negative_eigenvalues = n_again
-            res.out_of_plane_negative_eigenvalues = n_again
     res.its += again.its
     res.seconds += again.seconds
     res.history = np.concatenate([res.history, again.history])
@@ -73,15 +65,19 @@ def leave_plane_if_unstable(minimizer, res, why="the planar equilibrium"):
     res.line_search_cuts += again.line_search_cuts
     if not again.converged:
         res.converged, res.reason = False, f"in 3-D after leaving the plane: {again.reason}"
+        return
+    _count_out_of_plane(planar, res)
 
 
-def _out_of_plane_coordinates(problem, plane):
-    """max |r . e_axis| over the nodes, over all ranks (the plane through the origin: a planar
-    scene's).  Collective."""
-    from mpi4py import MPI
-    r, _ = problem.state.local_config()
-    z = float(np.abs(r[:problem.layout.n_owned, plane.axis]).max(initial=0.0))
-    return problem.layout.comm.tompi4py().allreduce(z, op=MPI.MAX)
+def _count_out_of_plane(planar, res):
+    """A converged 3-D minimisation of a scene that left its plane, whose state is still in it
+    and counted stable: the out-of-plane block's count stands (leave_plane_if_unstable).
+    Collective."""
+    if res.negative_eigenvalues != 0 or not planar.in_plane():
+        return
+    n = planar.out_of_plane_count()
+    if n > 0:
+        res.negative_eigenvalues = res.out_of_plane_negative_eigenvalues = n
 
 
 class LoadPath:

@@ -48,6 +48,9 @@ from rodsnes.solve.stability import Inertia
 GUARD = 1e-8
 PREFIX = "planar_"                 # the in-plane Newton step's KSP (the run's LU, solve/linear.py)
 STABILITY_PREFIX = "planar_stability_"   # the in-plane and out-of-plane LDL^T
+# a node out of the plane by less than this share of L has not left it (PlanarSystem.in_plane:
+# a 3-D minimisation at a saddle its count cannot see moves the nodes by round-off)
+IN_PLANE = 1e-9
 # the unprefixed options of the Newton step's linear solver that the in-plane step takes over
 # (not its monitors and views: the user's would print twice, once for each solver)
 CARRIED = ("ksp_", "pc_", "sub_", "redundant_", "mat_mumps_")
@@ -375,15 +378,18 @@ class PlanarSystem:
             # every option of its KSP, PC and factorisation (options/iterative.opts' tolerance,
             # overlap and subdomain solver too: with its type alone the cantilever of 200
             # elements took 122 iterations for 22); a solver of its own (-estimate_*) its own
-            keys = [k for k in opts.getAll() if k.startswith(CARRIED) and not
+            # (read from the whole database, which marks none used: a misspelt -ksp_typo stays
+            # unread, and is not counted among the options given where the step fails)
+            given = opts.getAll()
+            keys = [k for k in given if k.startswith(CARRIED) and not
                     any(w in k for w in ("monitor", "view", "converged_reason"))] \
                 if pre == PREFIX else ()
             for key in keys:
-                if opts.hasName(key):
-                    if is_default(key):
-                        option_default(pre + key, opts.getString(key))
-                    elif not opts.hasName(pre + key):
-                        opts.setValue(pre + key, opts.getString(key))
+                value = "" if given[key] is None else given[key]
+                if is_default(key):
+                    option_default(pre + key, value)
+                elif pre + key not in given:
+                    opts.setValue(pre + key, value)
             self.lu = LUChoice(direct_solver_defaults(self.problem, pre))
             solver_made(pre)
             ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
@@ -472,6 +478,17 @@ class PlanarSystem:
         return False
 
     # -- stability -----------------------------------------------------------------------
+    def in_plane(self):
+        """Whether every node still lies in the scene's plane (within IN_PLANE of L of the
+        first node's place at rest: a planar scene's nodes share it), after the run may have
+        left it for 3-D.  Collective."""
+        p = self.problem
+        axis = self.plane.axis
+        r, _ = p.state.local_config()
+        z0 = float(p.mesh.x_init[0, axis])
+        off = float(np.abs(r[:p.layout.n_owned, axis] - z0).max(initial=0.0))
+        return self.comm.allreduce(off, op=MPI.MAX) <= IN_PLANE * p.mesh.length
+
     def out_of_plane_count(self):
         """Negative eigenvalues of the out-of-plane block H_oo of the energy Hessian at the
         current (planar) state: one LDL^T.  Collective."""
