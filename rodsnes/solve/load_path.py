@@ -270,6 +270,11 @@ class LoadPath:
             st.restore(snap)
             prev = None
             p.set_load(lam)
+            pl = p.planar
+            if pl is not None and pl.left is not None and pl.left[0] > lam:
+                # the plane was left in the try that failed: 3-D from the last converged load
+                # (summary.json's model named the rejected trial's load)
+                pl.left = (lam, pl.left[1])
             if on_fail is not None:
                 on_fail(res, dl)
             cutbacks += 1
