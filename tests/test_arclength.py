@@ -135,7 +135,7 @@ def test_a_fold_met_again_is_not_gone_round_twice(monkeypatch):
     from rodsnes.solve.newton import NewtonSolver
     calls = []
 
-    def around(self, lam_fold, on_step, prev=None, ds=None):
+    def around(self, lam_fold, on_step, prev=None, ds=None, stop=1.0):
         calls.append(self.problem.lam)
         if len(calls) > 2:                 # round and round: fail, do not hang
             raise RuntimeError(f"the fold was gone round {len(calls)} times")
@@ -189,3 +189,31 @@ def test_no_wall_raise_follows_the_continuations_last_point(monkeypatch):
     arc = [r.lam for r in run.solver.results if getattr(r, "arclength", False)]
     assert not run.ok and len(arc) == 2
     assert arc[0] in calls and arc[-1] not in calls
+
+
+def test_the_continuation_ends_at_the_load_stop():
+    """-load_stop ends a continuation too (a staged run resumes from it): past the fold at
+    0.990 the branch of the twisted rod comes back above 0.995 and the run ends there, where
+    the continuation went on to the end of the load (a snapping arch with -load_stop 0.2 ended
+    at 0.309, exit 0)."""
+    run = run_case(None, stability=True, load_arclength=True, load_stop=0.995, **TWISTED)
+    assert run.ok and abs(run.problem.lam - 0.995) < 1e-12
+    assert any(getattr(r, "arclength", False) for r in run.solver.results)
+
+
+def test_a_continuation_that_lands_on_another_branch_is_not_taken():
+    """A snapping arch (clamped, 20 degrees, gravity toward its centre): the continuation from
+    the bifurcation at 0.1285 first converged 15 steps ds away, on the snapped branch, and the
+    run wrote that one point as the branch past the fold (exit 0).  A point farther than
+    MAX_DRIFT ds from the last is not accepted (ds halved): no two points of the path lie far
+    apart."""
+    from rodsnes.solve import arclength
+    run = run_case(None, rod_length=1, rod_EA=1e5, rod_GA=1e5, rod_EI=1, rod_GJ=1,
+                   rod_radius=0.01, rod_shape="arc", rod_arc_angle=20, rod_nelem=16, rod_order=3,
+                   bc_start="clamped", bc_end="clamped", load_gravity="-34.73,196.96,0",
+                   load_steps=20, load_path="newton", stability=True, load_arclength=True,
+                   load_arclength_max_steps=10, rod_error_estimate="off")
+    arc = [r for r in run.solver.results if getattr(r, "arclength", False)]
+    assert arc and all(abs(b.lam - a.lam) < 0.05 for a, b in zip(arc, arc[1:]))
+    assert not run.ok or run.problem.lam < 0.2, run.problem.lam   # not the one point at 0.309
+    assert arclength.MAX_DRIFT == 2.0

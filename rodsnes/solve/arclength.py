@@ -48,6 +48,13 @@ from rodsnes.model.partition import NDOF
 from rodsnes.solve.step import StepResult
 
 
+# a converged corrector farther than this many step lengths ds from the last point (in the
+# metric W) landed on another branch: the step is not accepted, ds halved (the corrector keeps
+# <t, u - u_n> = ds, but nothing bounds its part across t: a snapping arch's continuation wrote
+# one point 15 ds away, on the far side of the snap, and called it the branch past the fold)
+MAX_DRIFT = 2.0
+
+
 class Arclength:
     """Pseudo-arclength steps from the current converged state (module docstring).  solver: the
     Newton path's solver (solver.NewtonSolver), whose SNES, linear solver, convergence test,
@@ -206,11 +213,13 @@ class Arclength:
         return res
 
     # -- around a fold -------------------------------------------------------------------
-    def around(self, lam_fold, on_step=None, prev=None, ds=None):
+    def around(self, lam_fold, on_step=None, prev=None, ds=None, stop=1.0):
         """Follow the branch from the current equilibrium (at load <= lam_fold) until it is past
         the fold: a converged point with lambda increasing, beyond lam_fold or after lambda has
-        fallen, and (-stability, loads with an energy) no negative eigenvalue; or lambda reaches 1 (the last point
-        then solved at lambda = 1 by plain Newton from the point before).  prev: (snapshot, lambda) of the point before the
+        fallen, and (-stability, loads with an energy) no negative eigenvalue; or lambda reaches
+        ``stop`` (-load_stop, 1 by default; the last point then solved at lambda = stop by plain
+        Newton from the point before).  A point the corrector found farther than MAX_DRIFT ds
+        from the last is on another branch: not accepted, ds halved.  prev: (snapshot, lambda) of the point before the
         current one on the branch, to start from the secant (a restart inside the continuation);
         None: the exact tangent.  on_step(result) after every converged point (result.arclength,
         result.arclength_from = lam_fold, result.next_increment = the next ds).  Returns
@@ -234,11 +243,21 @@ class Arclength:
                 self.p.ease_walls(lam, say=solver.say)
                 raise_wall = False
             res = self.corrector((tx, tl), ds, snap, lam)
-            if res.converged and res.lam > 1.0:
-                # past the end of the load: the last point is solved at lambda = 1
+            if res.converged:
+                new = p.state.snapshot()
+                dx, dl = self.difference(new, res.lam, snap, lam)
+                drift = np.sqrt(self.dot(dx, dl, dx, dl)) / ds
+                dx.destroy()
+                new[1].destroy()
+                if drift > MAX_DRIFT:
+                    res.converged = False
+                    res.reason = (f"it landed {drift:.1f} steps from the last point: another "
+                                  f"branch")
+            if res.converged and res.lam > stop:
+                # past the end of the load: the last point is solved at lambda = stop
                 p.state.restore(snap)
-                p.set_load(1.0)
-                res = solver.solve_guarded(1.0)
+                p.set_load(stop)
+                res = solver.solve_guarded(stop)
                 res.arclength, res.reason = True, "arclength: end"
                 if not res.converged:
                     p.state.restore(snap)
@@ -280,7 +299,7 @@ class Arclength:
             if on_step is not None:
                 on_step(res)
             raise_wall = True
-            if lam >= 1.0 - 1e-14:          # the end of the load, stable or not
+            if lam >= stop - 1e-14:         # the end of the load, stable or not
                 return results, True, prev
             past = tl > 0 and (went_back or lam > lam_fold)
             # a count decides stability only for loads with an energy (solver.conservative)

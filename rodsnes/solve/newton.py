@@ -230,7 +230,7 @@ class NewtonSolver:
         nneg = int(nneg0)      # negative eigenvalues of the last converged step (-stability)
         p.ease_walls(lam, stop, self.say)    # a restart from a state pressing into a wall
         if arc0 is not None:
-            ok, prev, lam, nneg = self._around_fold(arc0, on_step, prev0, dlam0)
+            ok, prev, lam, nneg = self._around_fold(arc0, on_step, prev0, dlam0, stop=stop)
             if not ok:
                 return results, False
             dlam = nominal
@@ -277,7 +277,7 @@ class NewtonSolver:
                                         f"around this fold came back to it (a closed loop of "
                                         f"equilibria); the last converged step is in result.h5")
                     return results, False
-                ok, prev, lam, nneg = self._around_fold(target, on_step)
+                ok, prev, lam, nneg = self._around_fold(target, on_step, stop=stop)
                 if not ok:
                     return results, False
                 p.ease_walls(lam, stop, self.say)   # load stepping goes on from the last point
@@ -349,7 +349,7 @@ class NewtonSolver:
             self._folds.append((p.lam, r))
         return seen
 
-    def _around_fold(self, lam_fold, on_step, prev=None, ds=None):
+    def _around_fold(self, lam_fold, on_step, prev=None, ds=None, stop=1.0):
         """-load_arclength: follow the branch from the current state around the fold beyond the
         last converged load (lam_fold: the shortest step tried); the points join the results.
         Returns (ok, (snapshot, lambda) of the point before the last: the secant predictor's,
@@ -359,7 +359,7 @@ class NewtonSolver:
                  "(a fold): pseudo-arclength continuation around it" if prev is None else
                  f"  resuming the pseudo-arclength continuation around the fold at {lam_fold:.6f}")
         arc = Arclength(self)
-        rs, ok, before = arc.around(lam_fold, on_step, prev=prev, ds=ds)
+        rs, ok, before = arc.around(lam_fold, on_step, prev=prev, ds=ds, stop=stop)
         self.results += rs
         if not ok:
             self.say(f"  pseudo-arclength continuation FAILED after {arc.steps} steps at load "
