@@ -408,7 +408,6 @@ def unused_petsc_warnings(given, late, made=None):
     rodsnes' own solvers the run made (linear.solvers_made; None: not known)."""
     from rodsnes import petsc_lib
     from rodsnes.io import scene as scn
-    from rodsnes.io.scene import _suggest, _or_list
     left = petsc_lib.options_left()
     if left is None:
         return []
@@ -433,11 +432,11 @@ def unused_petsc_warnings(given, late, made=None):
             # that does not read it (another kind of solver, or misspelt)
             pre = next(p for p in SOLVER_RUNS_WHEN if low.startswith(p))
             rest = low[len(pre):]
-            near = _suggest(rest, list(COMMON_PETSC_OPTIONS))
+            near = _closest(rest, COMMON_PETSC_OPTIONS, pre)
             if made is not None and pre not in made:
                 hint = f" (the -{pre} solver runs {SOLVER_RUNS_WHEN[pre]}: this run made none)"
             elif near and rest not in COMMON_PETSC_OPTIONS:
-                hint = f": did you mean {_or_list(['-' + pre + n for n in near])}?"
+                hint = f": did you mean {near}?"
             else:
                 hint = (f" (this run's -{pre} solver does not read it: not an option of its "
                         f"kind of solver)")
@@ -460,11 +459,12 @@ SOLVER_RUNS_WHEN = {
     "planar_": "in a planar run (-rod_planar)"}
 
 
-def _closest(word, names):
-    """'-a', '-a or -b' ...: the names closest to word (scene._suggest), or ''."""
+def _closest(word, names, prefix=""):
+    """'-a', '-a or -b' ...: the names closest to word (scene._suggest), or ''; each shown
+    behind the options ``prefix`` (-planar_a ...)."""
     from rodsnes.io.scene import _suggest, _or_list
     close = _suggest(word, list(names))
-    return _or_list(["-" + c for c in close]) if close else ""
+    return _or_list(["-" + prefix + c for c in close]) if close else ""
 
 
 # the Newton steps' solvers a user may set under a prefix (README, Options: linear solves):

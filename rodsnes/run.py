@@ -488,14 +488,20 @@ class Run:
                   + f"; results in {self.outdir}", flush=True)
         return ok
 
+    def _last_penetration(self):
+        """The last state's max_penetration (of the contact diameter, from its report: observe),
+        None without contact or before any report."""
+        if self.contact is None:
+            return None
+        return (getattr(self, "last_reports", None) or {}).get("contact", {}).get(
+            "max_penetration")
+
     def penetration_length(self):
         """The last state's deepest contact penetration in length units (max_penetration x the
         contact diameter), None without contact: the penalty's error, which the error
         estimate (the discretisation's, at the run's penalty) does not count."""
-        rep = (getattr(self, "last_reports", None) or {}).get("contact")
-        if self.contact is None or rep is None or rep.get("max_penetration") is None:
-            return None
-        return rep["max_penetration"] * 2.0 * self.contact.radius
+        pen = self._last_penetration()
+        return None if pen is None else pen * 2.0 * self.contact.radius
 
     def _on_mesh(self):
         """' on the -rod_tolerance mesh of N elements of order p' for a warning of one of the
@@ -553,9 +559,7 @@ class Run:
         given (-contact_penalty without -contact_penalty_adapt: the plectoneme with
         -contact_penalty 2e4 -contact_wall 0 ended 15.8 % deep, exit 0, summary.json saying
         1 % promised), or raises that did not bring it back, says so."""
-        c = self.contact
-        rep = (getattr(self, "last_reports", None) or {}).get("contact") if c is not None else None
-        pen = None if rep is None else rep.get("max_penetration")
+        c, pen = self.contact, self._last_penetration()
         if pen is None or self.rank != 0 or not pen > c.penetration * (1.0 + 1e-6):
             return
         why = (f"-contact_penalty {c.mu:g} was kept as given (-contact_penalty_adapt raises it "
