@@ -79,10 +79,6 @@ class Run:
             self.solver = NewtonSolver(self.problem, self.force_scale,
                                        check_stability=scene.stability,
                                        conservative=self.conservative)
-        if self.problem.step_limit and self.path == "newton":
-            snes = self.solver.snes
-            self.solver.snes.setLineSearchPreCheck(
-                lambda X, Y: self.problem.precheck(X, Y, snes.getFunction()[0]))
         self.outdir = scene.output.dir
         self.quiet = scene.output.quiet
         self.step = 0

@@ -575,7 +575,7 @@ def test_help_text_lists_every_option_once():
     assert "  -contact <false>: " in text
     for title in scene.SECTIONS.values():
         assert title in text
-    assert len(scene.OPTIONS) == 66
+    assert len(scene.OPTIONS) == 67
     for name in scene.RETIRED:                # refused with what replaced them, never listed
         assert "-%s " % name not in text and "-%s <" % name not in text
 

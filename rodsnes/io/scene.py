@@ -256,6 +256,11 @@ class O:
                       "load", rng="[1,inf)", note="a number of Newton iterations")
     load_predictor = Opt(BOOL, True, "start each load step from the secant predictor through "
                          "the last two converged states", "load")
+    load_retraction = Opt(BOOL, True, "-load_path newton: take each Newton step along the "
+                          "rod's retraction, its positions following the turn of its frames, "
+                          "so that a step that turns a stiff rod does not stretch it (without "
+                          "contact, with -snes_linesearch_type basic, the default; off: "
+                          "straight steps)", "load")
     load_max_cutbacks = Opt(INT, 10, "times a failed increment may be halved", "load",
                             rng="[0,inf)", note="number of step halvings")
     load_stagnation_its = Opt(INT, 15, "a Newton solve whose residual has not halved in this many "
@@ -500,6 +505,7 @@ class Loads:
     rtol: float = 1e-10              # -snes_rtol: |g| <= rtol x the force scale
     atol: float = 0.0                # -snes_atol: |F| <= atol accepted too (Newton path)
     predictor: bool = True           # the Newton path's secant predictor
+    retraction: bool = True          # the Newton path's steps along the retraction
     stagnation_its: int = 15
     arclength: bool = False          # pseudo-arclength continuation at folds
     arclength_max_steps: int = 200
@@ -1103,7 +1109,8 @@ def _loads(c, rod, bc):
                  path=str(c[O.load_path]), max_it=int(c[O.load_max_it]),
                  rtol=_snes_tolerance(c.r.options, "snes_rtol", 1e-10),
                  atol=_snes_tolerance(c.r.options, "snes_atol", 0.0),
-                 predictor=bool(c[O.load_predictor]), stagnation_its=int(c[O.load_stagnation_its]),
+                 predictor=bool(c[O.load_predictor]), retraction=bool(c[O.load_retraction]),
+                 stagnation_its=int(c[O.load_stagnation_its]),
                  arclength=bool(c[O.load_arclength]),
                  arclength_max_steps=int(c[O.load_arclength_max_steps]),
                  arclength_its=int(c[O.load_arclength_its]))
@@ -1740,7 +1747,7 @@ def check_solvable(scene, memory="machine"):
 # Options that do nothing in this scene (warnings, as PETSc's -options_left)
 # ----------------------------------------------------------------------------
 _PATH_ONLY = {"load_max_it": "minimize", "load_predictor": "newton",
-              "load_stagnation_its": "newton",
+              "load_stagnation_its": "newton", "load_retraction": "newton",
               # the minimisation counts the inertia of every step anyway
               "stability": "newton"}
 """Options read by one load path only (-load_path, run.path)."""

@@ -1,5 +1,5 @@
 /* Rotations of rodsnes' nodes (C99, no Python API; loaded with ctypes by
- * rodsnes/model/so3_compiled.py): out_i = exp(theta_i) * q_i, one pass over the nodes, with
+ * rodsnes/model/so3_compiled.py): rodsnes_rotate, out_i = exp(theta_i) * q_i, one pass over the nodes, with
  * the formulas of so3.qexp and so3.qmul (quaternions (w, x, y, z), Hamilton product), and with
  * ``normalize`` out_i / |out_i|.  theta_i = x[i * stride + (0, 1, 2)]: the rotation
  * increments in place in the rows of the local dof array, no copy.  Built with
@@ -33,6 +33,47 @@ void rodsnes_rotate(int64_t n, const double *x, int64_t stride, const double *q,
             o[1] /= r;
             o[2] /= r;
             o[3] /= r;
+        }
+    }
+}
+
+/* The turn excess of the chords of a step (rodsnes/model/retraction.py, chord_turns): for
+ * each of the ne elements (conn: its p + 1 local nodes, row by row) and each chord c between
+ * its consecutive nodes a, b (c = x_b - x_a, x the positions at x[node * xs + (0, 1, 2)]),
+ * the mean turn t = alpha (th_a + th_b) / 2 (th at th[node * ts + (0, 1, 2)]) and
+ * (exp(t^x) - I - t^x) c = (s - 1) t x c + k t x (t x c), s = sin|t| / |t|,
+ * k = (1 - cos|t|) / |t|^2 (series below |t| = 1e-2); within[e, j] (3 values) their sum over
+ * the element's first j chords, within[e, 0] = 0.  The formulas of retraction.turn_excess. */
+void rodsnes_chord_turns(int64_t ne, int64_t p, const int64_t *conn, const double *x,
+                         int64_t xs, const double *th, int64_t ts, double alpha, double *within)
+{
+    for (int64_t e = 0; e < ne; e++) {
+        const int64_t *nd = conn + e * (p + 1);
+        double *w = within + e * (p + 1) * 3;
+        w[0] = w[1] = w[2] = 0.0;
+        for (int64_t j = 0; j < p; j++) {
+            const double *xa = x + nd[j] * xs, *xb = x + nd[j + 1] * xs;
+            const double *ta = th + nd[j] * ts, *tb = th + nd[j + 1] * ts;
+            const double c0 = xb[0] - xa[0], c1 = xb[1] - xa[1], c2 = xb[2] - xa[2];
+            const double t0 = 0.5 * alpha * (ta[0] + tb[0]), t1 = 0.5 * alpha * (ta[1] + tb[1]),
+                         t2 = 0.5 * alpha * (ta[2] + tb[2]);
+            const double a2 = t0 * t0 + t1 * t1 + t2 * t2;
+            double sm1, k;
+            if (a2 < 1e-4) {
+                sm1 = -a2 / 6.0 * (1.0 - a2 / 20.0 * (1.0 - a2 / 42.0));
+                k = 0.5 - a2 / 24.0 * (1.0 - a2 / 30.0 * (1.0 - a2 / 56.0));
+            } else {
+                const double a = sqrt(a2);
+                double sh, ch;
+                sincos(0.5 * a, &sh, &ch);
+                sm1 = 2.0 * sh * ch / a - 1.0;
+                k = 2.0 * sh * sh / a2;
+            }
+            const double u0 = t1 * c2 - t2 * c1, u1 = t2 * c0 - t0 * c2, u2 = t0 * c1 - t1 * c0;
+            const double v0 = t1 * u2 - t2 * u1, v1 = t2 * u0 - t0 * u2, v2 = t0 * u1 - t1 * u0;
+            w[3 * (j + 1) + 0] = w[3 * j + 0] + (sm1 * u0 + k * v0);
+            w[3 * (j + 1) + 1] = w[3 * j + 1] + (sm1 * u1 + k * v1);
+            w[3 * (j + 1) + 2] = w[3 * j + 2] + (sm1 * u2 + k * v2);
         }
     }
 }

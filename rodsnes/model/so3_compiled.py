@@ -7,10 +7,15 @@ The numpy path (so3.rotated without the library) is its reference: equal to roun
 (tests/test_so3_compiled.py).  Measured at 3e5 nodes (Intel Xeon VM): numpy 36 ms (qexp 13, qmul 16,
 normalisation 7) against C 8 ms (the sines and cosines).
 
-C entry point:
+C entry points:
 
     void rodsnes_rotate(int64 n, const double *x, int64 stride, const double *q, int normalize,
                         double *out)
+    void rodsnes_chord_turns(int64 ne, int64 p, const int64 *conn, const double *x, int64 xs,
+                             const double *th, int64 ts, double alpha, double *within)
+
+The second is the retraction's turn excess of the chords (rodsnes/model/retraction.py, whose
+numpy path is its reference).
 """
 import ctypes
 
@@ -20,10 +25,13 @@ from rodsnes import compiled
 
 
 def _declare(lib):
-    n = ctypes.c_int64
-    return compiled.Foreign(lib.rodsnes_rotate,
-                            [n, ctypes.c_void_p, n, compiled.F64, ctypes.c_int, compiled.F64],
-                            None)
+    n, vp = ctypes.c_int64, ctypes.c_void_p
+    return {"rotate": compiled.Foreign(lib.rodsnes_rotate,
+                                       [n, vp, n, compiled.F64, ctypes.c_int, compiled.F64],
+                                       None),
+            "chord_turns": compiled.Foreign(lib.rodsnes_chord_turns,
+                                            [n, n, compiled.I64, vp, n, vp, n,
+                                             ctypes.c_double, compiled.F64], None)}
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -38,13 +46,37 @@ def rotate(theta, q, normalize):
     """exp(theta_i) q_i for theta (n, 3), rows of a float64 array whose entries within a row
     are contiguous (a view of the (n, 6) local dofs is read in place), q (n, 4) C-contiguous;
     None when the library is not built or theta is not such a view."""
-    fn = _load()
-    if not fn or theta.dtype != np.float64 or theta.ndim != 2 or theta.shape[1] != 3 \
+    fns = _load()
+    if not fns or theta.dtype != np.float64 or theta.ndim != 2 or theta.shape[1] != 3 \
             or theta.strides[1] != 8 or theta.strides[0] % 8 or len(theta) != len(q):
         return None
     q = np.ascontiguousarray(q, dtype=np.float64)
     out = np.empty((len(q), 4))
     if len(q):
-        fn(len(q), theta.__array_interface__["data"][0], theta.strides[0] // 8, q,
-           int(bool(normalize)), out)
+        fns["rotate"](len(q), theta.__array_interface__["data"][0], theta.strides[0] // 8, q,
+                      int(bool(normalize)), out)
+    return out
+
+
+def _rows_of_three(a):
+    """Whether ``a`` is (n, 3) float64 rows whose three entries are contiguous (a view of the
+    (n, 6) local dofs qualifies)."""
+    return (a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.strides[1] == 8
+            and a.strides[0] % 8 == 0)
+
+
+def chord_turns(conn, x, theta, alpha):
+    """(ne, p + 1, 3): retraction.chord_turns by the C kernel (conn (ne, p + 1) local nodes,
+    x and theta (n, 3) rows of three contiguous values, read in place); None when the library
+    is not built or the arrays are not so laid out."""
+    fns = _load()
+    if not fns or not (_rows_of_three(x) and _rows_of_three(theta)):
+        return None
+    conn = np.ascontiguousarray(conn, dtype=np.int64)
+    ne, p1 = conn.shape
+    out = np.empty((ne, p1, 3))
+    if ne:
+        fns["chord_turns"](ne, p1 - 1, conn, x.__array_interface__["data"][0],
+                           x.strides[0] // 8, theta.__array_interface__["data"][0],
+                           theta.strides[0] // 8, float(alpha), out)
     return out

@@ -194,7 +194,10 @@ class Arclength:
                     p.precheck(p.state.X, Y)
                 s = Y.norm() / y0 if y0 > 0 else 1.0
                 s = self.comm.bcast(s, root=0)
-                p.state.X.axpy(s, a)
+                if solver.retraction is not None:      # along the retraction, as newton.py
+                    solver.retraction.move(p.state.X, s, a)
+                else:
+                    p.state.X.axpy(s, a)
                 lam += s * dl
                 p.set_load(lam, refresh=False)
                 its += 1

@@ -26,6 +26,7 @@ import time
 import numpy as np
 from petsc4py import PETSc
 
+from rodsnes.model.retraction import Retraction
 from rodsnes.solve.arclength import Arclength
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve, option_default
 from rodsnes.solve.step import StepResult
@@ -68,6 +69,20 @@ class NewtonSolver:
         problem.on_pattern_change = self.set_matrix
         if problem.planar is not None:      # linear solves on the in-plane block (planar.py)
             problem.planar.attach(self)
+        # every full Newton step along the rod's retraction (model/retraction.py), where the
+        # line search takes the step as it is (basic, its damping the step) and no term limits
+        # the step's move: contact's limits bound the straight move, and the retraction's
+        # correction, summed along the rod, moves the strands of a ply relative to each other
+        # against the contact's stiffness (the 10-turn plectoneme's re-solve at a raised
+        # penalty stagnated with it, converged in 37 iterations without)
+        self.retraction = None
+        kind, damping = _line_search(snes)
+        if getattr(problem.scene.loads, "retraction", False) and kind == "basic" \
+                and not problem.step_limit:
+            self.retraction = Retraction(problem)
+            self.damping = damping
+        if self.retraction is not None or problem.step_limit:
+            snes.setLineSearchPreCheck(self._precheck)
         rod = problem.scene.rod
         # roundoff floor of the residual: strains of size ~1 (v3 = 1), differentiated over a
         # node spacing, times the largest stiffness, summed over the nodes; a residual at this
@@ -145,6 +160,17 @@ class NewtonSolver:
         if it >= maxit:
             return R.DIVERGED_MAX_IT
         return R.CONVERGED_ITERATING
+
+    def _precheck(self, X, Y):
+        """SNES's line-search pre-check (its iterate X - Y): the step along the retraction,
+        then the contact's step limits (RodProblem.precheck).  True when Y was changed."""
+        changed = False
+        if self.retraction is not None:
+            self.retraction.retract_direction(X, Y, self.damping)
+            changed = True
+        if self.problem.step_limit:
+            changed = self.problem.precheck(X, Y, self.snes.getFunction()[0]) or changed
+        return changed
 
     def _update(self, snes, its):
         """Before every Newton step: the problem's update (the rotations re-centred), and for a
@@ -489,3 +515,16 @@ class NewtonSolver:
         """A progress line on rank 0 (nothing with -quiet)."""
         if not self.quiet and self.problem.layout.comm.getRank() == 0:
             print(text, flush=True)
+
+
+def _line_search(snes):
+    """(type, damping) of ``snes``'s line search as the options database sets them (PETSc's
+    basic and 1.0 where none is given), read without marking the options used."""
+    opts = PETSc.Options().getAll()
+    prefix = snes.getOptionsPrefix() or ""
+    kind = str(opts.get(prefix + "snes_linesearch_type", "basic"))
+    try:
+        damping = float(opts.get(prefix + "snes_linesearch_damping", 1.0))
+    except (TypeError, ValueError):
+        damping = 1.0
+    return kind, (damping if damping > 0.0 else 1.0)

@@ -1,0 +1,201 @@
+"""The step's retraction: a Newton step taken so that it turns the rod's pieces instead of
+stretching them (the Newton path's steps, solve/newton.py).
+
+A step x + d in the exponential chart moves each node by dr and turns its frame by
+exp(dtheta).  Between two neighbouring nodes the chord c = r_b - r_a becomes c + dc, while the
+frames turn by about the mean t = (dtheta_a + dtheta_b) / 2.  Where the step turns a piece of
+the rod by an angle t, the linear chord c + t x c is longer than the turned one exp(t) c by
+|t|^2 |c| / 2: a stretch strain of |t|^2 / 2 that the stiffness EA answers at second order.
+A nearly inextensible cantilever (EA = 1e6 EI / L^2) went |F| 5 -> 2.6e6 after its first
+Newton step, and every other iteration was spent taking that stretch back.  The retraction
+adds to every chord the second-order part of its turn,
+
+    e = (exp(t^x) - I - t^x) c          (Rodrigues: (s - 1) t x c + k t x (t x c),
+                                          s = sin|t| / |t|, k = (1 - cos|t|) / |t|^2),
+
+summed along the rod from the nodes whose position components are held: a node's correction
+is the sum of the excesses e between it and the held nodes, each component on its own (a
+clamp holds three, a sliding end two): between two held nodes the sum's mismatch is spread
+linearly in arclength, beyond the last one it is carried unchanged, a component held nowhere
+keeps its mean, and a ring's mismatch around the loop is spread around it first.  The held
+components themselves are not moved.
+
+x + d + a(d), a = O(|d|^2), agrees with x + d to first order, so Newton keeps its quadratic
+convergence (Newton on a manifold with any first-order retraction), and a rigid turn of the
+whole rod about a clamp is taken exactly.  It is meant for Newton's steps, whose positions and
+frames turn together (the consistent tangent links them), on a rod without contact: on the
+minimiser's shifted steps (H + sigma M, positions and frames moving each by its own gradient)
+and where contact holds strands of a ply together (the correction moves them relative to each
+other) it was measured to cost iterations (docs/solver.md, The Newton path).
+
+Collective: every rank computes the chords of its own elements (the compiled kernel,
+so3_compiled.chord_turns, or the numpy path here, its reference), the sums along the rod come
+from the ranks' runs of consecutive elements (one allgather), the held nodes' sums from their
+owners (one allreduce).
+"""
+import numpy as np
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from rodsnes.model import so3_compiled
+from rodsnes.model.partition import NDOF
+
+# below this |t|^2 the series of s - 1 and k (their closed forms lose digits to cancellation)
+SERIES = 1e-4
+
+
+def turn_excess(t, c):
+    """(exp(t^x) - I - t^x) c for rows of rotation vectors t and vectors c, (n, 3) each."""
+    a2 = np.einsum("ij,ij->i", t, t)
+    small = a2 < SERIES
+    a = np.sqrt(np.where(small, 1.0, a2))
+    sh, ch = np.sin(0.5 * a), np.cos(0.5 * a)
+    sm1 = np.where(small, -a2 / 6.0 * (1.0 - a2 / 20.0 * (1.0 - a2 / 42.0)),
+                   2.0 * sh * ch / a - 1.0)
+    k = np.where(small, 0.5 - a2 / 24.0 * (1.0 - a2 / 30.0 * (1.0 - a2 / 56.0)),
+                 2.0 * sh * sh / np.where(small, 1.0, a2))
+    u = np.cross(t, c)
+    return sm1[:, None] * u + k[:, None] * np.cross(t, u)
+
+
+def chord_turns(conn, x, theta, alpha, compiled=True):
+    """(ne, p + 1, 3): for each element (conn: its p + 1 local nodes) the turn excesses of its
+    chords, t = alpha (theta_a + theta_b) / 2, summed over its first j chords (j = 0..p).  x,
+    theta: (n_local, 3) positions and turns.  The compiled kernel where it is built (and
+    ``compiled``), else numpy."""
+    if compiled:
+        out = so3_compiled.chord_turns(conn, x, theta, alpha)
+        if out is not None:
+            return out
+    conn = np.asarray(conn)
+    ne, p1 = conn.shape
+    c = x[conn[:, 1:]] - x[conn[:, :-1]]
+    t = 0.5 * alpha * (theta[conn[:, 1:]] + theta[conn[:, :-1]])
+    e = turn_excess(t.reshape(-1, 3), c.reshape(-1, 3)).reshape(ne, p1 - 1, 3)
+    out = np.zeros((ne, p1, 3))
+    np.cumsum(e, axis=1, out=out[:, 1:])
+    return out
+
+
+class Retraction:
+    """x + alpha d taken along the retraction (module docstring) for a problem's rod."""
+
+    def __init__(self, problem, compiled=True):
+        """For ``problem``'s rod and layout (collective: the ranks' runs are exchanged)."""
+        self.problem = problem
+        self.compiled = compiled
+        lay = problem.layout
+        mesh = lay.mesh
+        self.layout = lay
+        self.comm = lay.comm.tompi4py()
+        self.p, self.closed, self.length = mesh.order, mesh.closed, mesh.length
+        self.n = mesh.n_nodes
+        self.s_nodes = np.asarray(mesh.s_nodes, dtype=float)
+        elems = np.asarray(lay.owned_elems, dtype=np.int64)      # natural ids, ascending
+        self.lconn = np.ascontiguousarray(lay.lconn, dtype=np.int64)
+        self.owned = np.asarray(lay.owned_nodes, dtype=np.int64)
+        self.s_owned = self.s_nodes[self.owned]
+        # each owned node's (element row, j) among its owned elements' nodes: the node is
+        # owned with the element that holds it first (partition.Layout.node_owner)
+        conn = np.asarray(mesh.conn)[elems]
+        first = {}
+        for row in range(len(elems) - 1, -1, -1):
+            for j in range(self.p, -1, -1):
+                first[int(conn[row, j])] = (row, j)
+        place = np.array([first[int(m)] for m in self.owned], dtype=np.int64).reshape(-1, 2)
+        self.node_row = place[:, 0]
+        self.node_flat = place[:, 0] * (self.p + 1) + place[:, 1]   # in within.reshape(-1, 3)
+        self.xlocal = lay.xlocal.duplicate()        # X's local values (d's go to the layout's)
+        # runs of consecutive owned elements, and where each element's run starts
+        cut = np.flatnonzero(np.diff(elems) != 1) + 1
+        starts = np.concatenate([[0], cut]).astype(np.int64) if len(elems) else np.zeros(0, int)
+        self.run_starts = starts
+        self.run_of = np.repeat(np.arange(len(starts)),
+                                np.diff(np.concatenate([starts, [len(elems)]])))
+        # every run's first element over all ranks, in the order of the rod: the place of this
+        # rank's runs in the exclusive sums
+        firsts = elems[starts]
+        every = np.concatenate(self.comm.allgather(firsts)).astype(np.int64)
+        self.order = np.argsort(every, kind="stable")
+        self.rank_runs = [len(f) for f in self.comm.allgather(firsts)]
+        rank = self.comm.Get_rank()
+        mine = np.arange(sum(self.rank_runs[:rank]), sum(self.rank_runs[:rank + 1]))
+        rank_of_place = np.empty(len(every), dtype=np.int64)
+        rank_of_place[self.order] = np.arange(len(every))
+        self.my_places = rank_of_place[mine]                  # my runs' places in the rod
+
+    def _held(self):
+        """Per position component: this rank's owned local nodes whose component is held (a
+        Dirichlet row)."""
+        rows = np.asarray(self.problem.constraints.rows_local, dtype=np.int64)
+        rows = rows[rows % NDOF < 3]
+        return [np.unique(rows[rows % NDOF == k] // NDOF) for k in range(3)]
+
+    def correction(self, X, alpha, d):
+        """(n_owned, 3) corrections of the owned nodes' positions for the step X + alpha d (X
+        at the step's start, its theta zero: recentred).  Collective."""
+        lay = self.layout
+        lay.scatter.scatter(X, self.xlocal, addv=PETSc.InsertMode.INSERT,
+                            mode=PETSc.ScatterMode.FORWARD)
+        x = self.xlocal.getArray(readonly=True).reshape(-1, NDOF)
+        th = lay.local_view(d)
+        within = chord_turns(self.lconn, x[:, 0:3], th[:, 3:6], alpha, self.compiled)
+        totals = within[:, -1, :]
+        # sums along the rod: this rank's runs' totals, allgathered, in the rod's order
+        ex = np.cumsum(totals, axis=0) - totals                  # exclusive, over my elements
+        run_tot = (np.add.reduceat(totals, self.run_starts, axis=0) if len(totals)
+                   else np.zeros((0, 3)))
+        held = self._held()
+        mine = (run_tot, [self.owned[h] for h in held])
+        everyone = self.comm.allgather(mine)
+        run_all = np.concatenate([e[0] for e in everyone]).reshape(-1, 3)[self.order]
+        before = np.concatenate([np.zeros((1, 3)), np.cumsum(run_all, axis=0)])
+        loop = before[-1]
+        offset = ex - ex[self.run_starts][self.run_of] + before[self.my_places][self.run_of]
+        C = np.take(within.reshape(-1, 3), self.node_flat, axis=0)
+        C += np.take(offset, self.node_row, axis=0)
+        if self.closed:                                  # a ring: its loop's mismatch spread
+            C -= np.outer(self.s_owned / self.length, loop)
+        # the held nodes' sums from their owners (and each component's mean where none is held)
+        ids = [np.unique(np.concatenate([e[1][k] for e in everyone])).astype(np.int64)
+               for k in range(3)]
+        vals = [np.zeros(len(i)) for i in ids]
+        for k in range(3):
+            vals[k][np.searchsorted(ids[k], self.owned[held[k]])] = C[held[k], k]
+        free = [k for k in range(3) if len(ids[k]) == 0]   # the same on every rank
+        means = [C[:, k].sum() for k in free]
+        packed = self.comm.allreduce(np.concatenate(vals + [np.array(means)]), op=MPI.SUM)
+        sizes = np.cumsum([0] + [len(i) for i in ids])
+        anchor = np.empty_like(C)
+        for k in range(3):
+            if k in free:
+                anchor[:, k] = packed[sizes[3] + free.index(k)] / self.n
+                continue
+            hs, hv = self.s_nodes[ids[k]], packed[sizes[k]:sizes[k + 1]]
+            if self.closed:          # periodic: the held nodes a loop before and after too
+                hs = np.concatenate([hs - self.length, hs, hs + self.length])
+                hv = np.concatenate([hv, hv, hv])
+            anchor[:, k] = np.interp(self.s_owned, hs, hv)
+        C -= anchor
+        for k in range(3):           # exactly zero where held
+            C[held[k], k] = 0.0
+        return C
+
+    def destroy(self):
+        self.xlocal.destroy()
+
+    def move(self, X, alpha, d):
+        """X <- X + alpha d along the retraction.  Collective."""
+        corr = self.correction(X, alpha, d)
+        X.axpy(alpha, d)
+        with X as a:
+            a.reshape(-1, NDOF)[:, 0:3] += corr
+
+    def retract_direction(self, X, Y, step=1.0):
+        """SNES's direction Y (its new iterate X - step Y) changed so that the iterate is the
+        retracted one: Y's positions less the correction / step.  Collective."""
+        corr = self.correction(X, -step, Y)
+        if step != 1.0:
+            corr /= step
+        with Y as a:
+            a.reshape(-1, NDOF)[:, 0:3] -= corr
