@@ -108,12 +108,14 @@ def test_the_correction_is_second_order_and_leaves_held_components():
 
 
 @pytest.mark.mpi
-def test_one_rank_and_two_give_the_same_correction():
+@pytest.mark.parametrize("case", ["euler", "michell"])
+def test_one_rank_and_two_give_the_same_correction(case):
     """The correction gathered over the ranks equals the one computed on each rank alone
-    (COMM_SELF, the whole rod) to round-off: the sums along the rod meet across the ranks."""
+    (COMM_SELF, the whole rod) to round-off: the sums along the rod meet across the ranks (a
+    pinned column; a ring, whose ranks may hold elements at both ends of its numbering)."""
     from petsc4py import PETSc
-    runs = [build_run("euler", rod_nelem=9, load_path="newton"),
-            build_run("euler", rod_nelem=9, load_path="newton", comm=PETSc.COMM_SELF)]
+    runs = [build_run(case, rod_nelem=9, load_path="newton"),
+            build_run(case, rod_nelem=9, load_path="newton", comm=PETSc.COMM_SELF)]
     out = []
     for run in runs:
         p = run.problem
@@ -145,3 +147,24 @@ def test_newton_steps_along_the_retraction_do_not_stretch_the_cantilever():
     assert its[True] < its[False]
     e = {on: runs[on].problem.energy() for on in runs}
     assert e[True] == pytest.approx(e[False], rel=1e-10)
+
+
+def test_the_option_says_where_it_does_nothing(capsys, tmp_path):
+    """-load_retraction given where steps stay straight (contact on the Newton path) or where
+    there are no Newton path steps (the minimiser) is reported as doing nothing."""
+    from conftest import clear_options
+    from rodsnes import cli
+    import os
+    cases = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "cases")
+    for case, why in (("rollup_contact", "with contact the Newton steps are straight"),
+                      ("mattiasson", "it acts on -load_path newton only")):
+        clear_options()
+        try:
+            rc = cli.main(["rodsnes", "-options_file", os.path.join(cases, case + ".opts"),
+                           "-load_retraction", "1", "-load_steps", "1",
+                           "-load_stop", "0.1", "-output_dir", str(tmp_path / case)])
+        finally:
+            clear_options()
+        err = capsys.readouterr().err
+        assert rc == 0, err
+        assert f"-load_retraction = 1 does nothing: {why}" in err, err

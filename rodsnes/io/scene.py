@@ -1777,6 +1777,9 @@ def _idle_reasons(scene, options, path):
                 for o in (O.load_arclength_its, O.load_arclength_max_steps)]
     if not np.any(ld.end_force):
         out.append((O.load_end_force_follower, "there is no end force (-load_end_force)"))
+    if c.enabled and path == "newton":
+        out.append((O.load_retraction, "with contact the Newton steps are straight (the "
+                                       "contact's move limits bound the straight move)"))
     direct = "every stiffness it would enter is given directly"
     for opt, value in ((O.rod_youngs, r.youngs), (O.rod_poisson, r.poisson),
                        (O.rod_shear, r.shear_modulus), (O.rod_shear_coefficient,

@@ -185,11 +185,13 @@ class Retraction:
         self.xlocal.destroy()
 
     def move(self, X, alpha, d):
-        """X <- X + alpha d along the retraction.  Collective."""
+        """X <- X + alpha d along the retraction; returns the correction (n_owned, 3) added to
+        the positions.  Collective."""
         corr = self.correction(X, alpha, d)
         X.axpy(alpha, d)
         with X as a:
             a.reshape(-1, NDOF)[:, 0:3] += corr
+        return corr
 
     def retract_direction(self, X, Y, step=1.0):
         """SNES's direction Y (its new iterate X - step Y) changed so that the iterate is the

@@ -164,6 +164,9 @@ class Arclength:
         wt = tx.copy()                         # W t_x: the constraint row, fixed for the step
         wt.pointwiseMult(wt, self.w)
         energy_descent, p.energy_descent = p.energy_descent, False
+        # <t, u - u_n>_W - ds: what the steps along the retraction added to the constraint (each
+        # step is orthogonal to t, its correction not: fed back into the next load correction)
+        g = 0.0
         try:
             while True:
                 p.update(None, its)            # re-centre, contact pattern
@@ -185,7 +188,7 @@ class Arclength:
                 if ksp.getConvergedReason() < 0:
                     reason = "linear solve failed"
                     break
-                dl = -wt.dot(a) / (wt.dot(b) + self.w_lam * tl)
+                dl = -(g + wt.dot(a)) / (wt.dot(b) + self.w_lam * tl)
                 a.axpy(dl, b)                  # dx = a + dlambda b
                 a.copy(Y)
                 Y.scale(-1.0)                  # precheck's convention: X_new = X - Y
@@ -195,7 +198,9 @@ class Arclength:
                 s = Y.norm() / y0 if y0 > 0 else 1.0
                 s = self.comm.bcast(s, root=0)
                 if solver.retraction is not None:      # along the retraction, as newton.py
-                    solver.retraction.move(p.state.X, s, a)
+                    corr = solver.retraction.move(p.state.X, s, a)
+                    wr = wt.getArray(readonly=True).reshape(-1, NDOF)[:, 0:3]
+                    g = (1.0 - s) * g + self.comm.allreduce(float((wr * corr).sum()))
                 else:
                     p.state.X.axpy(s, a)
                 lam += s * dl
