@@ -168,3 +168,24 @@ def test_the_option_says_where_it_does_nothing(capsys, tmp_path):
         err = capsys.readouterr().err
         assert rc == 0, err
         assert f"-load_retraction = 1 does nothing: {why}" in err, err
+
+
+@pytest.mark.parametrize("case", ["plectoneme", "michell"])
+def test_the_compiled_corrections_equal_numpys(case):
+    """The owned nodes' corrections by the C kernels (rodsnes_chord_turns,
+    rodsnes_retract_nodes) equal the numpy path's, an open rod held at both ends (two
+    components at the sliding one) and a ring, to round-off, held components exactly zero."""
+    assert so3_compiled.available(), "rodsnes.model._rotation_kernel is not built: make install"
+    run = build_run(case, rod_nelem=10, contact=False, load_path="newton")
+    p = run.problem
+    d = p.state.X.duplicate()
+    with d as a:
+        a[:] = 0.2 * np.random.default_rng(7).standard_normal(a.shape)
+    fast, slow = (retraction.Retraction(p, compiled=c) for c in (True, False))
+    cf, cs = fast.correction(p.state.X, 0.7, d), slow.correction(p.state.X, 0.7, d)
+    assert np.abs(cf - cs).max() <= 1e-13 * np.abs(cs).max() and np.abs(cs).max() > 1e-3
+    rows = np.asarray(p.constraints.rows_local)
+    rows = rows[rows % NDOF < 3]
+    assert np.all(cf[rows // NDOF, rows % NDOF] == 0.0)
+    fast.destroy()
+    slow.destroy()

@@ -77,3 +77,42 @@ void rodsnes_chord_turns(int64_t ne, int64_t p, const int64_t *conn, const doubl
         }
     }
 }
+
+/* The retraction's corrections of the owned nodes (rodsnes/model/retraction.py,
+ * Retraction.correction), added to their rows: for node i its sum along the rod
+ * C = within[flat[i]] + offset[row[i]] (3 values each), less (closed) the loop mismatch
+ * loop s_i / length, less per component k its anchor, the held nodes' sums hv_k interpolated
+ * linearly at s_i between the held arclengths hs_k (nh_k of them, ascending; constant beyond
+ * the first and the last, as numpy.interp; none held: the constant hv_k[0], the mean), times
+ * scale into out[i * os + k].  A held node's own anchor is its own sum: exactly zero. */
+static double anchor(int64_t nh, const double *hs, const double *hv, double s)
+{
+    if (nh <= 1 || s <= hs[0]) return hv[0];
+    if (s >= hs[nh - 1]) return hv[nh - 1];
+    int64_t lo = 0, hi = nh - 1;           /* hs[lo] <= s < hs[hi] */
+    while (hi - lo > 1) {
+        const int64_t mid = (lo + hi) / 2;
+        if (hs[mid] <= s) lo = mid; else hi = mid;
+    }
+    const double slope = (hv[hi] - hv[lo]) / (hs[hi] - hs[lo]);
+    return slope * (s - hs[lo]) + hv[lo];
+}
+
+void rodsnes_retract_nodes(int64_t n, const int64_t *flat, const int64_t *row,
+                           const double *within, const double *offset, const double *s,
+                           int closed, const double *loop, double length,
+                           const int64_t *nh, const double *hs0, const double *hv0,
+                           const double *hs1, const double *hv1, const double *hs2,
+                           const double *hv2, double scale, double *out, int64_t os)
+{
+    const double *hs[3] = {hs0, hs1, hs2}, *hv[3] = {hv0, hv1, hv2};
+    for (int64_t i = 0; i < n; i++) {
+        const double *w = within + 3 * flat[i], *o = offset + 3 * row[i];
+        for (int k = 0; k < 3; k++) {
+            double c = w[k] + o[k];
+            if (closed) c -= loop[k] * (s[i] / length);
+            c -= anchor(nh[k], hs[k], hv[k], s[i]);
+            out[i * os + k] += scale * c;
+        }
+    }
+}

@@ -103,7 +103,7 @@ class Retraction:
             for j in range(self.p, -1, -1):
                 first[int(conn[row, j])] = (row, j)
         place = np.array([first[int(m)] for m in self.owned], dtype=np.int64).reshape(-1, 2)
-        self.node_row = place[:, 0]
+        self.node_row = np.ascontiguousarray(place[:, 0])
         self.node_flat = place[:, 0] * (self.p + 1) + place[:, 1]   # in within.reshape(-1, 3)
         self.xlocal = lay.xlocal.duplicate()        # X's local values (d's go to the layout's)
         # runs of consecutive owned elements, and where each element's run starts
@@ -131,55 +131,84 @@ class Retraction:
         rows = rows[rows % NDOF < 3]
         return [np.unique(rows[rows % NDOF == k] // NDOF) for k in range(3)]
 
-    def correction(self, X, alpha, d):
-        """(n_owned, 3) corrections of the owned nodes' positions for the step X + alpha d (X
-        at the step's start, its theta zero: recentred).  Collective."""
+    def _sums(self, X, alpha, d):
+        """The step's sums along the rod: (within, offset, loop, anchors, held): the elements'
+        sums of their chords' excesses (ne, p + 1, 3), each element's sum before it (ne, 3),
+        the ring's loop mismatch (3), per component the held arclengths and sums that anchor
+        it (a component held nowhere: its mean), this rank's held owned nodes per component.
+        Collective."""
         lay = self.layout
         lay.scatter.scatter(X, self.xlocal, addv=PETSc.InsertMode.INSERT,
                             mode=PETSc.ScatterMode.FORWARD)
         x = self.xlocal.getArray(readonly=True).reshape(-1, NDOF)
         th = lay.local_view(d)
         within = chord_turns(self.lconn, x[:, 0:3], th[:, 3:6], alpha, self.compiled)
+        wr = within.reshape(-1, 3)
         totals = within[:, -1, :]
         # sums along the rod: this rank's runs' totals, allgathered, in the rod's order
         ex = np.cumsum(totals, axis=0) - totals                  # exclusive, over my elements
         run_tot = (np.add.reduceat(totals, self.run_starts, axis=0) if len(totals)
                    else np.zeros((0, 3)))
         held = self._held()
-        mine = (run_tot, [self.owned[h] for h in held])
-        everyone = self.comm.allgather(mine)
+        everyone = self.comm.allgather((run_tot, [self.owned[h] for h in held]))
         run_all = np.concatenate([e[0] for e in everyone]).reshape(-1, 3)[self.order]
         before = np.concatenate([np.zeros((1, 3)), np.cumsum(run_all, axis=0)])
-        loop = before[-1]
+        loop = before[-1].copy()
         offset = ex - ex[self.run_starts][self.run_of] + before[self.my_places][self.run_of]
-        C = np.take(within.reshape(-1, 3), self.node_flat, axis=0)
-        C += np.take(offset, self.node_row, axis=0)
-        if self.closed:                                  # a ring: its loop's mismatch spread
-            C -= np.outer(self.s_owned / self.length, loop)
+        offset = np.ascontiguousarray(offset)
+
+        def sums(nodes, k):
+            """Component k of the sums at these owned nodes (the kernel's arithmetic)."""
+            c = np.take(wr[:, k], self.node_flat[nodes]) + np.take(offset[:, k],
+                                                                    self.node_row[nodes])
+            if self.closed:                              # a ring: its loop's mismatch spread
+                c = c - loop[k] * (self.s_owned[nodes] / self.length)
+            return c
         # the held nodes' sums from their owners (and each component's mean where none is held)
         ids = [np.unique(np.concatenate([e[1][k] for e in everyone])).astype(np.int64)
                for k in range(3)]
         vals = [np.zeros(len(i)) for i in ids]
         for k in range(3):
-            vals[k][np.searchsorted(ids[k], self.owned[held[k]])] = C[held[k], k]
+            vals[k][np.searchsorted(ids[k], self.owned[held[k]])] = sums(held[k], k)
         free = [k for k in range(3) if len(ids[k]) == 0]   # the same on every rank
-        means = [C[:, k].sum() for k in free]
+        every = np.arange(len(self.owned))
+        means = [float(sums(every, k).sum()) for k in free]
         packed = self.comm.allreduce(np.concatenate(vals + [np.array(means)]), op=MPI.SUM)
         sizes = np.cumsum([0] + [len(i) for i in ids])
-        anchor = np.empty_like(C)
+        anchors = []
         for k in range(3):
             if k in free:
-                anchor[:, k] = packed[sizes[3] + free.index(k)] / self.n
+                anchors.append((np.zeros(1), packed[sizes[3] + free.index(k):][:1] / self.n))
                 continue
             hs, hv = self.s_nodes[ids[k]], packed[sizes[k]:sizes[k + 1]]
             if self.closed:          # periodic: the held nodes a loop before and after too
                 hs = np.concatenate([hs - self.length, hs, hs + self.length])
                 hv = np.concatenate([hv, hv, hv])
-            anchor[:, k] = np.interp(self.s_owned, hs, hv)
-        C -= anchor
-        for k in range(3):           # exactly zero where held
-            C[held[k], k] = 0.0
-        return C
+            anchors.append((hs, hv))
+        return within, offset, loop, anchors, held
+
+    def _add(self, sums, out, scale):
+        """out[:, 0:3] += scale x the owned nodes' corrections (out: (n_owned, >= 3) rows)."""
+        within, offset, loop, anchors, held = sums
+        if self.compiled and so3_compiled.retract_nodes(
+                self.node_flat, self.node_row, within, offset, self.s_owned, self.closed, loop,
+                self.length, anchors, scale, out):
+            return
+        C = np.take(within.reshape(-1, 3), self.node_flat, axis=0)
+        C += np.take(offset, self.node_row, axis=0)
+        if self.closed:
+            C -= np.outer(self.s_owned / self.length, loop)
+        for k, (hs, hv) in enumerate(anchors):
+            C[:, k] -= np.interp(self.s_owned, hs, hv)
+            C[held[k], k] = 0.0                         # exactly zero where held
+        out[:, 0:3] += scale * C
+
+    def correction(self, X, alpha, d):
+        """(n_owned, 3) corrections of the owned nodes' positions for the step X + alpha d (X
+        at the step's start, its theta zero: recentred).  Collective."""
+        out = np.zeros((len(self.owned), 3))
+        self._add(self._sums(X, alpha, d), out, 1.0)
+        return out
 
     def destroy(self):
         self.xlocal.destroy()
@@ -196,8 +225,6 @@ class Retraction:
     def retract_direction(self, X, Y, step=1.0):
         """SNES's direction Y (its new iterate X - step Y) changed so that the iterate is the
         retracted one: Y's positions less the correction / step.  Collective."""
-        corr = self.correction(X, -step, Y)
-        if step != 1.0:
-            corr /= step
+        sums = self._sums(X, -step, Y)
         with Y as a:
-            a.reshape(-1, NDOF)[:, 0:3] -= corr
+            self._add(sums, a.reshape(-1, NDOF), -1.0 / step)

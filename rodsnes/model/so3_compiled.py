@@ -13,9 +13,14 @@ C entry points:
                         double *out)
     void rodsnes_chord_turns(int64 ne, int64 p, const int64 *conn, const double *x, int64 xs,
                              const double *th, int64 ts, double alpha, double *within)
+    void rodsnes_retract_nodes(int64 n, const int64 *flat, const int64 *row,
+                               const double *within, const double *offset, const double *s,
+                               int closed, const double *loop, double length, const int64 *nh,
+                               const double *hs0, *hv0, *hs1, *hv1, *hs2, *hv2, double scale,
+                               double *out, int64 os)
 
-The second is the retraction's turn excess of the chords (rodsnes/model/retraction.py, whose
-numpy path is its reference).
+The other two are the retraction's (rodsnes/model/retraction.py, whose numpy path is their
+reference): the turn excess of the chords, and the owned nodes' corrections added to their rows.
 """
 import ctypes
 
@@ -31,7 +36,12 @@ def _declare(lib):
                                        None),
             "chord_turns": compiled.Foreign(lib.rodsnes_chord_turns,
                                             [n, n, compiled.I64, vp, n, vp, n,
-                                             ctypes.c_double, compiled.F64], None)}
+                                             ctypes.c_double, compiled.F64], None),
+            "retract_nodes": compiled.Foreign(
+                lib.rodsnes_retract_nodes,
+                [n, compiled.I64, compiled.I64, compiled.F64, compiled.F64, compiled.F64,
+                 ctypes.c_int, compiled.F64, ctypes.c_double, compiled.I64]
+                + [compiled.F64] * 6 + [ctypes.c_double, vp, n], None)}
 
 
 # the kernel's ctypes function, or False when the library is not built or does not load.
@@ -80,3 +90,25 @@ def chord_turns(conn, x, theta, alpha):
                            x.strides[0] // 8, theta.__array_interface__["data"][0],
                            theta.strides[0] // 8, float(alpha), out)
     return out
+
+
+def retract_nodes(flat, row, within, offset, s, closed, loop, length, anchors, scale, out):
+    """retraction.Retraction's corrections of the owned nodes by the C kernel, times ``scale``
+    added to out[:, 0:3] (out: (n, >= 3) float64 rows of contiguous values, written in place;
+    ``anchors``: per component (held arclengths, values)).  False when the library is not
+    built or ``out`` is not so laid out."""
+    fns = _load()
+    if not fns or not (out.dtype == np.float64 and out.ndim == 2 and out.shape[1] >= 3
+                       and out.strides[1] == 8 and out.strides[0] % 8 == 0
+                       and out.flags.writeable):
+        return False
+    n = len(flat)
+    if n:
+        hs = [np.ascontiguousarray(a[0], dtype=np.float64) for a in anchors]
+        hv = [np.ascontiguousarray(a[1], dtype=np.float64) for a in anchors]
+        nh = np.array([len(h) for h in hs], dtype=np.int64)
+        fns["retract_nodes"](n, flat, row, within, offset, s, int(bool(closed)),
+                             np.ascontiguousarray(loop, dtype=np.float64), float(length), nh,
+                             hs[0], hv[0], hs[1], hv[1], hs[2], hv[2], float(scale),
+                             out.__array_interface__["data"][0], out.strides[0] // 8)
+    return True
