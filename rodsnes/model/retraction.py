@@ -123,13 +123,29 @@ class Retraction:
         rank_of_place = np.empty(len(every), dtype=np.int64)
         rank_of_place[self.order] = np.arange(len(every))
         self.my_places = rank_of_place[mine]                  # my runs' places in the rod
+        # the runs' totals exchanged as 3 doubles a run and one more a rank (whether its held
+        # rows changed): counts and displacements of the Allgatherv
+        self.gather_counts = np.array([3 * r + 1 for r in self.rank_runs], dtype=np.int64)
+        self.gather_displ = np.concatenate([[0], np.cumsum(self.gather_counts)[:-1]])
+        self.held_rows = None               # the Dirichlet rows the held structure is of
 
-    def _held(self):
-        """Per position component: this rank's owned local nodes whose component is held (a
-        Dirichlet row)."""
+    def _held_rows(self):
+        """This rank's Dirichlet rows of positions (a copy)."""
         rows = np.asarray(self.problem.constraints.rows_local, dtype=np.int64)
-        rows = rows[rows % NDOF < 3]
-        return [np.unique(rows[rows % NDOF == k] // NDOF) for k in range(3)]
+        return rows[rows % NDOF < 3]
+
+    def _make_held(self, rows):
+        """The held structure for these rows of this rank (collective): per component this
+        rank's owned held local nodes (held), every rank's held natural ids (ids, sorted), and
+        where this rank's go among them (slots)."""
+        self.held_rows = rows
+        self.held = [np.unique(rows[rows % NDOF == k] // NDOF) for k in range(3)]
+        everyone = self.comm.allgather([self.owned[h] for h in self.held])
+        self.ids = [np.unique(np.concatenate([e[k] for e in everyone])).astype(np.int64)
+                    for k in range(3)]
+        self.slots = [np.searchsorted(self.ids[k], self.owned[self.held[k]]) for k in range(3)]
+        self.free = [k for k in range(3) if len(self.ids[k]) == 0]   # the same on every rank
+        self.sizes = np.cumsum([0] + [len(i) for i in self.ids])
 
     def _sums(self, X, alpha, d):
         """The step's sums along the rod: (within, offset, loop, anchors, held): the elements'
@@ -145,14 +161,24 @@ class Retraction:
         within = chord_turns(self.lconn, x[:, 0:3], th[:, 3:6], alpha, self.compiled)
         wr = within.reshape(-1, 3)
         totals = within[:, -1, :]
-        # sums along the rod: this rank's runs' totals, allgathered, in the rod's order
+        # sums along the rod: this rank's runs' totals, allgathered, in the rod's order (and
+        # whether any rank's held rows changed since the held structure was made)
         ex = np.cumsum(totals, axis=0) - totals                  # exclusive, over my elements
         run_tot = (np.add.reduceat(totals, self.run_starts, axis=0) if len(totals)
                    else np.zeros((0, 3)))
-        held = self._held()
-        everyone = self.comm.allgather((run_tot, [self.owned[h] for h in held]))
-        run_all = np.concatenate([e[0] for e in everyone]).reshape(-1, 3)[self.order]
+        rows = self._held_rows()
+        changed = self.held_rows is None or not np.array_equal(rows, self.held_rows)
+        send = np.concatenate([run_tot.ravel(), [1.0 if changed else 0.0]])
+        recv = np.empty(int(self.gather_counts.sum()))
+        self.comm.Allgatherv(send, [recv, (self.gather_counts, self.gather_displ), MPI.DOUBLE])
+        flags = recv[self.gather_displ + self.gather_counts - 1]
+        if np.any(flags != 0.0):
+            self._make_held(rows)
+        keep = np.ones(len(recv), dtype=bool)
+        keep[self.gather_displ + self.gather_counts - 1] = False
+        run_all = recv[keep].reshape(-1, 3)[self.order]
         before = np.concatenate([np.zeros((1, 3)), np.cumsum(run_all, axis=0)])
+        held, ids, free, sizes = self.held, self.ids, self.free, self.sizes
         loop = before[-1].copy()
         offset = ex - ex[self.run_starts][self.run_of] + before[self.my_places][self.run_of]
         offset = np.ascontiguousarray(offset)
@@ -165,16 +191,13 @@ class Retraction:
                 c = c - loop[k] * (self.s_owned[nodes] / self.length)
             return c
         # the held nodes' sums from their owners (and each component's mean where none is held)
-        ids = [np.unique(np.concatenate([e[1][k] for e in everyone])).astype(np.int64)
-               for k in range(3)]
-        vals = [np.zeros(len(i)) for i in ids]
+        packed = np.zeros(int(sizes[3]) + len(free))
         for k in range(3):
-            vals[k][np.searchsorted(ids[k], self.owned[held[k]])] = sums(held[k], k)
-        free = [k for k in range(3) if len(ids[k]) == 0]   # the same on every rank
+            packed[sizes[k] + self.slots[k]] = sums(held[k], k)
         every = np.arange(len(self.owned))
-        means = [float(sums(every, k).sum()) for k in free]
-        packed = self.comm.allreduce(np.concatenate(vals + [np.array(means)]), op=MPI.SUM)
-        sizes = np.cumsum([0] + [len(i) for i in ids])
+        for i, k in enumerate(free):
+            packed[sizes[3] + i] = sums(every, k).sum()
+        self.comm.Allreduce(MPI.IN_PLACE, packed, op=MPI.SUM)
         anchors = []
         for k in range(3):
             if k in free:
