@@ -343,3 +343,15 @@ def test_a_failed_in_plane_solve_fails_the_newton_step(monkeypatch):
     assert solver.snes.getConvergedReason() == PETSc.SNES.ConvergedReason.DIVERGED_LINEAR_SOLVE
     fail[0] = False
     assert solver.solve_at(0.5).converged
+
+
+def test_a_run_in_its_plane_makes_no_full_jacobian():
+    """The full Jacobian (block size 6; 0.43 GB at 10^5 cubic elements) is made only when a
+    run needs it: not by a run that stays in its plane (either path), by one in 3-D."""
+    for path in ("newton", "minimize"):
+        run = run_case("mattiasson", rod_nelem=6, load_path=path, rod_error_estimate="off")
+        assert run.ok and run.problem.planar is not None and run.problem.planar.active
+        assert run.problem.J_made is None, path
+    run = run_case("mattiasson", rod_nelem=6, load_path="newton", rod_error_estimate="off",
+                   rod_planar="off")
+    assert run.ok and run.problem.J_made is not None

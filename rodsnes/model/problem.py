@@ -285,8 +285,7 @@ class RodProblem:
         self._topology = None              # (state key, topology) of the last topology()
         # every term's pattern (Term.pattern) the Jacobian J is preallocated for
         self.patterns = self.patterns_at(mesh.x_init[layout.local_nodes])
-        self.J = layout.create_matrix(self.node_groups(self.patterns),
-                                      positions_only=self.positions_only())
+        self._J = None                      # the full Jacobian, made when first asked for (J)
         self.F = layout.create_vec()
         self.lconn = lconn                  # the owned elements' local nodes: the energy
         self.n_elems = len(own)
@@ -585,17 +584,38 @@ class RodProblem:
         self._new_matrix(want)
         self.stats["pattern_growths"] = self.stats.get("pattern_growths", 0) + 1
 
+    @property
+    def J(self):
+        """The Jacobian of all the unknowns (BAIJ, block size 6), preallocated for the elements
+        and the terms' patterns; made when first asked for: a run solved in its plane uses its
+        own in-plane block (planar.py) and needs this one only if it leaves the plane (at 10^5
+        cubic elements 0.43 GB and its preallocation's time).  Collective on its first use."""
+        if self._J is None:
+            self._J = self.layout.create_matrix(self.node_groups(self.patterns),
+                                                positions_only=self.positions_only(self.patterns))
+        return self._J
+
+    @J.setter
+    def J(self, mat):
+        self._J = mat
+
+    @property
+    def J_made(self):
+        """The full Jacobian if it has been made, else None (a question that makes nothing)."""
+        return self._J
+
     def _new_matrix(self, patterns):
         """A fresh matrix preallocated for the elements + the terms' patterns.  Not an in-place
         re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
         (on_pattern_change) takes the new matrix and drops its factorisation."""
-        old = self.J
-        self.J = self.layout.create_matrix(self.node_groups(patterns),
-                                           positions_only=self.positions_only(patterns))
+        old = self._J
+        self._J = self.layout.create_matrix(self.node_groups(patterns),
+                                            positions_only=self.positions_only(patterns))
         self.patterns = patterns
         if self.on_pattern_change is not None:
-            self.on_pattern_change(self.J)
-        old.destroy()
+            self.on_pattern_change(self._J)
+        if old is not None:
+            old.destroy()
         self.stats["pattern_refreshes"] = self.stats.get("pattern_refreshes", 0) + 1
 
     def twisted_reference(self, e0):

@@ -383,12 +383,14 @@ class LUChoice:
 
     def __init__(self, auto):
         self.auto = bool(auto)
-        self._checked = None            # the matrix whose pattern was checked
+        self._checked = None            # the pattern checked: the problem's count of new ones
 
     def check(self, ksp, problem):
-        """Before the factorisation of the problem's Jacobian by ``ksp``.  Collective."""
-        if self.auto and self._checked is not problem.J:
-            self._checked = problem.J
+        """Before the factorisation of the problem's Jacobian (or its in-plane block) by
+        ``ksp``, once per pattern.  Collective."""
+        key = problem.stats.get("pattern_refreshes", 0)
+        if self.auto and self._checked != key:
+            self._checked = key
             if use_mumps_when_filled(ksp, problem):
                 self.auto = False       # contact couples much of the rod: MUMPS from now
             elif not use_chain_lu(ksp, problem):

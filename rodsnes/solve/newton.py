@@ -60,7 +60,9 @@ class NewtonSolver:
         snes = PETSc.SNES().create(comm=comm)
         snes.setType("newtonls")
         snes.setFunction(problem.residual, problem.F)
-        snes.setJacobian(problem.jacobian, problem.J)
+        # a run in its plane hands the SNES its in-plane operator (planar.attach, below): the
+        # full Jacobian is made only if the run leaves the plane
+        snes.setJacobian(problem.jacobian, problem.J if problem.planar is None else None)
         snes.setUpdate(self._update)
         snes.setConvergenceHistory(length=1000, reset=True)
         snes.setConvergenceTest(self.convergence_test)
