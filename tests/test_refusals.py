@@ -480,6 +480,10 @@ WARNINGS = [
      "option -estimate_snes_max_iy 3 was not used: did you mean -estimate_snes_max_it?"),
     ("misspelt_in_plane_ksp_option", MATT + ("-planar_ksp_typ", "gmres"),
      "option -planar_ksp_typ gmres was not used: did you mean -planar_ksp_type?"),
+    ("retraction_on_the_minimising_path", MATT + ("-load_retraction", "1"),
+     "-load_retraction = 1 does nothing: it acts on -load_path newton only"),
+    ("retraction_with_contact", ROLLUP_CONTACT + ("-load_retraction", "1"),
+     "-load_retraction = 1 does nothing: with contact the Newton steps are straight"),
 ]
 
 

@@ -149,27 +149,6 @@ def test_newton_steps_along_the_retraction_do_not_stretch_the_cantilever():
     assert e[True] == pytest.approx(e[False], rel=1e-10)
 
 
-def test_the_option_says_where_it_does_nothing(capsys, tmp_path):
-    """-load_retraction given where steps stay straight (contact on the Newton path) or where
-    there are no Newton path steps (the minimiser) is reported as doing nothing."""
-    from conftest import clear_options
-    from rodsnes import cli
-    import os
-    cases = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "cases")
-    for case, why in (("rollup_contact", "with contact the Newton steps are straight"),
-                      ("mattiasson", "it acts on -load_path newton only")):
-        clear_options()
-        try:
-            rc = cli.main(["rodsnes", "-options_file", os.path.join(cases, case + ".opts"),
-                           "-load_retraction", "1", "-load_steps", "1",
-                           "-load_stop", "0.1", "-output_dir", str(tmp_path / case)])
-        finally:
-            clear_options()
-        err = capsys.readouterr().err
-        assert rc == 0, err
-        assert f"-load_retraction = 1 does nothing: {why}" in err, err
-
-
 @pytest.mark.parametrize("case", ["plectoneme", "michell"])
 def test_the_compiled_corrections_equal_numpys(case):
     """The owned nodes' corrections by the C kernels (rodsnes_chord_turns,

@@ -595,10 +595,6 @@ class RodProblem:
                                                 positions_only=self.positions_only(self.patterns))
         return self._J
 
-    @J.setter
-    def J(self, mat):
-        self._J = mat
-
     @property
     def J_made(self):
         """The full Jacobian if it has been made, else None (a question that makes nothing)."""
@@ -607,14 +603,13 @@ class RodProblem:
     def _new_matrix(self, patterns):
         """A fresh matrix preallocated for the elements + the terms' patterns.  Not an in-place
         re-preallocation: MPIBAIJ keeps the old off-diagonal column map through it.  The solver
-        (on_pattern_change) takes the new matrix and drops its factorisation."""
-        old = self._J
-        self._J = self.layout.create_matrix(self.node_groups(patterns),
-                                            positions_only=self.positions_only(patterns))
+        (on_pattern_change) takes the new matrix and drops its factorisation.  One not made yet
+        is made when first asked for (J), for these patterns."""
+        old, self._J = self._J, None
         self.patterns = patterns
-        if self.on_pattern_change is not None:
-            self.on_pattern_change(self._J)
         if old is not None:
+            if self.on_pattern_change is not None:
+                self.on_pattern_change(self.J)
             old.destroy()
         self.stats["pattern_refreshes"] = self.stats.get("pattern_refreshes", 0) + 1
 

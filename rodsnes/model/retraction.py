@@ -97,14 +97,10 @@ class Retraction:
         self.s_owned = self.s_nodes[self.owned]
         # each owned node's (element row, j) among its owned elements' nodes: the node is
         # owned with the element that holds it first (partition.Layout.node_owner)
-        conn = np.asarray(mesh.conn)[elems]
-        first = {}
-        for row in range(len(elems) - 1, -1, -1):
-            for j in range(self.p, -1, -1):
-                first[int(conn[row, j])] = (row, j)
-        place = np.array([first[int(m)] for m in self.owned], dtype=np.int64).reshape(-1, 2)
-        self.node_row = np.ascontiguousarray(place[:, 0])
-        self.node_flat = place[:, 0] * (self.p + 1) + place[:, 1]   # in within.reshape(-1, 3)
+        # (elements ascending: a node's first place in their row-major nodes)
+        ids, at = np.unique(np.asarray(mesh.conn)[elems].ravel(), return_index=True)
+        self.node_flat = at[np.searchsorted(ids, self.owned)].astype(np.int64)  # in within (-1, 3)
+        self.node_row = self.node_flat // (self.p + 1)
         self.xlocal = lay.xlocal.duplicate()        # X's local values (d's go to the layout's)
         # runs of consecutive owned elements, and where each element's run starts
         cut = np.flatnonzero(np.diff(elems) != 1) + 1
@@ -114,10 +110,10 @@ class Retraction:
                                 np.diff(np.concatenate([starts, [len(elems)]])))
         # every run's first element over all ranks, in the order of the rod: the place of this
         # rank's runs in the exclusive sums
-        firsts = elems[starts]
-        every = np.concatenate(self.comm.allgather(firsts)).astype(np.int64)
+        gathered = self.comm.allgather(elems[starts])
+        every = np.concatenate(gathered).astype(np.int64)
         self.order = np.argsort(every, kind="stable")
-        self.rank_runs = [len(f) for f in self.comm.allgather(firsts)]
+        self.rank_runs = [len(f) for f in gathered]
         rank = self.comm.Get_rank()
         mine = np.arange(sum(self.rank_runs[:rank]), sum(self.rank_runs[:rank + 1]))
         rank_of_place = np.empty(len(every), dtype=np.int64)

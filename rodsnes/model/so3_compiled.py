@@ -57,8 +57,7 @@ def rotate(theta, q, normalize):
     are contiguous (a view of the (n, 6) local dofs is read in place), q (n, 4) C-contiguous;
     None when the library is not built or theta is not such a view."""
     fns = _load()
-    if not fns or theta.dtype != np.float64 or theta.ndim != 2 or theta.shape[1] != 3 \
-            or theta.strides[1] != 8 or theta.strides[0] % 8 or len(theta) != len(q):
+    if not fns or not _rows_of_three(theta) or len(theta) != len(q):
         return None
     q = np.ascontiguousarray(q, dtype=np.float64)
     out = np.empty((len(q), 4))
@@ -69,9 +68,9 @@ def rotate(theta, q, normalize):
 
 
 def _rows_of_three(a):
-    """Whether ``a`` is (n, 3) float64 rows whose three entries are contiguous (a view of the
-    (n, 6) local dofs qualifies)."""
-    return (a.dtype == np.float64 and a.ndim == 2 and a.shape[1] == 3 and a.strides[1] == 8
+    """Whether the kernels read (n, >= 3) float64 rows of ``a`` in place: the entries of a row
+    contiguous, the rows a whole number of doubles apart (a view of the (n, 6) local dofs)."""
+    return (a.dtype == np.float64 and a.ndim == 2 and a.shape[1] >= 3 and a.strides[1] == 8
             and a.strides[0] % 8 == 0)
 
 
@@ -98,9 +97,7 @@ def retract_nodes(flat, row, within, offset, s, closed, loop, length, anchors, s
     ``anchors``: per component (held arclengths, values)).  False when the library is not
     built or ``out`` is not so laid out."""
     fns = _load()
-    if not fns or not (out.dtype == np.float64 and out.ndim == 2 and out.shape[1] >= 3
-                       and out.strides[1] == 8 and out.strides[0] % 8 == 0
-                       and out.flags.writeable):
+    if not fns or not (_rows_of_three(out) and out.flags.writeable):
         return False
     n = len(flat)
     if n:

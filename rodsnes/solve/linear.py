@@ -116,6 +116,12 @@ def _value(name):
     return "" if value is None else value
 
 
+def peek(name, default=None):
+    """-name's value (\"\" for a flag), ``default`` where it is not set; marks it not used."""
+    value = _value(name)
+    return default if value is _UNSET else value
+
+
 def is_default(name):
     """Whether -name holds the value option_default set (not one the user gave)."""
     value = _value(name)

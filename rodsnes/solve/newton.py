@@ -28,7 +28,8 @@ from petsc4py import PETSc
 
 from rodsnes.model.retraction import Retraction
 from rodsnes.solve.arclength import Arclength
-from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve, option_default
+from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve,
+                                  option_default, peek)
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.stability import negative_eigenvalues
@@ -79,8 +80,7 @@ class NewtonSolver:
         # penalty stagnated with it, converged in 37 iterations without)
         self.retraction = None
         kind, damping = _line_search(snes)
-        if getattr(problem.scene.loads, "retraction", False) and kind == "basic" \
-                and not problem.step_limit:
+        if problem.scene.loads.retraction and kind == "basic" and not problem.step_limit:
             self.retraction = Retraction(problem)
             self.damping = damping
         if self.retraction is not None or problem.step_limit:
@@ -522,11 +522,10 @@ class NewtonSolver:
 def _line_search(snes):
     """(type, damping) of ``snes``'s line search as the options database sets them (PETSc's
     basic and 1.0 where none is given), read without marking the options used."""
-    opts = PETSc.Options().getAll()
     prefix = snes.getOptionsPrefix() or ""
-    kind = str(opts.get(prefix + "snes_linesearch_type", "basic"))
+    kind = str(peek(prefix + "snes_linesearch_type", "basic"))
     try:
-        damping = float(opts.get(prefix + "snes_linesearch_damping", 1.0))
+        damping = float(peek(prefix + "snes_linesearch_damping", 1.0))
     except (TypeError, ValueError):
         damping = 1.0
     return kind, (damping if damping > 0.0 else 1.0)
