@@ -17,9 +17,12 @@ residual and Jacobian into the elastic kernel and the parts of self-contact
     ChainFactor      a rank's stretch factored by its own LU without fill (solve/chain.py)
     ChainSolve       its substitutions (whole, or over the stretch's last rows)
 
-Work done once after the path, not in its iterations, runs in a log stage of its own
-(``with stage(PATH_END):``, -log_view's "Event Stage 1: PathEnd"; the bench leaves it out of
-its per-iteration parts): the stability count at the end of a Newton path (Run._execute).
+Work done once before or after the path, not in its iterations, runs in a log stage of its
+own (the bench leaves both out of its per-iteration parts and reports the set-up apart):
+``with stage(SET_UP):`` (-log_view's "Event Stage 1: SetUp"), the solver's set-up, as PETSc's
+SNESSetUp before a solve: the Newton step's matrix preallocated, its LU chosen and planned
+for the pattern (Run._execute: the solver's setup()); ``with stage(PATH_END):`` ("PathEnd"),
+the stability count at the end of a Newton path.
 
 A call site is either a ``with timed("ContactSearch"):`` block or a method decorated with
 ``@logged("ContactSearch")``.  Events nest in PETSc's log: the time of one counts inside the
@@ -37,7 +40,8 @@ NAMES = ("ElasticKernel", "ContactSearch", "ContactEval", "ContactTangent", "Con
 _events = {}
 _stages = {}
 
-# the log stage of the work done once at the end of the path (module docstring)
+# the log stages of the work done once before and at the end of the path (module docstring)
+SET_UP = "SetUp"
 PATH_END = "PathEnd"
 
 

@@ -385,6 +385,10 @@ class Run:
         else:
             self.observe()        # a restart that fails at once still reports its state
         ld = self.scene.loads
+        # the matrices, the LU's choice and plans made before the first Newton iteration, in a
+        # log stage of their own (profiling.SET_UP)
+        with profiling.stage(profiling.SET_UP):
+            self.solver.setup()
 
         failed = []             # the failed tries since the last converged step (on_fail)
 

@@ -53,6 +53,9 @@ def test_counts_match_the_run(mattiasson_run):
     # and once per step written (the start and every load step: result.h5's force_n from
     # the elements' internal forces, RodProblem.force_resultants)
     assert ev["ElasticKernel"]["count"] == p["residual_evals"] + 2 * its + s["load_steps"] + 1
+    # the in-plane matrix made and its chain LU planned in the solver's set-up, before the
+    # path, in a stage of its own (tests/test_setup.py: the path makes neither again)
+    assert 0.0 < p["setup"] == log["stages"]["SetUp"]
 
 
 def test_parts_positive_and_nested(mattiasson_run):
@@ -70,6 +73,13 @@ def test_parts_positive_and_nested(mattiasson_run):
 
 SYNTHETIC = """\
 .venv/bin/rodsnes on a  named vm with 2 processors, by Unknown Thu Nov 26 01:02:35 2026
+
+Summary of Stages:   ----- Time ------  ----- Flop ------  --- Messages ---  -- Message Lengths --  -- Reductions --
+                        Avg     %Total     Avg     %Total    Count   %Total     Avg         %Total    Count   %Total
+ 0:      Main Stage: 8.0000e-01  80.0%  1.6581e+07  65.3%  0.000e+00   0.0%  0.000e+00        0.0%  0.000e+00   0.0%
+ 1:      Relaxation: 1.0000e-01  10.0%  0.0000e+00   0.0%  0.000e+00   0.0%  0.000e+00        0.0%  0.000e+00   0.0%
+ 2:           SetUp: 2.5000e-02   2.5%  0.0000e+00   0.0%  0.000e+00   0.0%  0.000e+00        0.0%  9.000e+00   5.3%
+
 ------------------------------------------------------------------------------------------------------------------------
 Event                Count      Time (sec)     Flop                              --- Global ---  --- Stage ----  Total
                    Max Ratio  Max     Ratio   Max  Ratio  Mess   AvgLen  Reduct  %T %F %M %L %R  %T %F %M %L %R Mflop/s
@@ -90,6 +100,11 @@ ContactSearch         10 1.0 1.0000e-02 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00
 SNESSolve              1 1.0 4.0000e-01 1.0 2.57e+06 1.0 0.0e+00 0.0e+00 0.0e+00 48 100  0  0  0  48 100  0  0  0    10
 SNESJacobianEval       4 1.0 1.0000e-01 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00 40  0  0  0  0  40  0  0  0  0     0
 ContactEval            8 1.0 3.0000e-02 1.0 0.00e+00 0.0 0.0e+00 0.0e+00 0.0e+00  0  0  0  0  0   0  0  0  0  0     0
+
+--- Event Stage 2: SetUp
+
+MatAssemblyEnd         1 1.0 2.8093e-04 1.3 0.00e+00 0.0 0.0e+00 0.0e+00 7.0e+00  0  0  0  0  4   0  0  0  0 78     0
+MatLUFactorNum         1 1.0 9.0000e-03 1.0 3.89e+03 1.0 0.0e+00 0.0e+00 0.0e+00  2  0  0  0  0   2  0  0  0  0     0
 ------------------------------------------------------------------------------------------------------------------------
 
 Object Type          Creations   Destructions. Reports information only for process 0.
@@ -110,6 +125,11 @@ def test_parse_synthetic_log():
     assert p["linesearch"] == pytest.approx((0.06 - 4 * 0.05 / 5) / 8)
     assert p["contact"] == pytest.approx(0.04 / 8)
     assert p["contact_per_factor"] == pytest.approx(0.5)
+    # the solver's set-up (profiling.SET_UP) is work done once: its stage's time, its events
+    # in no iteration's part
+    assert log["stages"] == {"Main Stage": 0.8, "Relaxation": 0.1, "SetUp": 0.025}
+    assert p["setup"] == pytest.approx(0.025)
+    assert ev["MatLUFactorNum"]["count"] == 4 and "MatAssemblyEnd" not in ev
 
 
 def test_parse_rejects_other_text():

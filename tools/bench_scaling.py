@@ -48,6 +48,10 @@ and, from rodsnes' own log events (rodsnes/profiling.py; inside the SNES events 
   contact_search  ContactSearch (candidate pairs)   contact_eval  ContactEval + ContactTangent
   contact_halo    ContactHalo (PetscSF)             contact_assemble  ContactAssemble
   contact         contact_search + contact_eval + contact_halo (what the contact target counts)
+and, once per run and not in any iteration's part, ``setup``: the time of rodsnes' SetUp
+stage (profiling.SET_UP, the average over the ranks; the solver's set-up before the path: the
+matrices of the present pattern made, their LU chosen and planned), which the table shows as
+"set-up (once)".
 Where rodsnes does not log these events itself, the run is started through this tool's child
 mode (``--child``), which wraps the methods that do that work with the same events before it
 calls rodsnes.cli.main (a method already decorated with rodsnes.profiling.logged is left alone);
@@ -81,7 +85,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
-from rodsnes.profiling import PATH_END  # noqa: E402  (no PETSc import: the stage's name)
+from rodsnes.profiling import PATH_END, SET_UP  # noqa: E402  (no PETSc import: stage names)
 
 DEFAULT_OUT = os.path.join(ROOT, "tools", "out", "bench_scaling")
 DOC_PNG = os.path.join(ROOT, "docs", "img", "bench_scaling.png")
@@ -119,18 +123,34 @@ def cases(scenes, laws):
 _EVENT_LINE = re.compile(r"^(\S+)\s+(\d+)\s+\S+\s+([0-9.]+e[+-]?\d+)\s")
 
 
+_STAGE_LINE = re.compile(r"^\s*\d+:\s+(\S.*?):\s+([0-9.]+e[+-]?\d+)\s")
+ONCE = (SET_UP, PATH_END)       # rodsnes' stages of the work done once, no iteration's
+
+
 def parse_log_view(text):
-    """PETSc's ASCII -log_view -> {"ranks": int, "events": {name: {"count", "time"}}}: per
-    event the count and the time (seconds, maximum over ranks), summed over the stages but
-    rodsnes' PathEnd (profiling.PATH_END: the work done once after the path, no iteration's:
-    a Newton path's stability count of its end)."""
+    """PETSc's ASCII -log_view -> {"ranks": int, "events": {name: {"count", "time"}},
+    "stages": {name: seconds}}: per event the count and the time (seconds, maximum over
+    ranks), summed over the stages but rodsnes' SetUp and PathEnd (ONCE, profiling.SET_UP and
+    PATH_END: the work done once before and after the path, no iteration's: the solver's
+    set-up, a Newton path's stability count of its end); per stage its time (PETSc's "Summary
+    of Stages": the average over the ranks)."""
     m = re.search(r"with (\d+) processors?", text)
     if m is None:
         raise ValueError("not a PETSc -log_view: no 'with N processor(s)' line")
-    events, inside = {}, False
+    events, stages, inside, summary = {}, {}, False, False
     for line in text.splitlines():
+        if line.startswith("Summary of Stages"):
+            summary = True
+            continue
+        if summary:
+            st = _STAGE_LINE.match(line)
+            if st:
+                stages[st.group(1)] = float(st.group(2))
+            elif stages and not line.strip():
+                summary = False
+            continue
         if line.startswith("--- Event Stage"):
-            inside = not line.rstrip().endswith(": " + PATH_END)
+            inside = not any(line.rstrip().endswith(": " + name) for name in ONCE)
             continue
         if inside and (line.startswith("----") or line.startswith("====")):
             inside = False
@@ -144,7 +164,7 @@ def parse_log_view(text):
             rec["time"] += float(e.group(3))
     if "SNESSolve" not in events:
         raise ValueError("-log_view without a SNESSolve event: no Newton solve was logged")
-    return {"ranks": int(m.group(1)), "events": events}
+    return {"ranks": int(m.group(1)), "events": events, "stages": stages}
 
 
 def _t(ev, name):
@@ -182,7 +202,9 @@ def iteration_parts(log):
          "contact_eval": (_t(ev, "ContactEval") + _t(ev, "ContactTangent")) / its,
          "contact_halo": _t(ev, "ContactHalo") / its,
          "contact_assemble": _t(ev, "ContactAssemble") / its,
-         "rod_events": int(any(name in ev for name in ROD_EVENTS))}
+         "rod_events": int(any(name in ev for name in ROD_EVENTS)),
+         # once, not per iteration: the solver's set-up before the path (its stage's time)
+         "setup": log.get("stages", {}).get(SET_UP, 0.0)}
     p["contact"] = p["contact_search"] + p["contact_eval"] + p["contact_halo"]
     pcsetup = _t(ev, "PCSetUp") / its
     ksp = _t(ev, "KSPSolve") / its
@@ -530,7 +552,8 @@ def targets(rows):
 # -- outputs ------------------------------------------------------------------------------
 
 COLUMNS = ("scene", "law", "N", "ranks", "status", "dofs", "iterations", "iterations_converged",
-           "snes_solves", "residual_evals", "factorisations", "analyses", "wall_s", "peak_rss_gb", "total",
+           "snes_solves", "residual_evals", "factorisations", "analyses", "wall_s", "peak_rss_gb",
+           "setup", "total",
            "residual", "jacobian", "factor", "factor_sym", "solve", "linesearch", "other",
            "elastic", "contact", "contact_search", "contact_eval", "contact_halo",
            "contact_assemble", "resjac_per_factor", "contact_per_factor", "rod_events",
@@ -593,13 +616,14 @@ def markdown(rows, note=""):
     lines = [f"Machine: {machine()}.  Milliseconds per Newton iteration (the maximum over the "
              f"ranks), from PETSc's -log_view; tools/bench_scaling.py.{' ' + note if note else ''}",
              "",
-             "| scene | law | N | ranks | its | total | residual | Jacobian | factor (LU) | solve "
-             "| line search | elastic | contact | (res+Jac)/factor | contact/factor | in contact "
-             "| peak GB | status |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "| scene | law | N | ranks | set-up (once) | its | total | residual | Jacobian "
+             "| factor (LU) | solve | line search | elastic | contact | (res+Jac)/factor "
+             "| contact/factor | in contact | peak GB | status |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+             "---:|---|"]
     for r in rows:
         lines.append(f"| {r['scene']} | {r['law']} | {r['N']} | {r['ranks']} | "
-                     f"{r.get('iterations', '')} | {_ms(r.get('total'))} | "
+                     f"{_ms(r.get('setup'))} | {r.get('iterations', '')} | {_ms(r.get('total'))} | "
                      f"{_ms(r.get('residual'))} | {_ms(r.get('jacobian'))} | "
                      f"{_ms(r.get('factor'))} | {_ms(r.get('solve'))} | "
                      f"{_ms(r.get('linesearch'))} | {_ms(r.get('elastic'))} | "

@@ -403,6 +403,21 @@ class LUChoice:
                 use_rank_schur(ksp, problem)
 
 
+def set_up_ahead(ksp, choice, problem, A):
+    """Before the first factorisation (a solver's set-up, rodsnes.profiling.SET_UP): the matrix
+    ``A`` (preallocated, its values not yet made) set on ``ksp``, the LU's ``choice``
+    (LUChoice) made for its pattern, and what that choice plans from the pattern alone made
+    now (a python PC's ``plan``: the chain LU's streams, the ranks' separator and
+    condensation), so that the first Newton iteration finds them.  Collective."""
+    ksp.setOperators(A)
+    choice.check(ksp, problem)
+    pc = ksp.getPC()
+    if pc.getType() == PETSc.PC.Type.PYTHON:
+        plan = getattr(pc.getPythonContext(), "plan", None)
+        if plan is not None:
+            plan(pc)
+
+
 def reason_name(kind, value):
     """The name of a PETSc converged reason (kind: "SNES" or "KSP"), e.g.
     DIVERGED_LINEAR_SOLVE for SNES's -3; the number where PETSc has no name for it."""

@@ -99,6 +99,10 @@ class LoadPath:
         self.lam_link0 = 0.0
         self.floor = self.minimizer.floor
 
+    def setup(self):
+        """Before the path: the minimiser's (EnergyMinimizer.setup).  Collective."""
+        self.minimizer.setup()
+
     def tolerance(self):
         """The gradient norm every step is held to: max(rtol x force scale, round-off floor)."""
         return max(self.minimizer.tol, self.floor)

@@ -53,7 +53,7 @@ from petsc4py import PETSc
 from rodsnes.model.assembly import set_diagonal
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
-from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve
+from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve, set_up_ahead
 from rodsnes.solve.stability import Inertia, lumped_metric
 from rodsnes.solve.valley import ValleyFollower
 
@@ -655,18 +655,35 @@ class EnergyMinimizer:
         choice checked for its pattern): its next solve factors it.  Returns the KSP."""
         p = self.problem
         p.jacobian(None, p.state.X, p.J, p.J)
-        ksp = self.ksp
-        if ksp is None:
-            # the Newton path's linear solver (preonly + LU, solve/linear.py, unless -ksp_type,
-            # -pc_type, -pc_factor_mat_solver_type ... say otherwise)
-            self.lu = LUChoice(direct_solver_defaults(p, self.prefix))
-            ksp = self.ksp = PETSc.KSP().create(comm=p.layout.comm)
-            ksp.setOptionsPrefix(self.prefix)
-            ksp.setFromOptions()
+        ksp = self._ksp()
         ksp.setOperators(p.J)
         self.lu.check(ksp, p)
         self.factorizations += 1
         return ksp
+
+    def _ksp(self):
+        """The Newton step's KSP, made at the first call: the Newton path's linear solver
+        (preonly + LU, solve/linear.py, unless -ksp_type, -pc_type,
+        -pc_factor_mat_solver_type ... say otherwise)."""
+        if self.ksp is None:
+            self.lu = LUChoice(direct_solver_defaults(self.problem, self.prefix))
+            ksp = self.ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
+            ksp.setOptionsPrefix(self.prefix)
+            ksp.setFromOptions()
+        return self.ksp
+
+    def setup(self):
+        """Before the path (Run, in the log stage profiling.SET_UP): the Newton step's matrix,
+        its KSP, and its LU's choice and plan for the present pattern (linear.set_up_ahead),
+        and the Hessian's matrix and LDL^T plan (stability.Inertia.setup); planar.
+        PlanarSystem.setup for a run in its plane, its out-of-plane count's too.
+        Collective."""
+        p = self.problem
+        if p.planar is not None and p.planar.active:
+            p.planar.setup(counts=True)
+            return
+        set_up_ahead(self._ksp(), self.lu, p, p.J)
+        self.factor.setup()
 
     def _escape(self, d, g):
         """At a saddle: add the lowest mode, signed downhill and scaled to move a node by

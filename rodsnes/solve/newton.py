@@ -29,10 +29,10 @@ from petsc4py import PETSc
 from rodsnes.model.retraction import Retraction
 from rodsnes.solve.arclength import Arclength
 from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve,
-                                  option_default, peek)
+                                  option_default, peek, set_up_ahead)
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
-from rodsnes.solve.stability import negative_eigenvalues
+from rodsnes.solve.stability import Inertia, negative_eigenvalues
 
 # the smallest penalty raise keep_penetration cuts a failed one back to (x mu)
 RAISE_MIN = 1.1
@@ -115,6 +115,23 @@ class NewtonSolver:
         self.quiet = bool(getattr(getattr(problem.scene, "output", None), "quiet", False))
         self.results = []                   # StepResults of the last run()
         self.predictor_retries = 0          # failed predicted steps tried again from the last state
+
+    def setup(self):
+        """Before the path (Run, in the log stage profiling.SET_UP): PETSc's SNESSetUp, and the
+        matrix the Newton step factors with its LU's choice and plan for the present pattern
+        (linear.set_up_ahead; planar.PlanarSystem.setup for a run in its plane), and where
+        every step is counted (-stability) the Hessian's for its count, which the first
+        iteration and count then find made.  Collective."""
+        self.snes.setUp()
+        p = self.problem
+        if p.planar is not None and p.planar.active:
+            p.planar.setup(counts=self.check_stability)
+            return
+        set_up_ahead(self.snes.getKSP(), self.lu, p, p.J)
+        if self.check_stability:
+            if p.inertia is None:
+                p.inertia = Inertia(p)
+            p.inertia.setup()
 
     def convergence_test(self, snes, it, norms):
         """SNES's convergence test (also the continuation corrector's): convergence relative to

@@ -39,7 +39,7 @@ from rodsnes.model.partition import NDOF, DirichletRows, _upper_blocks, kept, pr
 from rodsnes.model.scales import residual_floor
 from rodsnes.model.term import same_patterns
 from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve, is_default,
-                                  option_default, solver_made)
+                                  option_default, set_up_ahead, solver_made)
 from rodsnes import petsc_lib
 from rodsnes.solve import petsc_exit
 from rodsnes.solve.stability import Inertia
@@ -356,8 +356,23 @@ class PlanarSystem:
         return text
 
     # -- the in-plane Newton step --------------------------------------------------------
-    def assemble_tangent(self, X=None):
-        """The in-plane block of the consistent tangent at X (default: the state) into J."""
+    def setup(self, counts=False):
+        """Before the first Newton iteration (a solver's set-up, profiling.SET_UP): the
+        in-plane block's matrix of the terms' present patterns, its LU's KSP, and the LU's
+        choice and plan for that pattern (linear.set_up_ahead), which the first
+        assemble_tangent and solve_block then find made; with ``counts`` (the path counts
+        negative eigenvalues at every step, or every iteration) the in-plane and out-of-plane
+        Hessian blocks' too (stability.Inertia.setup).  Collective."""
+        if self.active:
+            J = self._matrix()
+            set_up_ahead(self._inner_ksp(), self.lu, self.problem, J)
+            if counts:
+                self.inertia.block.setup()
+                self.out_inertia.setup()
+
+    def _matrix(self):
+        """J, made anew for the terms' present patterns where it has others (a new contact
+        pair), the LU's KSP reset then."""
         p = self.problem
         if self.J is None or not same_patterns(p.patterns, self._patterns):
             if self.J is not None:
@@ -366,7 +381,12 @@ class PlanarSystem:
             self._patterns = p.patterns
             if self.ksp is not None:
                 self.ksp.reset()
-        p.jacobian(None, p.state.X if X is None else X, self.J, self.J,
+        return self.J
+
+    def assemble_tangent(self, X=None):
+        """The in-plane block of the consistent tangent at X (default: the state) into J."""
+        p = self.problem
+        p.jacobian(None, p.state.X if X is None else X, self._matrix(), self.J,
                    view=component_view(self, self.J, self.plane.inplane, p.constraints,
                                        self.plane))
 

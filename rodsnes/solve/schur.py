@@ -294,24 +294,23 @@ class RankSchur:
                 mine["set"].clear()
 
     # -- set-up -----------------------------------------------------------------------
-    def setUp(self, pc):
-        petsc_exit.live(pc)
+    def _key(self, A):
+        """What identifies the matrix: its handle, its size and the problem's count of new
+        patterns (the same on every rank; a handle alone may be a new matrix at a freed one's
+        address)."""
+        return (A.handle, A.getSize(), self.problem.stats.get("pattern_refreshes", 0))
+
+    def plan(self, pc):
+        """The set-up's part that needs the matrix's pattern alone (the separator, the decision
+        to condense, the condensation's index sets, blocks and the stretches' plans), unless
+        made for this matrix already: a solver's set-up makes it before the matrix has values
+        (linear.set_up_ahead), and the first setUp goes straight to the factorisations.
+        Returns whether the matrix is condensed (else the whole-matrix LU, set up with the
+        values).  Collective."""
         A = pc.getOperators()[0]
-        # the matrix: its handle and the problem's count of new patterns (the same on every
-        # rank; a handle alone may be a new matrix at a freed one's address)
-        key = (A.handle, A.getSize(), self.problem.stats.get("pattern_refreshes", 0))
-        k = self.kept
-        if k is not None and k["A"] == key:
-            # the matrix condensed at the last set-up, with new values: the same separator and
-            # decision on every rank (kept only in "schur" mode), its objects refreshed (a
-            # Newton iteration's set-up; the decision's arrays and gathers took 0.1-0.2 ms)
-            self.mode = "schur"
-            self.setups["schur"] += 1
-            self._refresh(A)
-            self._factor(A, k["comm"])
-            petsc_lib.set_pc_failed(pc, self.failed)
-            self.negative = self._count(k["comm"]) if self.inertia else None
-            return
+        key = self._key(A)
+        if self.kept is not None and self.kept["A"] == key:
+            return True
         comm = A.getComm().tompi4py()
         bs = A.getBlockSize()
         rs, re = A.getOwnershipRange()
@@ -319,7 +318,7 @@ class RankSchur:
         # contact pairs are gathered to every rank) and the ownership ranges are global, and so
         # is every rank's interior size; a short rod goes to the whole matrix before any of it
         # (the separator of a contact-rich pattern costs 0.7 ms a set-up on the plectoneme).
-        # Whether a rank condenses anew or refreshes (above) is its own (_condense makes
+        # Whether a rank condenses anew or refreshes (setUp) is its own (_condense makes
         # objects of its own alone): a rank whose factorisation failed condenses anew, the
         # others need not
         condense = pays(self.problem.mesh.n_nodes, comm.Get_size(), self.package)
@@ -329,20 +328,36 @@ class RankSchur:
             first = np.asarray(A.getOwnershipRanges()) // bs
             interior = np.diff(first) - np.diff(np.searchsorted(sep, first))
             condense = 0 < len(sep) * bs <= SCHUR_MAX and interior.min() > 0
-        self.mode = "schur" if condense else "whole"
-        self.setups[self.mode] += 1
         if not condense:
             self.kept = None
+            return False
+        self._condense(A, key, sep, mine, near)
+        return True
+
+    def setUp(self, pc):
+        petsc_exit.live(pc)
+        A = pc.getOperators()[0]
+        k = self.kept
+        if k is not None and k["A"] == self._key(A):
+            # the matrix planned or condensed before (the same separator and decision on every
+            # rank: kept only in "schur" mode) with new values: its objects refreshed (a Newton
+            # iteration's set-up; the decision's arrays and gathers took 0.1-0.2 ms)
+            self._refresh(A)
+        elif not self.plan(pc):
+            self.mode = "whole"
+            self.setups["whole"] += 1
             self._whole(A).setUp()
             self.failed = False
             petsc_lib.set_pc_failed(pc, False)
             self.negative = None
             self.structural = True
             return
-        self._condense(A, key, sep, mine, near)
-        self._factor(A, comm)
+        self.mode = "schur"
+        self.setups["schur"] += 1
+        k = self.kept
+        self._factor(A, k["comm"])
         petsc_lib.set_pc_failed(pc, self.failed)        # the same on every rank (_factor)
-        self.negative = self._count(comm) if self.inertia else None
+        self.negative = self._count(k["comm"]) if self.inertia else None
 
     def _count(self, comm):
         """The negative eigenvalues of A (symmetric) from the last set-up (``inertia``), or

@@ -136,6 +136,13 @@ class ChainCount:
         lu = chain.plan_of(H)
         return None if lu is None else cls(problem.layout, lu=lu)
 
+    def plan(self, H):
+        """Before H has values (a solver's set-up): on several ranks the condensation's plan
+        (schur.RankSchur.plan); on one the chain LU's, made with the count.  Collective."""
+        if self.pc is not None:
+            self.pc.setOperators(H)
+            self.pc.getPythonContext().plan(self.pc)
+
     def count(self, H, bound):
         """H's negative eigenvalues, or None (a singular pivot block, factors not backward
         stable within ``bound`` |H| |x|, a stretch not a chain).  Collective."""
@@ -429,6 +436,16 @@ class Inertia:
         self.pc.apply(w["b"], w["x"])
         lo, hi = x.getOwnershipRange()
         x.setArray(w["x"].getArray(readonly=True)[lo:hi])
+
+    def setup(self):
+        """Before the first count (a solver's set-up, profiling.SET_UP): the matrix H goes into,
+        for the terms' present patterns, and its factorisation's plan (the chain LDL^T's) or
+        its MUMPS PC, which the first count then finds made.  Collective."""
+        patterns = self.problem.patterns_at()
+        if not same_patterns(patterns, self.patterns):
+            self._build(patterns)
+            if self.chain is not None:
+                self.chain.plan(self.H)
 
     def count(self):
         """Negative eigenvalues of the symmetric Hessian at the problem's current state.
