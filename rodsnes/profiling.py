@@ -19,7 +19,7 @@ residual and Jacobian into the elastic kernel and the parts of self-contact
 
 Work done once before or after the path, not in its iterations, runs in a log stage of its
 own (the bench leaves both out of its per-iteration parts and reports the set-up apart):
-``with stage(SET_UP):`` (-log_view's "Event Stage 1: SetUp"), the solver's set-up, as PETSc's
+``with stage(SET_UP):`` (-log_view's "Event Stage 2: SetUp"), the solver's set-up, as PETSc's
 SNESSetUp before a solve: the Newton step's matrix preallocated, its LU chosen and planned
 for the pattern (Run._execute: the solver's setup()); ``with stage(PATH_END):`` ("PathEnd"),
 the stability count at the end of a Newton path.

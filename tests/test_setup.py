@@ -61,22 +61,28 @@ def _run(solver_class, monkeypatch, ahead=True, **kw):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("kw,solver_class", [
-    (dict(load_path="newton"), newton.NewtonSolver),                       # in its plane
-    (dict(load_path="newton", rod_planar="off"), newton.NewtonSolver),     # in 3-D
-    (dict(load_path="minimize"), load_path.LoadPath)])
-def test_the_set_up_makes_what_the_path_then_only_fills(kw, solver_class, monkeypatch):
+@pytest.mark.parametrize("kw,solver_class,kinds", [
+    # the Newton path's in-plane matrix; with -stability the in-plane and out-of-plane Hessian
+    # blocks' of every step's count too
+    (dict(load_path="newton"), newton.NewtonSolver, 1),
+    (dict(load_path="newton", stability=True), newton.NewtonSolver, 3),
+    # in 3-D the full J (made with the problem); with -stability the full Hessian's
+    (dict(load_path="newton", rod_planar="off"), newton.NewtonSolver, 1),
+    (dict(load_path="newton", rod_planar="off", stability=True), newton.NewtonSolver, 2),
+    # the minimiser's in-plane Newton step's and the in-plane and out-of-plane Hessian blocks'
+    # (its LDL^T at every iteration, the out-of-plane count at every step); in 3-D the full
+    # J's and the Hessian's
+    (dict(load_path="minimize"), load_path.LoadPath, 3),
+    (dict(load_path="minimize", rod_planar="off"), load_path.LoadPath, 2)])
+def test_the_set_up_makes_what_the_path_then_only_fills(kw, solver_class, kinds, monkeypatch):
     """The set-up makes the Newton step's matrix (the in-plane one, or the full one made with
     the problem) and the LU's plan for it (serially the chain LU's; on several ranks the
-    condensation, whose stretches are chains); the path's iterations make neither again.  The
-    answer is the one of a run whose set-up is left to the first iteration, to round-off."""
+    condensation, whose stretches are chains), and the Hessian's where the path counts every
+    step or iteration; the path's iterations make none of them again.  The answer is the one
+    of a run whose set-up is left to the first iteration, to round-off."""
     several = PETSc.COMM_WORLD.getSize() > 1
     run, seen = _run(solver_class, monkeypatch, **kw)
     made = seen["set-up"]
-    # the Newton path's matrix (in-plane, or the full one); the minimiser's in-plane Newton
-    # step's, and the in-plane and out-of-plane Hessian blocks' (its LDL^T at every iteration,
-    # the out-of-plane count at every step); each a chain, on several ranks condensed
-    kinds = 3 if solver_class is load_path.LoadPath else 1
     assert made["matrices"] == kinds
     assert made["plans"] == kinds and made["condensations"] == (kinds if several else 0)
     assert seen["path to"] == seen["path from"] == made
@@ -87,3 +93,13 @@ def test_the_set_up_makes_what_the_path_then_only_fills(kw, solver_class, monkey
     assert seen_lazy["path to"]["matrices"] == seen["path to"]["matrices"]
     np.testing.assert_allclose(gathered_positions(run), gathered_positions(lazy),
                                rtol=0, atol=1e-12)
+
+
+def test_a_snes_type_the_set_up_cannot_set_up_is_its_solves_to_fail():
+    """-snes_type qn on the Newton path: SNESSetUp ahead of the path goes as the solve's own
+    would (the set-up gives the SNES its solution vector), and the steps fail as solves, the
+    run ending without a traceback (exit code 3, not 2 from a PETSc error at the set-up)."""
+    run = build_run("mattiasson", rod_nelem=20, load_steps=2, rod_error_estimate="off",
+                    load_path="newton", rod_planar="off", snes_type="qn")
+    assert not run.execute()
+    assert run.history == [] and run.solver.fail_reason is None

@@ -122,8 +122,12 @@ class NewtonSolver:
         (linear.set_up_ahead; planar.PlanarSystem.setup for a run in its plane), and where
         every step is counted (-stability) the Hessian's for its count, which the first
         iteration and count then find made.  Collective."""
-        self.snes.setUp()
         p = self.problem
+        self.snes.setSolution(p.state.X)    # the SNES's work vectors are made like it
+        try:
+            self.snes.setUp()
+        except PETSc.Error:
+            pass            # a -snes_type that cannot be set up so: its solve says it, a step
         if p.planar is not None and p.planar.active:
             p.planar.setup(counts=self.check_stability)
             return
