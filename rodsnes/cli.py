@@ -791,9 +791,9 @@ def _release_petsc_objects(comm):
     freed unevenly; the object that made the difference was not identified).  With it that
     run, the Euler column, rollup_contact and the plectoneme end (tests/test_finalize_views.py)."""
     import gc
-    from petsc4py import PETSc
+    from rodsnes import petsc_lib
     gc.collect()
-    PETSc.garbage_cleanup(comm)
+    petsc_lib.release_garbage(comm)
 
 
 def _prepare(argv, comm, opts, rank, given):

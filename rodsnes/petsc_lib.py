@@ -10,6 +10,19 @@ import functools
 _INT = ctypes.c_int
 
 
+def release_garbage(comm):
+    """Destroy now, on every rank of ``comm`` together, the PETSc objects whose Python handles
+    went without destroy(): petsc4py 3.18 does not destroy them but parks them in their
+    communicator's garbage until PetscFinalize (a vector of a 10^4-element rod, 1.4 MB, stayed
+    for the rest of the run: a run's memory grew by 6 MB a load step at 10^4 elements from
+    its output fields alone, 28 MB at 10^5).  Those of COMM_SELF too (the ranks' own
+    objects).  Collective: where every rank is at the same point of the run (a load step's
+    end)."""
+    from petsc4py import PETSc
+    PETSc.garbage_cleanup(comm)
+    PETSc.garbage_cleanup(PETSc.COMM_SELF)
+
+
 @functools.lru_cache(maxsize=None)
 def library():
     """ctypes.CDLL of the PETSc shared library loaded in this process (found in

@@ -407,6 +407,8 @@ class Run:
                 if self._summary_due():
                     with self._summary_budget.spent():
                         output.write_summary(self.outdir, self.mpi, self._last_summary)
+            # the PETSc objects the step dropped, destroyed (petsc_lib.release_garbage)
+            petsc_lib.release_garbage(self.comm)
 
         def on_fail(res, dlam):
             failed.append(res)
@@ -426,6 +428,7 @@ class Run:
                     why = f"{res.reason}, {res.its} its"
                 print(f"  load {res.lam:.6f} not accepted ({why}): cutting the increment "
                       f"{dlam:.3e} in half", flush=True)
+            petsc_lib.release_garbage(self.comm)
 
         results, ok = self.solver.run(self.lam0, ld.steps, ld.max_cutbacks, ld.min_step, on_step, on_fail,
                                        nneg0=self.nneg0, dlam0=self.dlam0, prev0=self.prev0,

@@ -1006,4 +1006,7 @@ def nodal_average(layout, lconn, elem_values):
     A, Cn = layout.create_vec(), layout.create_vec()
     layout.add_to_global(acc, A)
     layout.add_to_global(cnt, Cn)
-    return (A.getArray(readonly=True) / Cn.getArray(readonly=True)).reshape(-1, NDOF)
+    out = (A.getArray(readonly=True) / Cn.getArray(readonly=True)).reshape(-1, NDOF)
+    A.destroy()
+    Cn.destroy()
+    return out

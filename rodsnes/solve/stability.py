@@ -28,7 +28,10 @@ from rodsnes.solve.linear import is_default, mumps_fill_room, mumps_ordering, op
 def zero_shift(A):
     """1000 eps max|diag(A)|: the round-off scale of A's entries, against which the chain
     LDL^T's backward error is judged (Inertia.CHAIN_BACKWARD).  Collective."""
-    return 1e3 * np.finfo(float).eps * A.getDiagonal().norm(PETSc.NormType.INFINITY)
+    d = A.getDiagonal()
+    out = 1e3 * np.finfo(float).eps * d.norm(PETSc.NormType.INFINITY)
+    d.destroy()
+    return out
 
 
 # The inertia is counted on H + tau M (Sylvester: the eigenvalues of H v = lambda M v below
