@@ -160,10 +160,11 @@ def test_the_estimate_keeps_its_own_solver_options():
 
 @pytest.mark.parametrize("case, order, nelem", [("mattiasson", 3, 4), ("mattiasson", 2, 16)])
 def test_a_planar_run_estimates_in_its_plane(monkeypatch, case, order, nelem):
-    """A planar run that minimises: its enriched problem's whole stage (the same minimisation)
-    solves on the in-plane block too (Newton steps and stability count: planar.PlanarSystem,
-    still active at the end), and its estimate
-    is the 3-D enriched problem's (the same order p+1 minimum) to 1e-9 of the estimate."""
+    """A planar run that minimises: its enriched problem's interior stage (SNES) and whole
+    stage (the same minimisation) solve on the in-plane block too (Newton steps and stability
+    count: planar.PlanarSystem, still active at the end; the full 6-dof Jacobian never made),
+    and its estimate is the 3-D enriched problem's (the same order p+1 minimum) to 1e-9 of the
+    estimate."""
     from rodsnes.solve import estimate, planar
     counts = []                 # the planar systems whose in-plane Hessian was factored
     factor = planar.PlanarInertia.factor
@@ -177,6 +178,8 @@ def test_a_planar_run_estimates_in_its_plane(monkeypatch, case, order, nelem):
     assert any(c is pl for c in counts)     # its stability count was the in-plane block's
     # its in-plane Newton steps under the estimate's own options (-estimate_*)
     assert pl.ksp is not None and pl.ksp.getOptionsPrefix() == "estimate_"
+    # the interior stage's Newton steps by the SNES attached to the in-plane block
+    assert enriched.problem.J_made is None and enriched.snes.getIterationNumber() > 0
     planar_est = run.last_estimate
     x, q = gathered_state(run.problem)
     flat = estimate.EnrichedProblem(run.scene, run.comm, order + 1, nelem, minimize=True)

@@ -100,7 +100,14 @@ class EnrichedProblem:
         self.held_from = None           # the mesh whose nodes the interior stage holds
         self.X0 = self.problem.state.X.duplicate()     # the carried state
         self.snes = self._snes()
-        self.problem.on_pattern_change = self._set_matrix
+        if self.problem.planar is not None:
+            # the interior stage's Newton steps on the in-plane block too, as the Newton
+            # path's (planar.PlanarSystem.attach: the full 6-dof Jacobian, at 10^5 cubic
+            # elements of order 4 a matrix of 0.8 GB and its factors as much, is made only
+            # if the state is not planar)
+            self.problem.planar.attach(self, jacobian=self._jacobian_in_plane)
+        else:
+            self.problem.on_pattern_change = self._set_matrix
         self.minimizer = None
         if minimize:        # the whole stage as the run's load steps: minimise the energy
             max_it = PETSc.Options().getInt(PREFIX + "snes_max_it", self.MAX_IT)
@@ -127,7 +134,7 @@ class EnrichedProblem:
         snes.setOptionsPrefix(PREFIX)
         snes.setType("newtonls")
         snes.setFunction(self._residual, p.F)
-        snes.setJacobian(self._jacobian, p.J)
+        snes.setJacobian(self._jacobian, p.J if p.planar is None else None)
         snes.setUpdate(self._update)
         snes.setConvergenceTest(self._converged)
         snes.setLineSearchPreCheck(self._precheck)
@@ -157,6 +164,11 @@ class EnrichedProblem:
         self.held_rows = rows
         self.held_is = PETSc.IS().createGeneral((lo + rows).astype(PETSc.IntType),
                                                 comm=self.layout.comm)
+        # the same nodes' rows of the in-plane block (3 a node; planar.PlanarSystem.J)
+        lo3 = 3 * int(lay.starts[lay.comm.getRank()])
+        rows3 = (np.flatnonzero(kept)[:, None] * 3 + np.arange(3)).ravel()
+        self.held_is_plane = PETSc.IS().createGeneral((lo3 + rows3).astype(PETSc.IntType),
+                                                      comm=self.layout.comm)
         self.held_from = mesh
 
     def _residual(self, snes, X, F):
@@ -173,6 +185,19 @@ class EnrichedProblem:
         self.problem.jacobian(snes, X, J, P)
         if self.stage == "interior":
             P.zeroRowsColumns(self.held_is, 1.0)
+        self.factorisations += 1
+
+    def _jacobian_in_plane(self, snes, X, J, P):
+        """The in-plane block's tangent (planar.PlanarSystem.snes_jacobian; the full one once
+        the state has left the plane); in the interior stage the held rows and columns
+        identity."""
+        pl = self.problem.planar
+        pl.snes_jacobian(snes, X, J, P)
+        if self.stage == "interior":
+            if pl.active:
+                pl.J.zeroRowsColumns(self.held_is_plane, 1.0)
+            else:
+                self.problem.J.zeroRowsColumns(self.held_is, 1.0)
         self.factorisations += 1
 
     def _precheck(self, X, Y):

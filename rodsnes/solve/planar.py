@@ -233,7 +233,11 @@ class PlanarInertia:
         if not self.planar_factor:
             return self.full.factor(shift)
         s = None if shift is None else self.planar.restrict(shift)
-        return self.block.factor(s)
+        try:
+            return self.block.factor(s)
+        finally:
+            if s is not None:
+                s.destroy()
 
     def solve(self, b, x):
         if not self.planar_factor:
@@ -446,11 +450,13 @@ class PlanarSystem:
         return self.solve_block(b, x)
 
     # -- the Newton path's SNES ----------------------------------------------------------
-    def attach(self, solver):
-        """Make the SNES of the Newton path (newton.NewtonSolver) solve on the in-plane block:
-        its Jacobian callback assembles J_ii (or, after leave(), the full J), its operator is a
-        python matrix of the full size that multiplies by it (_Operator), and its KSP's PC a python PC that
-        solves J_ii y_i = x_i, y_o = 0 (or the full system)."""
+    def attach(self, solver, jacobian=None):
+        """Make the SNES of the Newton path (newton.NewtonSolver; the error estimate's interior
+        stage, estimate.EnrichedProblem) solve on the in-plane block: its Jacobian callback
+        assembles J_ii (or, after leave(), the full J: snes_jacobian, or ``jacobian`` which
+        calls it), its operator is a python matrix of the full size that multiplies by it
+        (_Operator), and its KSP's PC a python PC that solves J_ii y_i = x_i, y_o = 0 (or the
+        full system)."""
         self.solver = solver
         p = self.problem
         lay = p.layout
@@ -459,7 +465,7 @@ class PlanarSystem:
                                               comm=lay.comm)
         self.shell.setBlockSize(NDOF)       # its vectors: a node's 6 unknowns a block
         self.shell.setUp()
-        solver.snes.setJacobian(self._snes_jacobian, self.shell)
+        solver.snes.setJacobian(jacobian or self.snes_jacobian, self.shell)
         self.attach_pc(solver.snes.getKSP())
         p.on_pattern_change = self._pattern_changed
 
@@ -474,7 +480,8 @@ class PlanarSystem:
         if self.full_ksp is not None:
             self.full_ksp.reset()
 
-    def _snes_jacobian(self, snes, X, J, P):
+    def snes_jacobian(self, snes, X, J, P):
+        """The attached SNES's Jacobian: J_ii into J (the full J after leave())."""
         if self.active:
             self.assemble_tangent(X)
         else:
