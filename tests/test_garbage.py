@@ -4,9 +4,13 @@ PetscFinalize or a cleanup (petsc_lib.release_garbage), and a run's memory grew 
 more a load step (6 MB a step at 10^4 elements from the output fields, 28 MB at 10^5) and by
 the valley walks' snapshots within a step."""
 import contextlib
+import ctypes
 import gc
 import io
+import os
 import re
+import sys
+import tempfile
 
 import pytest
 from petsc4py import PETSc
@@ -15,17 +19,41 @@ from conftest import run_case
 from rodsnes import petsc_lib
 
 
+def _printed(fun):
+    """What ``fun()`` prints, wherever PETSc's printing goes: petsc4py sends it through a
+    Python sys.stdout where one was installed when it was imported (under pytest's capture),
+    else to C's stdout; both are caught (the Python stream redirected, file descriptor 1 put
+    on a file, every buffer flushed)."""
+    libc = ctypes.CDLL(None)
+    text = io.StringIO()
+    with tempfile.TemporaryFile(mode="w+") as fh:
+        for stream in (sys.stdout, sys.__stdout__):
+            stream.flush()
+        libc.fflush(None)
+        saved = os.dup(1)
+        try:
+            os.dup2(fh.fileno(), 1)
+            with contextlib.redirect_stdout(text):
+                fun()
+            for stream in (sys.stdout, sys.__stdout__):
+                stream.flush()
+            libc.fflush(None)
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+        fh.seek(0)
+        return text.getvalue() + fh.read()
+
+
 def parked():
     """The objects in petsc4py's garbage now (PETSc.garbage_view's count, COMM_WORLD's and
-    COMM_SELF's; petsc4py prints PETSc's output through Python's sys.stdout), serially."""
+    COMM_SELF's), serially."""
     total = 0
     for comm in (PETSc.COMM_WORLD, PETSc.COMM_SELF):
-        text = io.StringIO()
-        with contextlib.redirect_stdout(text):
-            PETSc.garbage_view(comm)
-        m = re.search(r"Total entries: (\d+)", text.getvalue())
+        out = _printed(lambda: PETSc.garbage_view(comm))
+        m = re.search(r"Total entries: (\d+)", out)
         if m is None:
-            raise RuntimeError("PETSc.garbage_view printed no count: " + text.getvalue())
+            raise RuntimeError("PETSc.garbage_view printed no count: " + out)
         total += int(m.group(1))
     return total
 

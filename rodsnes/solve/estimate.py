@@ -296,17 +296,26 @@ class EnrichedProblem:
         if gauge:
             p.hold_sliding()
         p.state.X.copy(self.X0)
+        # the plane's guard on the carried state before either stage: in the interior stage
+        # the SNES's planar PC would take a state out of the plane to its unmasked 3-D
+        # Jacobian, the held nodes free (they moved by 7.8 L from ltb's buckled state); the
+        # minimiser asks it before a Newton step, not before a stability count at a state
+        # already converged
+        self._guard()
         its, ok = self.solve_stage("interior")
         if not ok:
             self.place(mesh, x_nodes, q_nodes)
-        if p.planar is not None and p.planar.active:
-            # the guard on the state the whole stage starts from: the minimiser asks it before
-            # a Newton step, not before a stability count at a state already converged
-            p.residual(None, p.state.X, p.F)
-            p.planar.holds(p.F)
+        self._guard()
         more, converged = self.solve_stage("whole")
         x, q = gathered_state(p)
         return x, q, its + more, self.factorisations, converged
+
+    def _guard(self):
+        """planar.PlanarSystem.holds on the state's residual, where the plane is still held."""
+        p = self.problem
+        if p.planar is not None and p.planar.active:
+            p.residual(None, p.state.X, p.F)
+            p.planar.holds(p.F)
 
     def destroy(self):
         self.snes.destroy()

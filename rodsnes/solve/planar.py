@@ -489,11 +489,18 @@ class PlanarSystem:
         J.assemble()
 
     def full_solve(self, b, x):
-        """The 3-D solve with the full J (assembled by the Jacobian callback)."""
+        """The 3-D solve with the full J (assembled by the Jacobian callback), by the 3-D
+        step's solver: the Newton path's (its options unprefixed), or the estimate's own
+        (-estimate_*), the LU chosen for the pattern as the 3-D step's (linear.LUChoice: on
+        several ranks each rank's stretch, MUMPS where contact fills it)."""
         if self.full_ksp is None:
+            pre = "" if self.prefix == PREFIX else self.prefix
+            self.full_lu = LUChoice(direct_solver_defaults(self.problem, pre))
             self.full_ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
+            self.full_ksp.setOptionsPrefix(pre)
             self.full_ksp.setFromOptions()
         self.full_ksp.setOperators(self.problem.J)
+        self.full_lu.check(self.full_ksp, self.problem)
         try:
             self.full_ksp.solve(b, x)
             if self.full_ksp.getConvergedReason() >= 0:
