@@ -55,7 +55,7 @@ from rodsnes.model.assembly import set_diagonal
 from rodsnes.profiling import logged, timed
 from rodsnes.model.scales import residual_floor
 from rodsnes.solve.linear import LUChoice, direct_solver_defaults, failed_solve, set_up_ahead
-from rodsnes.solve.stability import Inertia, lumped_metric
+from rodsnes.solve.stability import inertia_of, lumped_metric
 from rodsnes.solve.valley import ValleyFollower
 
 ARMIJO = 1e-4
@@ -133,10 +133,9 @@ class EnergyMinimizer:
         self.problem = problem
         self.prefix = prefix        # options prefix of the Newton step's KSP
         self.comm = problem.layout.comm.tompi4py()
-        if problem.inertia is None:
-            problem.inertia = Inertia(problem)
+        full = inertia_of(problem)
         # a planar run factors the in-plane block (planar.PlanarInertia), 3-D once it left it
-        self.factor = problem.inertia if problem.planar is None else problem.planar.inertia
+        self.factor = full if problem.planar is None else problem.planar.inertia
         self.force_scale = force_scale
         self.tol = rtol * force_scale
         self.floor = residual_floor(problem.scene.rod)

@@ -32,7 +32,7 @@ from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve
                                   option_default, peek, set_up_ahead)
 from rodsnes.solve.step import StepResult
 from rodsnes.model.scales import residual_floor
-from rodsnes.solve.stability import Inertia, negative_eigenvalues
+from rodsnes.solve.stability import inertia_of, negative_eigenvalues
 
 # the smallest penalty raise keep_penetration cuts a failed one back to (x mu)
 RAISE_MIN = 1.1
@@ -133,9 +133,7 @@ class NewtonSolver:
             return
         set_up_ahead(self.snes.getKSP(), self.lu, p, p.J)
         if self.check_stability:
-            if p.inertia is None:
-                p.inertia = Inertia(p)
-            p.inertia.setup()
+            inertia_of(p).setup()
 
     def convergence_test(self, snes, it, norms):
         """SNES's convergence test (also the continuation corrector's): convergence relative to

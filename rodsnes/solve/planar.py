@@ -42,7 +42,7 @@ from rodsnes.solve.linear import (LUChoice, direct_solver_defaults, failed_solve
                                   option_default, set_up_ahead, solver_made)
 from rodsnes import petsc_lib
 from rodsnes.solve import petsc_exit
-from rodsnes.solve.stability import Inertia
+from rodsnes.solve.stability import Inertia, inertia_of
 
 # the out-of-plane share of a residual that is still round-off (relative to |g|)
 GUARD = 1e-8
@@ -214,10 +214,7 @@ class PlanarInertia:
 
     @property
     def full(self):
-        p = self.planar.problem
-        if p.inertia is None:
-            p.inertia = Inertia(p)
-        return p.inertia
+        return inertia_of(self.planar.problem)
 
     @property
     def diagonal(self):
@@ -490,11 +487,11 @@ class PlanarSystem:
 
     def full_solve(self, b, x):
         """The 3-D solve with the full J (assembled by the Jacobian callback), by the 3-D
-        step's solver: the Newton path's (its options unprefixed), or the estimate's own
-        (-estimate_*), the LU chosen for the pattern as the 3-D step's (linear.LUChoice: on
+        step's solver, under the attached SNES's options prefix: the Newton path's (none), or
+        the estimate's own (-estimate_*), the LU chosen for the pattern as the 3-D step's (linear.LUChoice: on
         several ranks each rank's stretch, MUMPS where contact fills it)."""
         if self.full_ksp is None:
-            pre = "" if self.prefix == PREFIX else self.prefix
+            pre = self.solver.snes.getOptionsPrefix() or ""     # the attached SNES's
             self.full_lu = LUChoice(direct_solver_defaults(self.problem, pre))
             self.full_ksp = PETSc.KSP().create(comm=self.problem.layout.comm)
             self.full_ksp.setOptionsPrefix(pre)

@@ -467,12 +467,17 @@ class Inertia:
         self.by_chain = False
 
 
-def negative_eigenvalues(problem):
-    """Number of negative eigenvalues of the symmetric tangent at the current state
-    (Inertia, kept on the problem between counts)."""
+def inertia_of(problem):
+    """The problem's Inertia (its full Hessian's), made at the first call and kept on the
+    problem between counts."""
     if problem.inertia is None:
         problem.inertia = Inertia(problem)
-    return problem.inertia.count()
+    return problem.inertia
+
+
+def negative_eigenvalues(problem):
+    """Number of negative eigenvalues of the symmetric tangent at the current state."""
+    return inertia_of(problem).count()
 
 
 def negative_eigenvalues_scaled(problem):
