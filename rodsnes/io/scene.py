@@ -195,7 +195,8 @@ class O:
                           "in turns, uniform along s (whole turns on a closed rod)", "shape")
     rod_imperfection = Opt(REAL, 0.0, "imperfection a: reference centreline displaced by "
                            "the first buckling mode of the supports, amplitude a along d1 "
-                           "(cantilever a(1-cos(pi s/2L)), else a sin(pi s/L); closed rods: "
+                           "(cantilever a(1-cos(pi s/2L)); clamped-clamped and clamped-sliding "
+                           "a(1-cos(2 pi s/L))/2; else a sin(pi s/L); closed rods: "
                            "a sin(4 pi s/L) along d2, the writhing mode), length units", "shape")
     # --- discretisation ---------------------------------------------------------
     rod_nelem = Opt(INT, 16, "number of finite elements", "disc", rng="[1,inf)",
@@ -254,8 +255,8 @@ class O:
                       "that has stopped lowering the energy fails (and is cut back); one still "
                       "descending (a jump past a fold) goes on, up to 10 times as many",
                       "load", rng="[1,inf)", note="a number of Newton iterations")
-    load_predictor = Opt(BOOL, True, "start each load step from the secant predictor through "
-                         "the last two converged states", "load")
+    load_predictor = Opt(BOOL, True, "-load_path newton: start each load step from the secant "
+                         "predictor through the last two converged states", "load")
     load_retraction = Opt(BOOL, True, "-load_path newton: take each Newton step along the "
                           "rod's retraction, its positions following the turn of its frames, "
                           "so that a step that turns a stiff rod does not stretch it (without "
@@ -263,8 +264,9 @@ class O:
                           "straight steps)", "load")
     load_max_cutbacks = Opt(INT, 10, "times a failed increment may be halved", "load",
                             rng="[0,inf)", note="number of step halvings")
-    load_stagnation_its = Opt(INT, 15, "a Newton solve whose residual has not halved in this many "
-                              "iterations fails (and the step is cut back); 0: only -snes_max_it",
+    load_stagnation_its = Opt(INT, 15, "-load_path newton: a Newton solve whose residual has not "
+                              "halved in this many iterations fails (and the step is cut back); "
+                              "0: only -snes_max_it",
                               "load", rng="[0,inf)", note="a number of Newton iterations")
     load_arclength = Opt(BOOL, False, "at a fold of the load path (every cut-back failed), follow "
                          "the branch around it by pseudo-arclength continuation, through its "
