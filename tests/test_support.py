@@ -3,6 +3,8 @@ distance and penalty derivatives, the assembled tangent against finite differenc
 assembled residual with the rod pressing on both mounts, one rank against two, no cost where
 the rod stays clear, and the option refused with other supports.  (The relaxation at 9.415
 turns that went round the start clamp is a 45-minute batch run.)"""
+import os
+
 import numpy as np
 import pytest
 from mpi4py import MPI
@@ -127,3 +129,75 @@ def test_mounts_asked_for_with_other_supports_are_refused():
     # not asked for: silently off where they do not apply
     run = build_run("plectoneme", bc_end="clamped", load_end_force="0,0,0", **SETUP)
     assert run.contact.supports is None
+
+
+def test_the_mounts_take_the_contact_wall():
+    """With the pair potential's wall (a_b, a_w) the mounts' law is psi(g) = g^2/2 + beta(g),
+    the couples' barrier in the same depths: 0 below a_b (the plain penalty there, bit for
+    bit), energy, gradient and Hessian against central differences inside the barrier, the
+    energy infinite from a_w on (a trial the line search refuses), without a warning."""
+    import warnings
+    rng = np.random.default_rng(1)
+    p, e = np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    eps, mu, wall = 0.03, 7.0, (0.004, 0.005)
+    # points above the half-line's body at depths g = eps - dist across the barrier
+    g = np.array([0.001, 0.0035, 0.0042, 0.0046, 0.0049])
+    ang = rng.uniform(0.0, 2.0 * np.pi, size=len(g))
+    x = np.stack([rng.uniform(0.1, 0.9, size=len(g)), (eps - g) * np.cos(ang),
+                  (eps - g) * np.sin(ang)], axis=1)
+    w = rng.uniform(0.5, 1.5, size=len(g))
+    E0, g0, grad0, H0 = support.penalty(x[:2], w[:2], p, e, eps, mu)
+    E1, g1, grad1, H1 = support.penalty(x[:2], w[:2], p, e, eps, mu, wall=wall)
+    assert E1 == E0 and np.array_equal(grad1, grad0) and np.array_equal(H1, H0)
+    E, gg, grad, H = support.penalty(x, w, p, e, eps, mu, wall=wall)
+    assert np.allclose(gg, g, atol=1e-12)
+    assert E > E0 + 0.5 * mu * np.sum(w[2:] * g[2:] ** 2)      # the barrier's energy on top
+    h = 1e-8
+    for i in range(2, len(g)):
+        for k in range(3):
+            dx = np.zeros_like(x)
+            dx[i, k] = h
+            Ep = support.penalty(x + dx, w, p, e, eps, mu, wall=wall)
+            Em = support.penalty(x - dx, w, p, e, eps, mu, wall=wall)
+            assert (Ep[0] - Em[0]) / (2 * h) == pytest.approx(grad[i, k], rel=1e-5, abs=1e-9)
+            assert (Ep[2][i] - Em[2][i]) / (2 * h) == pytest.approx(H[i][:, k], rel=1e-4,
+                                                                  abs=1e-6 * np.abs(H[i]).max())
+    # stiffer toward the wall, infinite at and beyond it
+    assert np.all(np.diff([H[i][1:, 1:].trace() / w[i] for i in range(2, len(g))]) > 0)
+    beyond = x.copy()
+    beyond[-1, 1:] *= (eps - 0.0051) / (eps - g[-1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Eb, _, gradb, _ = support.penalty(beyond, w, p, e, eps, mu, wall=wall)
+    assert Eb == np.inf and not np.all(np.isfinite(gradb))
+
+
+@pytest.mark.slow
+def test_a_plectoneme_pressed_into_a_mount_at_the_wall_goes_on(monkeypatch):
+    """The plectoneme with a 5 % standoff at 8.47 turns (tests/data/plectoneme_8.47_standoff,
+    from a run of the case with -contact_standoff 0.05): on the next load step the ply
+    rearranges and presses the rod into the sliding end's mount.  The line searches cap every
+    trial's deepest penetration, a mount's included, short of the wall a_w; while the mounts'
+    law had no barrier, the iterates pressed the mount up to that cap, and every step that
+    pressed it further was cut to nothing (steps of 1e-5 accepted at E - E0 = -2e-5, 200
+    iterations a try, every cut-back down to 1.5e-6 of the load failed: the run stopped at
+    8.47 turns).  With the wall in the mounts' law the step converges, stable, its iterates
+    pressing the mount into the barrier but never to the wall."""
+    data = os.path.join(os.path.dirname(__file__), "data", "plectoneme_8.47_standoff")
+    run = build_run("plectoneme", restart=data, contact_standoff=0.05, load_stop=0.847,
+                    rod_error_estimate="off")
+    ct = run.contact
+    assert ct.wall is not None and ct.supports.wall == ct.wall
+    deepest = []
+    evaluate = ct.supports.evaluate
+
+    def spy(r_loc, tangent=True):
+        out = evaluate(r_loc, tangent)
+        if np.isfinite(out["energy"]):
+            deepest.append(ct.supports.deepest_local(out))
+        return out
+    monkeypatch.setattr(ct.supports, "evaluate", spy)
+    ok = run.execute()
+    s = run.summary(converged=ok)
+    assert ok and s["stable"] is True and run.problem.lam == pytest.approx(0.847, abs=1e-12)
+    assert ct.wall[0] < max(deepest) < ct.wall[1]

@@ -14,18 +14,26 @@ twisted rod can fall by going round (the plectoneme at 9.415 turns: relaxation l
 behind the start clamp, E 320.7 -> 312.4, and every step beyond changed the link by 1 or 2).
 Each half-line is a rigid obstacle of zero thickness in contact with the rod's tube:
 
-    g_k(s) = R - dist(r(s), H_k),      E_s = (mu/2) sum_k int <g_k(s)>^2 ds,
+    g_k(s) = R - dist(r(s), H_k),      E_s = mu sum_k int psi(<g_k(s)>) ds,
+    psi(g) = g^2 / 2 + beta(g),
 
 with the self-contact's penalty mu and R = a + 2 (eps - a), a the tube's radius and eps the
 law's (-contact_standoff): the rod stands as far off a mount as off another strand, and
 g_k - 2 (eps - a) is the depth into the tube that the promise bounds (R = eps = a without a
 standoff), at the contact's Gauss points, leaving out
 the arclength delta (the contact exclusion) next to clamp k, which the rod leaves along the
-axis.  With c = p + max((r - p).e, 0) e the closest point of H = {p + t e} and n = (r - c) /
-dist:
+axis.  beta is the pair potential's wall (-contact_wall; potential.py, The wall: 0 up to a_b,
+infinite at a_w, in the same depths g as the couples' a), so that the promise holds against
+the mounts as against another strand; without the wall (or with the closest-point law)
+beta = 0.  The line searches cap every trial's deepest penetration, the mounts' included,
+short of a_w (ContactTerm.depth_allowed): a mount without the barrier could be pressed up to
+that cap, where every step that pressed it further was cut to nothing (the plectoneme with
+-contact_standoff 0.05 stalled so at 8.47 turns, 200 iterations a try).  With c = p +
+max((r - p).e, 0) e the closest point of H = {p + t e} and n = (r - c) / dist:
 
-    dE/dr(s) = -mu <g> n,        dE/dp = +mu <g> n      (p = x_N slides; x_0 is held)
-    d2E/dr2 = mu [n n^T - <g> (A - n n^T) / dist] =: H,   d2E/dr dp = -H,   d2E/dp2 = H,
+    dE/dr(s) = -mu psi'(<g>) n,        dE/dp = +mu psi'(<g>) n      (p = x_N slides; x_0 is held)
+    d2E/dr2 = mu [psi''(<g>) n n^T - psi'(<g>) (A - n n^T) / dist] =: H,
+    d2E/dr dp = -H,   d2E/dp2 = H,
 
 A = I - e e^T on the half-line's body, I at its end point p.  E_s is C1 (the distance to a
 convex set is C1 outside it).  The sliding end's coupling blocks (each element with the end
@@ -35,6 +43,7 @@ import numpy as np
 from mpi4py import MPI
 
 from rodsnes.contact import search
+from rodsnes.contact.potential import wall_law
 from rodsnes.contact.scatter import add_in_order, in_order_rows
 from rodsnes.model.partition import add_position_blocks, allreduce
 
@@ -57,36 +66,56 @@ def half_line_distance(x, p, e, projector=True):
     return dist, n, A
 
 
-def penalty(x, wds, p, e, eps, mu, hessian=True):
-    """(mu/2) sum_q wds_q <g_q>^2 with g = eps - dist(x_q, H) for the half-line H = {p + t e}:
-    energy, g (M,), gradient dE/dx (M, 3) and (with ``hessian``, else None) Hessian H (M, 3, 3)
-    per point (module docstring; d/dp is minus the gradient, and -H, H)."""
-    return penalty_at(*half_line_distance(x, p, e, projector=hessian), wds, eps, mu)
+def penalty(x, wds, p, e, eps, mu, hessian=True, wall=None):
+    """mu sum_q wds_q psi(<g_q>) with g = eps - dist(x_q, H) for the half-line H = {p + t e},
+    psi(g) = g^2/2, plus the wall's barrier (``wall`` = (a_b, a_w): potential.wall_law; +inf
+    from a_w on): energy, g (M,), gradient dE/dx (M, 3) and (with ``hessian``, else None)
+    Hessian H (M, 3, 3) per point (module docstring; d/dp is minus the gradient, and -H, H)."""
+    return penalty_at(*half_line_distance(x, p, e, projector=hessian), wds, eps, mu, wall)
 
 
-def penalty_at(dist, n, A, wds, eps, mu):
-    """penalty() from the points' distance, normal and (None: no Hessian) projector."""
+def penalty_at(dist, n, A, wds, eps, mu, wall=None):
+    """penalty() from the points' distance, normal and (None: no Hessian) projector.  A point at
+    or beyond the wall makes the energy infinite and its gradient and Hessian not finite (a
+    trial the line search refuses), without warnings."""
+    if wall is None:
+        return _penalty_at(dist, n, A, wds, eps, mu, None)
+    with np.errstate(invalid="ignore", over="ignore"):
+        return _penalty_at(dist, n, A, wds, eps, mu, wall)
+
+
+def _penalty_at(dist, n, A, wds, eps, mu, wall):
     hessian = A is not None
     g = eps - dist
     act = g > 0.0
     gp = np.where(act, g, 0.0)
-    energy = 0.5 * mu * float(np.sum(wds * gp ** 2))
-    grad = -(mu * wds * gp)[:, None] * n
+    psi, force = 0.5 * gp ** 2, gp.copy()
+    if wall is not None:
+        psi = psi + wall_law(gp, wall, 0)
+        force = force + wall_law(gp, wall, 1)
+    energy = mu * float(np.sum(wds * psi))
+    grad = -(mu * wds * force)[:, None] * n
     if not hessian:
         return energy, g, grad, None
+    stiff = act.astype(float)
+    if wall is not None:
+        stiff = stiff + wall_law(gp, wall, 2)
     nn = np.einsum("mi,mj->mij", n, n)
     curv = (A - nn) / np.where(act, dist, 1.0)[:, None, None]
-    H = (mu * wds * act)[:, None, None] * nn - (mu * wds * gp)[:, None, None] * curv
+    H = (mu * wds * stiff)[:, None, None] * nn - (mu * wds * force)[:, None, None] * curv
     return energy, g, grad, H
 
 
 class SupportTerm:
     """H_0 and H_1 (module docstring) on this rank's owned elements.  ``axis_end``: the sliding
-    end's tangent (its slide direction), ``axis_start`` the start clamp's tangent."""
+    end's tangent (its slide direction), ``axis_start`` the start clamp's tangent; ``wall``
+    the self-contact's wall (a_b, a_w) in the law's depths, or None."""
 
-    def __init__(self, mesh, layout, kernel, x_start, axis_start, axis_end, reach=None):
+    def __init__(self, mesh, layout, kernel, x_start, axis_start, axis_end, reach=None,
+                 wall=None):
         self.mesh, self.layout, self.kernel = mesh, layout, kernel
         self.reach = float(kernel.eps if reach is None else reach)     # R (module docstring)
+        self.wall = wall
         self.comm = layout.comm.tompi4py()
         self.own_ids = layout.owned_elems
         self.lconn = layout.lconn
@@ -137,14 +166,15 @@ class SupportTerm:
             out["gap"].append(gap)
             if not (gap > 0.0).any():            # no point presses into this mount: no force
                 continue
-            energy, g, grad, _ = penalty_at(dist, n, None, self.wds[m], self.reach, k.mu)
+            energy, g, grad, _ = penalty_at(dist, n, None, self.wds[m], self.reach, k.mu,
+                                            self.wall)
             out["energy"] += energy
             G = np.zeros((no, k.nqc, 3))
             G[m] = grad
             out["vec"] += np.einsum("qa,eqc->eac", k.Nq, G)
             out["end_force"] -= grad.sum(axis=0) if j == 1 else 0.0
             f = np.zeros((no, k.nqc))
-            f[m] = k.mu * np.maximum(g, 0.0)                         # line force density
+            f[m] = np.linalg.norm(grad, axis=1) / self.wds[m]        # line force density
             out["force"] += f
         if tangent:
             self.add_tangent(out)
@@ -165,7 +195,7 @@ class SupportTerm:
             if not len(act):
                 continue
             Hq = np.zeros((no, k.nqc, 3, 3))
-            Hq[m] = penalty(xq[m], self.wds[m], p, e, self.reach, k.mu)[3]
+            Hq[m] = penalty(xq[m], self.wds[m], p, e, self.reach, k.mu, wall=self.wall)[3]
             Hq = Hq[act]
             Nq = k.Nq
             B = np.zeros((len(act), n1 + 1, n1 + 1, 3, 3))

@@ -131,7 +131,7 @@ class ContactTerm(Term):
             self.supports = SupportTerm(mesh, layout, self.kernel, mesh.x_init[0],
                                         so3.rot(mesh.q_init[0])[:, 2],
                                         so3.rot(mesh.q_init[-1])[:, 2],
-                                        reach=self.radius + self.offset)
+                                        reach=self.radius + self.offset, wall=self.wall)
 
     def set_penalty(self, mu):
         """Change the penalty stiffness mu (E_c = (mu/2) int <d>^2 ds); drops the cached
