@@ -164,12 +164,17 @@ def command_line_problems(argv):
     return out
 
 
-def _options_file_problem(path):
+def _options_file_problem(path, chain=()):
+    """What PETSc would refuse in the options file ``path`` (None: nothing), the files it
+    includes (-options_file lines, as PETSc reads them) followed: a missing one, or one that
+    includes itself again (``chain``: the files that led here; PETSc followed such a loop until
+    its stack overflowed, signal 11, no message)."""
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
             lines = fh.read().splitlines()
     except OSError as exc:
         return f"cannot be read ({exc.strerror or exc})"
+    chain = chain + (os.path.realpath(path),)
     for number, line in enumerate(lines, 1):
         text = line.split("#", 1)[0]
         try:
@@ -182,6 +187,18 @@ def _options_file_problem(path):
         if problem:
             return (f"line {number} '{line.strip()}': {problem}; each line holds one "
                     f"'-option value', '#' starts a comment")
+        if tokens[0] == "-options_file" and len(tokens) > 1:
+            inner = tokens[1]
+            where = f"line {number} '{line.strip()}'"
+            if not os.path.isfile(inner):
+                return (f"{where}: {inner}: no such file" if not os.path.exists(inner) else
+                        f"{where}: {inner}: is not a file")
+            if os.path.realpath(inner) in chain:
+                return (f"{where}: includes {inner}, which includes this file again (an "
+                        f"options file must not include itself); drop the line")
+            problem = _options_file_problem(inner, chain)
+            if problem:
+                return f"{where}: {inner}: {problem}"
     return None
 
 
@@ -255,6 +272,22 @@ TYPE_OPTIONS = (("pc_factor_mat_solver_type", "MatSolver", "LU/Cholesky package"
 """Option-name endings whose value must be a PETSc type: (suffix, kind, what)."""
 
 
+UNUSABLE_SNES = {
+    "vinewtonrsls": "the bounds of a variational inequality",
+    "vinewtonssls": "the bounds of a variational inequality",
+    "shell": "a solver of your own (SNESShellSetSolve)",
+    "python": "a solver of your own (a Python class)",
+    "composite": "its sub-solvers, set up by a program",
+    "fas": "a hierarchy of meshes (a DM)",
+    "nasm": "subdomains of a mesh (a DM)",
+    "aspin": "subdomains of a mesh (a DM)",
+    "patch": "a mesh's patches (a DMPlex)",
+    "ngs": "a nonlinear Gauss-Seidel sweep of your own",
+    "ksptransposeonly": "a linear problem solved with its transpose"}
+"""PETSc's nonlinear solvers that need what rodsnes does not give them (a run with one failed
+every Newton solve; -snes_type vinewtonssls crashed the planar Newton path, signal 11)."""
+
+
 def _did_you_mean(word, names):
     from rodsnes.io.scene import _suggest, _or_list
     close = _suggest(word.lower(), list(names), cutoff=0.7)
@@ -277,6 +310,10 @@ def petsc_option_problems(opts):
                         "; e.g. " + ", ".join(COMMON_TYPES[kind].split()))
                     out.append(f"-{name} {value}: not a PETSc {what}{hint} (-help -snes_view "
                                f"lists them all)")
+                elif kind == "SNES" and value.lower() in UNUSABLE_SNES:
+                    out.append(f"-{name} {value}: PETSc's {value.lower()} needs "
+                               f"{UNUSABLE_SNES[value.lower()]}, which rodsnes does not give "
+                               f"it; use newtonls (the default), newtontr, qn or ngmres")
                 break
         else:
             if low.endswith(NUMERIC_SUFFIXES) or NUMERIC_PATTERN.search(low):

@@ -98,6 +98,10 @@ class Run:
         append = False
         if scene.output.restart:
             self._restart(scene.output.restart)
+            if self.lam0 >= 1.0 - 1e-14:
+                raise SceneError(f"-restart {scene.output.restart}: that run is complete (load "
+                                 f"{self.lam0:.6f}): nothing is left to resume; drop -restart "
+                                 f"for a new run", ("-restart",))
             if self.lam0 >= scene.loads.stop - 1e-14:
                 raise SceneError(f"-load_stop {scene.loads.stop:g}: the run restarted from "
                                  f"{scene.output.restart} already stands at load {self.lam0:.6f}; "
@@ -206,6 +210,12 @@ class Run:
             if (step >= 1 and not last["attrs"].get("branch_switch", 0)
                     and step - 1 in output.read_steps(rdir)):
                 before = output.read_step(rdir, step - 1)
+            for s in (last, before):
+                why = None if s is None else self._unreadable_state(s)
+                if why is not None:
+                    raise SceneError(f"-restart {rdir}: its step {int(s['step'])} holds {why}, "
+                                     f"not a state rodsnes writes: restart from another run or "
+                                     f"a checkpoint, or drop -restart", ("-restart",))
             return last, before
         except SceneError:
             raise
@@ -214,6 +224,29 @@ class Run:
             raise SceneError(f"-restart {rdir}: its steps cannot be read ({why}): restart from "
                              f"another run or a checkpoint, or drop -restart",
                              ("-restart",)) from None
+
+    @staticmethod
+    def _unreadable_state(step):
+        """What makes a stored step no state to resume from (None: nothing): a load outside
+        0..1 or not a number (a NaN load made the restarted run end at once, converged, with
+        no step), positions or directors not finite, rotation quaternions not of unit length,
+        a next increment not a positive number."""
+        attrs = step["attrs"]
+        lam = float(attrs.get("load", np.nan))
+        if not 0.0 <= lam <= 1.0:
+            return f"the load {lam!r}"
+        for name in ("positions", "directors", "rotation"):
+            v = step.get(name)
+            if v is not None and not np.all(np.isfinite(np.asarray(v, dtype=float))):
+                return f"{name} that are not finite"
+        q = step.get("rotation")
+        if q is not None and np.abs(np.linalg.norm(np.asarray(q, dtype=float), axis=1)
+                                    - 1.0).max(initial=0.0) > 1e-6:
+            return "rotation quaternions not of unit length"
+        dlam = attrs.get("next_increment")
+        if dlam is not None and not float(dlam) > 0.0:
+            return f"the next increment {float(dlam)!r}"
+        return None
 
     def _tip(self, fields):
         if self.mesh.closed:

@@ -94,6 +94,27 @@ REFUSALS = [
      ["use -rod_nelem 3 or more"]),
     ("twisted_rod_two_elements", MATT + ("-rod_nelem", "2", "-rod_twist_turns", "1"),
      ["straight rod with -rod_twist_turns 1 turn by 180 degrees", "use -rod_nelem 3 or more"]),
+    # whole turns between two nodes, which their frames alone do not show: a ring twisted by
+    # 73 turns on 24 elements was solved as one twisted by 1 turn (link 1, exit 0), a helix of
+    # one turn a node interval as a straight rod, a ring on one linear element as unloaded
+    ("ring_twisted_by_whole_turns_between_nodes",
+     MICHELL + ("-rod_twist_turns", "73", "-load_twist_turns", "0", "-load_steps", "1"),
+     ["-rod_nelem = 24: the frames of the closed ring with -rod_twist_turns 73 turn by 1095 "
+      "degrees across an element", "use -rod_nelem 195 or more"]),
+    ("helix_of_a_turn_a_node_interval",
+     MATT + ("-rod_shape", "helix", "-rod_helix_radius", "0.005", "-rod_helix_pitch",
+             "0.027370616927686796", "-rod_radius", "0.001", "-load_end_force", "0,0,0",
+             "-load_gravity", "0,-1,0"),
+     ["the frames of the helix rod turn by 1080 degrees across an element",
+      "use -rod_nelem 65 or more"]),
+    ("full_arc_on_one_linear_element",
+     MATT + ("-rod_shape", "arc", "-rod_arc_angle", "360", "-rod_nelem", "1", "-rod_order", "1",
+             "-load_end_force", "0,-1,0"),
+     ["the frames of the arc rod turn by 360 degrees across an element",
+      "use -rod_nelem 3 or more"]),
+    ("twist_beyond_any_mesh", MATT + ("-rod_twist_turns", "1e300"),
+     ["-rod_twist_turns = 1e+300: the frames turn so fast along the rod", "2.67e+300 elements",
+      "use fewer turns"]),
     ("rollup_one_element", ROLLUP + ("-rod_nelem", "1"),
      ["-load_end_moment = 0,0,62.8319 turns the frames by at least 360 degrees per element",
       "use -rod_nelem 3 or more"]),
@@ -141,6 +162,16 @@ REFUSALS = [
      ["-snes_atol = 1: 0.0909 of the problem's force scale (11: EI/L^2 + loads)",
       "the first load step's unloaded rod already meets it", "use -snes_rtol",
       "an -snes_atol below 1.1e-05"]),
+    # a relative tolerance at the loads' size: the unloaded rod was accepted on either path,
+    # exit 0 (the tip unmoved, the error estimate 0)
+    ("snes_rtol_at_load_size", MATT + ("-snes_rtol", "1"),
+     ["-snes_rtol = 1: every load step holds the residual to -snes_rtol x the problem's force "
+      "scale", "the first load step's unloaded rod already meets it",
+      "use a -snes_rtol from 0 to 1e-06 (default 1e-10)"]),
+    ("snes_rtol_newton_inf", MATT + ("-load_path", "newton", "-snes_rtol", "inf"),
+     ["-snes_rtol = inf: every load step holds", "use a -snes_rtol from 0 to 1e-06"]),
+    ("snes_rtol_nan", MATT + ("-snes_rtol", "nan"),
+     ["-snes_rtol = nan: not a tolerance; use a -snes_rtol from 0 to 1e-06"]),
     ("imperfection_ten_lengths", EULER + ("-rod_imperfection", "10"),
      ["-rod_imperfection = 10 with -rod_length = 1", "10.1 times as long as the rod",
       "use |a| below 0.417"]),
@@ -306,6 +337,19 @@ def test_options_files(capsys, tmp_path):
             [f"-options_file {tmp_path / 'missing.opts'}: no such file"])
     refused(capsys, tmp_path, ("-options_file", tmp_path), ["is a directory"])
     refused(capsys, tmp_path, MATT + ("-options_file",), ["-options_file needs a file name"])
+    # files they include: a missing one, and a loop (PETSc followed it until its stack
+    # overflowed: signal 11, no message)
+    (tmp_path / "self.opts").write_text(f"-options_file {tmp_path / 'self.opts'}\n")
+    refused(capsys, tmp_path, ("-options_file", tmp_path / "self.opts"),
+            [f"includes {tmp_path / 'self.opts'}, which includes this file again"])
+    (tmp_path / "a.opts").write_text(f"-options_file {tmp_path / 'b.opts'}\n")
+    (tmp_path / "b.opts").write_text(f"-options_file {tmp_path / 'a.opts'}\n")
+    refused(capsys, tmp_path, ("-options_file", tmp_path / "a.opts"),
+            [f"{tmp_path / 'b.opts'}: line 1 '-options_file {tmp_path / 'a.opts'}'",
+             "an options file must not include itself"])
+    (tmp_path / "nested.opts").write_text(f"-options_file {tmp_path / 'gone.opts'}\n")
+    refused(capsys, tmp_path, ("-options_file", tmp_path / "nested.opts"),
+            [f"{tmp_path / 'gone.opts'}: no such file"])
     # negative values, comments and blank lines are fine: the scene then judges the value
     (tmp_path / "neg.opts").write_text("# comment\n\n-rod_length -1   # negative\n")
     refused(capsys, tmp_path, ("-options_file", tmp_path / "neg.opts"),
@@ -1067,3 +1111,23 @@ def test_solver_neighbours_of_the_refusals_are_accepted(options):
         opts[k] = v
     assert cli.petsc_option_problems(opts) == []
     cli.check_newton_linear_solver(PETSc.COMM_WORLD)
+
+
+@pytest.mark.parametrize("snes_type, needs", [("vinewtonssls", "variational inequality"),
+                                              ("fas", "a hierarchy of meshes"),
+                                              ("shell", "a solver of your own")])
+def test_a_nonlinear_solver_rodsnes_cannot_feed_is_refused(snes_type, needs):
+    """-snes_type of a PETSc solver that needs what rodsnes does not give it (bounds, a DM, a
+    solver of one's own): refused before the run with the usable ones named (vinewtonssls
+    crashed the planar Newton path with signal 11; the others failed every Newton solve and
+    ended 'Newton failed after 10 cut-backs' without naming -snes_type)."""
+    from rodsnes.cli import petsc_option_problems
+    from petsc4py import PETSc
+    opts = PETSc.Options()
+    opts.setValue("snes_type", snes_type)
+    try:
+        msgs = petsc_option_problems(opts)
+    finally:
+        opts.delValue("snes_type")
+    assert len(msgs) == 1 and msgs[0].startswith(f"-snes_type {snes_type}: PETSc's")
+    assert needs in msgs[0] and "use newtonls (the default), newtontr, qn or ngmres" in msgs[0]

@@ -225,3 +225,33 @@ def test_a_restart_holds_the_sliding_gauge_the_run_held(tmp_path):
     same = run_case("michell", outdir=str(again), restart=str(again), **kw)
     assert same.ok and same.problem.gauge[:2] == (node, comp)
     assert np.abs(gathered_positions(same) - gathered_positions(full)).max() < 1e-9
+
+
+@pytest.mark.parametrize("damage, said", [
+    (lambda g: g.attrs.__setitem__("load", np.nan), "holds the load nan"),
+    (lambda g: g.attrs.__setitem__("load", 7.0), "holds the load 7.0"),
+    (lambda g: g["positions"].__setitem__((0, 0), np.nan), "holds positions that are not finite"),
+    (lambda g: g["rotation"].__setitem__(slice(None), 0.0),
+     "holds rotation quaternions not of unit length")])
+def test_a_damaged_last_step_is_refused(tmp_path, damage, said):
+    """A result.h5 whose last step is no state rodsnes writes: refused with -restart named (a
+    NaN load made the restarted run end at once 'converged', exit 0, with no step; NaN
+    positions or a zero quaternion failed the load path blaming the solver).  A complete run
+    is refused as such, not by -load_stop."""
+    from rodsnes.errors import SceneError
+    from rodsnes.io import results as output
+    staged = str(tmp_path / "staged")
+    assert run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.5).ok
+    if MPI.COMM_WORLD.rank == 0:
+        with h5py.File(os.path.join(staged, "result.h5"), "r+") as f:
+            damage(f["steps"][sorted(f["steps"])[-1]])
+    MPI.COMM_WORLD.Barrier()
+    with pytest.raises(SceneError) as ei:
+        run_case("mattiasson", outdir=str(tmp_path / "new"), load_steps=4, restart=staged)
+    assert said in str(ei.value) and "not a state rodsnes writes" in str(ei.value)
+    assert "-restart" in ei.value.options
+    done = str(tmp_path / "done")
+    assert run_case("mattiasson", outdir=done, load_steps=2).ok
+    with pytest.raises(SceneError, match="that run is complete"):
+        run_case("mattiasson", outdir=str(tmp_path / "again"), load_steps=2, restart=done)
+    assert output.read_steps(done)

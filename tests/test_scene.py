@@ -265,7 +265,7 @@ VALIDATION = [
      ["-rod_twist_turns = 0.5 on a closed ring", "whole number of turns"]),
     ({"load_steps": "0"}, ["-load_steps = 0: must be >= 1"]),
     ({"load_max_cutbacks": "-1"}, ["-load_max_cutbacks = -1: must be >= 0"]),
-    ({"load_min_step": "0"}, ["-load_min_step = 0: must be in (0, 1]"]),
+    ({"load_min_step": "0"}, ["-load_min_step = 0: must be in [1e-12, 1]"]),
     ({"load_stop": "1.5"}, ["-load_stop = 1.5: must be in (0, 1]"]),
     ({"contact_penalty": "0"}, ["-contact_penalty = 0: must be > 0"]),
     ({"contact_radius": "-0.01"}, ["-contact_radius = -0.01: must be > 0"]),

@@ -279,7 +279,8 @@ class O:
                              "aimed at (fewer: a longer next step, more: a shorter one)", "load",
                              rng="[2,inf)", note="a number of Newton iterations")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
-                        rng="(0,1]", note="a fraction of the full load")
+                        rng="[1e-12,1]", note="a fraction of the full load, from 1e-12 (below "
+                        "it a load factor near 1 does not change in double precision)")
     load_stop = Opt(REAL, 1.0, "end the run at this load factor (a long batch run in stages, "
                     "each resumed with -restart, perhaps with other settings); the load grid "
                     "of -load_steps is that of 0 -> 1", "load", rng="(0,1]",
@@ -770,6 +771,14 @@ def _case_name_from_argv(argv):
 # ----------------------------------------------------------------------------
 # read_scene
 # ----------------------------------------------------------------------------
+MIN_LENGTH, MAX_LENGTH = 1e-40, 1e40
+"""The lengths a scene may hold (-rod_length 1e150 overflowed L^4, -contact_radius 1e-170 the
+contact law's points per element: tracebacks)."""
+LENGTH_OPTIONS = (O.rod_length, O.rod_arc_radius, O.rod_helix_radius, O.rod_helix_pitch,
+                  O.rod_imperfection, O.contact_radius, O.contact_exclusion)
+# (-rod_radius's own check, _check_stiffness, names the stiffnesses its powers make)
+
+
 def read_scene(argv=None, options=None):
     """Read, derive and validate the scene.
 
@@ -797,6 +806,15 @@ def read_scene(argv=None, options=None):
         if v not in opt.rng:
             note = " (%s)" % opt.note if opt.note else ""
             c.fail("%s: %s%s" % (c.show(opt), opt.rng.describe(opt.kind == INT), note), opt)
+    # lengths whose powers (up to the sixth: L^4 in the stability's neutral band, eps^2 in the
+    # contact law's support) stay in double precision
+    for opt in LENGTH_OPTIONS:
+        v = c[opt]
+        if c.given(opt) and v is not None and v != 0.0 and not \
+                MIN_LENGTH <= abs(v) <= MAX_LENGTH:
+            c.fail("%s: a length outside %s .. %s, where the solver's powers of the lengths "
+                   "leave double precision; choose units that keep the lengths near 1 (e.g. mm "
+                   "or km)" % (c.show(opt), _fmt(MIN_LENGTH), _fmt(MAX_LENGTH)), opt)
     c.raise_if_any()
 
     # 2. combinations and derived quantities
@@ -1104,6 +1122,13 @@ def _loads(c, rod, bc):
         c.fail("end load with -bc_start free and -bc_end free: nothing balances it, so there is "
                "no static equilibrium; support the start (-bc_start clamped or pinned)",
                O.load_end_force, O.load_end_moment, O.bc_start)
+    steps, min_step = c[O.load_steps], c[O.load_min_step]
+    if steps * min_step > 1.0:
+        # the Newton path keeps 1 / steps as its increment: 1e9 steps of 1e-9 ran for months
+        c.fail("%s asks for load increments of %s, below %s (the smallest a cut-back may take); "
+               "use at most %s load steps, or a smaller -load_min_step"
+               % (c.show(O.load_steps), _fmt(1.0 / steps), c.show(O.load_min_step),
+                  _fmt(math.floor(1.0 / min_step))), O.load_steps, O.load_min_step)
     return Loads(end_force=F, end_force_follower=bool(c[O.load_end_force_follower]),
                  end_moment=M, gravity=g, steps=int(c[O.load_steps]),
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
@@ -1247,8 +1272,12 @@ def _contact(c, rod, bc):
 def _potential_points(rod, rlaw, plaw):
     """Quadrature points per element the pair potential needs on this mesh
     (contact.potential.points_per_element at the law's promised penetration, law_tube)."""
-    from rodsnes.contact.potential import points_per_element
-    return points_per_element(rod["length"] / rod["nelem"], rlaw, plaw)
+    from rodsnes.contact.potential import MAX_POINTS, points_per_element
+    try:
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore", under="ignore"):
+            return points_per_element(rod["length"] / rod["nelem"], rlaw, plaw)
+    except (OverflowError, ValueError, ZeroDivisionError):
+        return MAX_POINTS + 1           # a law no mesh resolves (its radius under- or overflows)
 
 
 def _contact_law(c, rod, rlaw, plaw):
@@ -1378,6 +1407,12 @@ MEMORY_BASE, MEMORY_PER_NODE = 0.15e9, 1.0e4
 """Bytes of a run without contact: the start-up, and per node (Jacobian, MUMPS LU factors,
 vectors); measured on the cantilever, 0.41 GB at 10^4 and 2.97 GB at 10^5 cubic elements
 (docs/bench_scaling.md).  Contact adds more, growing with the pairs in contact."""
+
+
+def _count(n):
+    """A count for a message: the integer, or '%.3g' from 1e9 on (a 300-digit -rod_nelem said
+    nothing)."""
+    return "%d" % n if n < 1e9 else "%.3g" % n
 
 
 def _show(flag, value):
@@ -1516,6 +1551,10 @@ def _check_supports(scene, fail):
 # itself, the unloaded rod of the first load step: exit 0, the rod unmoved)
 MAX_ATOL_SHARE = 1e-6
 _PETSC_ATOL = SimpleNamespace(flag="-snes_atol")    # a PETSc option, for fail()'s option list
+# the largest -snes_rtol (every load path holds |g| <= rtol x the force scale): the same share
+# (-snes_rtol 1 or more accepted the unloaded rod on every path, exit 0)
+MAX_RTOL = MAX_ATOL_SHARE
+_PETSC_RTOL = SimpleNamespace(flag="-snes_rtol")
 
 
 def _check_atol(scene, fail):
@@ -1523,10 +1562,18 @@ def _check_atol(scene, fail):
     the Newton path reads it (the minimiser does not: there it is an unused option)."""
     from rodsnes.model.loads import takes_newton_path
     ld = scene.loads
+    rtol = ld.rtol
+    if not 0.0 <= rtol <= MAX_RTOL:
+        why = ("every load step holds the residual to -snes_rtol x the problem's force scale "
+               "(EI/L^2 + loads), so a tolerance above %g may leave the forces off by more than "
+               "that share of them (from 1 on, the first load step's unloaded rod already meets "
+               "it)" % MAX_RTOL) if rtol > MAX_RTOL else "not a tolerance"
+        fail("-snes_rtol = %s: %s; use a -snes_rtol from 0 to %g (default 1e-10)"
+             % (_fmt(rtol), why, MAX_RTOL), _PETSC_RTOL)
     if not takes_newton_path(ld):
         return
     atol, scale = ld.atol, force_scale(scene)
-    if atol > MAX_ATOL_SHARE * scale:
+    if not atol <= MAX_ATOL_SHARE * scale:
         fail("-snes_atol = %s: %.3g of the problem's force scale (%.3g: EI/L^2 + loads), so a "
              "residual that small may leave the forces off by that much - the first load step's "
              "unloaded rod already meets it; the tolerance is relative to that scale: use "
@@ -1652,10 +1699,10 @@ def _check_contact_mesh(scene, fail):
         return
     eps, h = scene.contact_radius, r.length / r.nelem
     if h > CONTACT_MAX_ELEMENT * eps:
-        need = int(math.ceil(r.length / (CONTACT_MAX_ELEMENT * eps)))
+        need = math.ceil(r.length / (CONTACT_MAX_ELEMENT * eps))
         fail("%s with contact radius %g: elements of length %.4g (%.3g contact radii) are too "
-             "long to resolve a contact (at most %g radii); use -rod_nelem %d or more"
-             % (_show("-rod_nelem", r.nelem), eps, h, h / eps, CONTACT_MAX_ELEMENT, need),
+             "long to resolve a contact (at most %g radii); use -rod_nelem %s or more"
+             % (_show("-rod_nelem", r.nelem), eps, h, h / eps, CONTACT_MAX_ELEMENT, _count(need)),
              O.rod_nelem, O.contact_radius)
 
 
@@ -1678,30 +1725,60 @@ def _load_turn_per_element(scene):
     return max(turns, key=lambda t: t[0]) if turns else (0.0, None, None)
 
 
+# the most elements a frame's turning may ask for before the mesh is made: far beyond any
+# machine's memory (_check_memory), and below the count at which the frames' angles lose
+# their digits in double precision
+MAX_ELEMENTS_NEEDED = 1e9
+
+
+def _check_frame_turns(scene, fail):
+    """Frames that turn so fast along the rod (mesh.frame_rate_bound: -rod_twist_turns, a
+    helix's pitch, an imperfection) that no mesh of MAX_ELEMENTS_NEEDED elements holds them:
+    refused before the mesh is made (their angles overflow it).  Returns whether the mesh may
+    be made."""
+    from rodsnes.model.mesh import frame_rate_bound
+    r = scene.rod
+    rate = frame_rate_bound(r, scene.bc)
+    need = rate * r.length / MAX_ELEMENT_TURN
+    if need <= MAX_ELEMENTS_NEEDED:
+        return True
+    twist = 2 * math.pi * abs(r.twist_turns) / r.length
+    if twist >= 0.5 * rate or not math.isfinite(twist):
+        what, opts = _show("-rod_twist_turns", r.twist_turns), (O.rod_twist_turns,)
+    else:
+        what, opts = "the %s rod's shape" % r.shape, (O.rod_shape,)
+    fail("%s: the frames turn so fast along the rod that the rotation interpolation's %.0f "
+         "degrees an element at most would take %s elements (more than %.0e); use fewer turns"
+         % (what, math.degrees(MAX_ELEMENT_TURN),
+            "%.3g" % need if math.isfinite(need) else "infinitely many", MAX_ELEMENTS_NEEDED),
+         *opts)
+    return False
+
+
 def _check_element_turns(scene, mesh, fail):
     """Elements across which the frames turn by MAX_ELEMENT_TURN or more: in the reference
     shape (a ring, a helix, -rod_twist_turns) or, certainly, under the loads."""
     from rodsnes.model.mesh import element_turns
     r = scene.rod
-    ref = float(element_turns(mesh).max())
+    ref = float(element_turns(mesh, r, scene.bc).max())
     load, cause, opt = _load_turn_per_element(scene)
     turn = max(ref, load)
     if turn < MAX_ELEMENT_TURN:
         return
-    need = int(math.floor(r.nelem * turn / MAX_ELEMENT_TURN)) + 1
+    need = math.floor(r.nelem * turn / MAX_ELEMENT_TURN) + 1
     if load > ref:
-        what = "%s turns the frames by at least %.0f degrees per element" % (cause,
+        what = "%s turns the frames by at least %.4g degrees per element" % (cause,
                                                                               math.degrees(load))
         opts = (O.rod_nelem, opt)
     else:
-        what = "the frames of the %s%s turn by %.0f degrees across an element" % (
+        what = "the frames of the %s%s turn by %.4g degrees across an element" % (
             "closed ring" if r.closed else "%s rod" % r.shape,
             " with -rod_twist_turns %g" % r.twist_turns if r.twist_turns else "",
             math.degrees(ref))
         opts = (O.rod_nelem, O.rod_shape)
-    fail("%s: %s, which the rotation interpolation cannot represent (at most %.0f degrees); use "
-         "-rod_nelem %d or more" % (_show("-rod_nelem", r.nelem), what,
-                                    math.degrees(MAX_ELEMENT_TURN), need), *opts)
+    fail("%s: %s, which the rotation interpolation cannot represent (below %.0f degrees); use "
+         "-rod_nelem %s or more" % (_show("-rod_nelem", r.nelem), what,
+                                    math.degrees(MAX_ELEMENT_TURN), _count(need)), *opts)
 
 
 def _check_planar(scene, mesh, fail):
@@ -1737,10 +1814,11 @@ def check_solvable(scene, memory="machine"):
         _check_imperfection(scene, fail)
         _check_contact_reach(scene, fail)
         _check_contact_mesh(scene, fail)
-        mesh = build_mesh(scene.rod, scene.bc)
-        _check_element_turns(scene, mesh, fail)
-        _check_sliding_end(scene, mesh, fail)
-        _check_planar(scene, mesh, fail)
+        if _check_frame_turns(scene, fail):
+            mesh = build_mesh(scene.rod, scene.bc)
+            _check_element_turns(scene, mesh, fail)
+            _check_sliding_end(scene, mesh, fail)
+            _check_planar(scene, mesh, fail)
     if msgs:
         raise SceneError("\n".join(msgs), opts)
 

@@ -129,6 +129,19 @@ def _imperfect(rod, s, r, t, R, bc=None):
     return r, R
 
 
+def _frames(rod, s, bc=None):
+    """(r, R, r0, R0, q_init) at arclengths s: the stress-free centreline and frames with the
+    imperfection, without it, and the initial frames' unit quaternions (-rod_twist_turns
+    turning them about the tangent)."""
+    r0, t, R0 = _shape(rod, s)
+    r, R = _imperfect(rod, s, r0, t, R0, bc)
+    q = so3.quat_from_rot(R)
+    turns = getattr(rod, "twist_turns", 0.0) or 0.0
+    phi = 2 * np.pi * turns * s / rod.length
+    q_init = so3.qmul(q, so3.qexp(np.stack([0 * phi, 0 * phi, phi], axis=1)))
+    return r, q, r0, R0, q_init
+
+
 def build_mesh(rod, bc=None):
     """Nodes, elements, stress-free and initial shapes of ``rod`` (a scene.Rod); ``bc`` (a
     scene.BC) selects the imperfection mode of open rods."""
@@ -136,27 +149,64 @@ def build_mesh(rod, bc=None):
     n = ne * p if rod.closed else ne * p + 1
     s = np.arange(n) * (L / (ne * p))
     conn = (np.arange(ne)[:, None] * p + np.arange(p + 1)[None, :]) % n
-    r0, t, R0 = _shape(rod, s)
-    r, R = _imperfect(rod, s, r0, t, R0, bc)
-    q = so3.quat_from_rot(R)
-    turns = getattr(rod, "twist_turns", 0.0) or 0.0
-    phi = 2 * np.pi * turns * s / L
-    q_init = so3.qmul(q, so3.qexp(np.stack([0 * phi, 0 * phi, phi], axis=1)))
+    r, q, r0, R0, q_init = _frames(rod, s, bc)
     return RodMesh(nelem=ne, order=p, closed=rod.closed, length=L, n_nodes=n, conn=conn,
                    s_nodes=s, x_ref=r, q_ref=q, x_init=r.copy(), q_init=q_init,
                    x_perfect=r0, q_perfect=so3.quat_from_rot(R0))
 
 
-def element_turns(mesh):
-    """(nelem,) angle (rad) by which the initial frames turn across each element: the sum over
-    its consecutive nodes of the rotation angle between them, 2 arccos |q_a . q_a+1| (a ring's
-    last element ends on node 0 after a full turn, so the ends alone would not show it).  The
+def frame_rate_bound(rod, bc=None):
+    """An upper bound of the rate |R^T R'| (rad per length) at which the initial frames turn
+    along the rod: the shape's (an arc's or ring's 1/rho, a helix's Darboux vector 1/sqrt(a^2 +
+    b^2)), the imperfection's tilt of the tangent (A f'' and A f' times the shape's, twice over)
+    and -rod_twist_turns' 2 pi T / L."""
+    L = rod.length
+    if rod.shape in ("arc", "circle"):
+        rho = rod.arc_radius or L / (2 * np.pi)
+        shape = 1.0 / rho
+    elif rod.shape == "helix":
+        shape = 1.0 / np.hypot(rod.helix_radius, rod.helix_pitch / (2 * np.pi))
+    else:
+        shape = 0.0
+    A = abs(getattr(rod, "imperfection", 0.0) or 0.0)
+    k = 4 * np.pi / L       # the largest wavenumber of the imperfection modes
+    tilt = 2.0 * A * k * (k + shape)
+    return shape + tilt + 2 * np.pi * abs(getattr(rod, "twist_turns", 0.0) or 0.0) / L
+
+
+# samples of the initial frames per node interval at most, in element_turns
+MAX_TURN_SAMPLES = 1024
+
+
+def element_turns(mesh, rod=None, bc=None):
+    """(nelem,) angle (rad) by which the initial frames turn across each element: the sum of
+    the rotation angles 2 arccos |q_a . q_b| between consecutive frames along it (a ring's last
+    element ends on node 0 after a full turn, so the ends alone would not show it).  The
     rotation interpolation works with rotations relative to a node of the element, unique only
     below half a turn: an element that turns by pi or more (a ring of two elements) cannot be
-    represented."""
+    represented.  An angle between two frames is seen only modulo a whole turn: with ``rod``
+    (and ``bc``, the mesh's), the frames are sampled between the nodes so that no two
+    consecutive samples can turn by a quarter turn (frame_rate_bound; the nodes alone when
+    they cannot), where the nodes alone took a ring twisted by 73 turns on 24 elements for one
+    twisted by 1 turn; beyond MAX_TURN_SAMPLES samples a node interval the bound itself."""
     q = mesh.q_init[mesh.conn]                                  # (nelem, p+1, 4)
     dots = np.abs(np.sum(q[:, 1:] * q[:, :-1], axis=2))         # (nelem, p)
-    return (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=1)
+    nodal = (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=1)
+    if rod is None:
+        return nodal
+    h = mesh.length / (mesh.nelem * mesh.order)                 # a node interval
+    rate = frame_rate_bound(rod, bc)
+    m = int(np.ceil(rate * h / (0.5 * np.pi))) if np.isfinite(rate) else MAX_TURN_SAMPLES + 1
+    if m <= 1:
+        return nodal
+    if m > MAX_TURN_SAMPLES:
+        return np.full(mesh.nelem, rate * h * mesh.order)
+    e = mesh.element_nodes_s()                                  # (nelem, p+1), unwrapped
+    s = (e[:, :-1, None] + (e[:, 1:, None] - e[:, :-1, None])
+         * (np.arange(m + 1) / m)[None, None, :]).ravel()
+    qs = _frames(rod, s, bc)[4].reshape(mesh.nelem, mesh.order, m + 1, 4)
+    dots = np.abs(np.sum(qs[..., 1:, :] * qs[..., :-1, :], axis=-1))
+    return (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=(1, 2))
 
 
 def reference_length(rod, bc=None, samples=4096):

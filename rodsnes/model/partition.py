@@ -17,6 +17,8 @@ import scipy.sparse as sp
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from rodsnes.errors import SceneError
+
 NDOF = 6  # per node: position r (3), rotation increment theta (3)
 
 
@@ -33,8 +35,8 @@ def metis_parts(nelem, closed, nparts):
     if nparts == 1:
         return np.zeros(nelem, dtype=np.int64)
     if nelem < nparts:
-        raise ValueError(f"-rod_nelem = {nelem} is smaller than the number of ranks {nparts}: "
-                         f"use at least {nparts} elements or fewer ranks")
+        raise SceneError(f"-rod_nelem = {nelem} is smaller than the number of ranks {nparts}: "
+                         f"use at least {nparts} elements or fewer ranks", ("-rod_nelem",))
     import pymetis
     xadj, adj = chain_graph(nelem, closed)
     _, parts = pymetis.part_graph(nparts, adjacency=pymetis.CSRAdjacency(

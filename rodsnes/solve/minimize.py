@@ -86,6 +86,17 @@ CURVE_H = 0.1
 HEARTBEAT = 10.0
 
 
+def _unit(v):
+    """v scaled to unit length; a zero or non-finite v (a factor that overflowed: loads
+    1e100 times the stiffness scale divided by zero here) becomes zero: no mode, which the
+    saddle's escape then does not add."""
+    n = v.norm()
+    if n > 0.0 and np.isfinite(n):
+        v.scale(1.0 / n)
+    else:
+        v.set(0.0)
+
+
 def _quadratic_min(E0, slope, alpha, E):
     """The minimiser of the quadratic through E(0) = E0, E'(0) = slope and E(alpha) = E."""
     return -slope * alpha ** 2 / (2.0 * (E - E0 - slope * alpha))
@@ -306,7 +317,7 @@ class EnergyMinimizer:
             # mode's sign, which decides the branch at a symmetric saddle: _oriented)
             idx = p.layout.natural_rows(v.getLocalSize()).astype(float)
             v.setArray(np.sin(12.9898 * idx + 0.5) * 43758.5453 % 1.0 - 0.5)
-        self.inverse_iterate(self.factor.solve, v, its, lambda x: x.scale(1.0 / x.norm()))
+        self.inverse_iterate(self.factor.solve, v, its, _unit)
         if self._mode is not None:
             self._mode.destroy()
         self._mode = v.copy()
