@@ -59,7 +59,7 @@ COMMON_PETSC_OPTIONS = (
     "mat_mumps_icntl_4 mat_mumps_icntl_7 mat_mumps_icntl_13 mat_mumps_icntl_14 "
     "mat_mumps_icntl_23 mat_mumps_icntl_24 mat_mumps_cntl_1 mat_mumps_cntl_3 log_view "
     "options_left options_view help version info malloc_debug malloc_dump memory_view "
-    "on_error_abort fp_trap no_signal_handler").split()
+    "on_error_abort no_signal_handler").split()
 """PETSc options a rodsnes user is likely to mean (did-you-mean for an option nothing read)."""
 
 FINALIZE_READ = ("options_left", "options_view", "malloc_dump", "malloc_view", "memory_view",
@@ -93,6 +93,12 @@ def _say(rank, kind, text):
 
 
 # --------------------------------------------------------------------------- -options_file
+FP_TRAP = ("-fp_trap makes every floating-point exception abort the run, and rodsnes meets "
+           "some on purpose (an infinite energy beyond the contact's wall, masked divisions in "
+           "numpy; the run ended at start-up, exit 72, with PETSc's 'unknown floating point "
+           "error'): drop it")
+
+
 def _options_file_line_problem(tokens):
     """What PETSc would refuse in one options-file line (its tokens, comment stripped)."""
     first = tokens[0]
@@ -100,6 +106,8 @@ def _options_file_line_problem(tokens):
         return None if len(tokens) == 3 else "an alias line is 'alias -new -old'"
     if not first.startswith("-") or first == "-":
         return f"'{first}' is not an option (an option starts with '-')"
+    if first == "-fp_trap":
+        return FP_TRAP
     more = [t for t in tokens[1:] if _is_option_token(t)]
     if more:
         return f"two options on one line ({first} and {more[0]}): one option per line"
@@ -151,6 +159,8 @@ def command_line_problems(argv):
     out = []
     value_ok = False                # the word before was an option name, awaiting its value
     for tok in argv[1:]:
+        if tok == "-fp_trap":
+            out.append(FP_TRAP)
         if _is_option_token(tok):
             if tok.startswith("--"):
                 out.append(f"'{tok}': an option takes one dash ({tok[1:]})")

@@ -1131,3 +1131,33 @@ def test_a_nonlinear_solver_rodsnes_cannot_feed_is_refused(snes_type, needs):
         opts.delValue("snes_type")
     assert len(msgs) == 1 and msgs[0].startswith(f"-snes_type {snes_type}: PETSc's")
     assert needs in msgs[0] and "use newtonls (the default), newtontr, qn or ngmres" in msgs[0]
+
+
+def test_fp_trap_is_refused_on_the_command_line_and_in_a_file(capsys, tmp_path):
+    """-fp_trap made every floating-point exception abort the run, and rodsnes meets some on
+    purpose: the run ended at start-up with PETSc's 'unknown floating point error', exit 72,
+    no rodsnes line.  Refused, on the command line and in an options file."""
+    refused(capsys, tmp_path, MATT + ("-fp_trap",), ["-fp_trap makes every floating-point "
+                                                      "exception abort the run", "drop it"])
+    (tmp_path / "trap.opts").write_text("-fp_trap\n")
+    refused(capsys, tmp_path, MATT + ("-options_file", tmp_path / "trap.opts"),
+            ["line 1 '-fp_trap': -fp_trap makes every floating-point exception abort the run"])
+
+
+def test_a_huge_torsional_stiffness_is_named(capsys, tmp_path):
+    """The residual's roundoff floor made by GJ (-rod_GJ 1e300) was blamed on the stretch
+    stiffness 1e6 with a thicker rod as the fix: the stiffness that makes it is named."""
+    refused(capsys, tmp_path, MATT + ("-rod_GJ", "1e300"),
+            ["from the GJ / L 1e+300 over 25 nodes", "use a -rod_GJ near the others"])
+
+
+def test_a_retraction_asked_for_with_another_line_search_is_warned_about(capsys, tmp_path):
+    """-load_retraction acts with the basic line search only: given with bt it was ignored
+    without a word (the run the same as with -load_retraction 0)."""
+    rc, _, err = rodsnes(capsys, *ROLLUP, "-load_retraction", "-snes_linesearch_type", "bt",
+                         out=tmp_path / "bt")
+    assert rc == 0, err
+    assert ("rodsnes: warning: -load_retraction does nothing: it acts with "
+            "-snes_linesearch_type basic only, and this run's line search is bt") in err
+    rc, _, err = rodsnes(capsys, *ROLLUP, "-load_retraction", out=tmp_path / "basic")
+    assert rc == 0 and "-load_retraction" not in err, err

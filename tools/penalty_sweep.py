@@ -4,8 +4,8 @@
     .venv/bin/python tools/penalty_sweep.py cases/rollup_contact.opts --factors 1,10,100,1000 \
         --out docs/penalty_sweep_rollup_contact [-- -rod_nelem 24 ...extra rodsnes options]
 
-Runs ``rodsnes`` once per factor (``-contact_penalty`` = factor x the default 5 EI/eps^4 read
-from the first run's summary) and writes OUT.csv and OUT.md: factor, mu, max penetration (fraction
+Runs ``rodsnes`` once per factor (``-contact_penalty`` = factor x the default penalty,
+docs/contact.md, read from the first run's summary) and writes OUT.csv and OUT.md: factor, mu, max penetration (fraction
 of the tube's diameter), min gap, total contact force, complementarity, Newton iterations, load steps, wall
 time, converged.  The penalty method promises penetration ~ 1/mu at a fixed contact force.
 """

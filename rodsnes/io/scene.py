@@ -1516,14 +1516,24 @@ def _check_stiffness(scene, fail):
         return
     floor = residual_floor(r)
     if floor > MAX_ROUNDOFF_SHARE * scale:
-        fail("%s, %s with %s: the residual's roundoff (%.3g, from the stretch stiffness %.3g over "
+        # the stiffness that makes the floor (residual_floor: stretch/shear, or bending/twist
+        # over L), named: -rod_GJ 1e300 was blamed on the stretch stiffness 1e6
+        stretch = max((r.EA, "EA"), (r.GA1, "GA"), (r.GA2, "GA"))
+        bend = max((r.EI1, "EI"), (r.EI2, "EI"), (r.GJ, "GJ"))
+        if stretch[0] >= bend[0] / r.length:
+            what, value, fix, opt = ("stretch stiffness " + stretch[1], stretch[0],
+                                     "a thicker rod, a softer -rod_EA and -rod_GA (nearly "
+                                     "inextensible is enough)", O.rod_EA)
+        else:
+            what, value, fix, opt = ("%s / L" % bend[1], bend[0] / r.length,
+                                     "a -rod_%s near the others" % bend[1], getattr(O, "rod_" + bend[1]))
+        fail("%s, %s with %s: the residual's roundoff (%.3g, from the %s %.3g over "
              "%d nodes) exceeds %g of the forces of the problem (%.3g: EI/L^2 + loads), so double "
-             "precision cannot resolve the equilibrium; use a thicker rod, a softer -rod_EA and "
-             "-rod_GA (nearly inextensible is enough), or fewer elements"
+             "precision cannot resolve the equilibrium; use %s, or fewer elements"
              % (_show("-rod_radius", r.radius), _show("-rod_length", r.length),
-                _show("-rod_nelem", r.nelem), floor, max(r.EA, r.GA1, r.GA2),
-                r.nelem * r.order + 1, MAX_ROUNDOFF_SHARE, scale),
-             O.rod_radius, O.rod_EA, O.rod_nelem)
+                _show("-rod_nelem", r.nelem), floor, what, value,
+                r.nelem * r.order + 1, MAX_ROUNDOFF_SHARE, scale, fix),
+             O.rod_radius, opt, O.rod_nelem)
 
 
 def _check_supports(scene, fail):
@@ -1860,6 +1870,10 @@ def _idle_reasons(scene, options, path):
     if c.enabled and path == "newton":
         out.append((O.load_retraction, "with contact the Newton steps are straight (the "
                                        "contact's move limits bound the straight move)"))
+    search = options.getAll().get("snes_linesearch_type")     # (a peek: marks nothing used)
+    if path == "newton" and search not in (None, "basic") and not c.enabled:
+        out.append((O.load_retraction, "it acts with -snes_linesearch_type basic only, and this "
+                                       "run's line search is %s" % search))
     direct = "every stiffness it would enter is given directly"
     for opt, value in ((O.rod_youngs, r.youngs), (O.rod_poisson, r.poisson),
                        (O.rod_shear, r.shear_modulus), (O.rod_shear_coefficient,
