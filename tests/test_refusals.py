@@ -172,6 +172,13 @@ REFUSALS = [
      ["-snes_rtol = inf: every load step holds", "use a -snes_rtol from 0 to 1e-06"]),
     ("snes_rtol_nan", MATT + ("-snes_rtol", "nan"),
      ["-snes_rtol = nan: not a tolerance; use a -snes_rtol from 0 to 1e-06"]),
+    # a penalty out of all proportion to the rod: 1e20 on michell_contact stalled the
+    # minimiser (|g| and E unchanged over minutes)
+    ("penalty_beyond_proportion",
+     ("-options_file", os.path.join(CASES, "michell_contact.opts"), "-quiet",
+      "-contact_penalty", "1e20"),
+     ["-contact_penalty = 1e+20: 2.55e+13 times the default 3.93e+06",
+      "give a penalty within a factor 1e+06 of the default, or leave it out"]),
     ("imperfection_ten_lengths", EULER + ("-rod_imperfection", "10"),
      ["-rod_imperfection = 10 with -rod_length = 1", "10.1 times as long as the rod",
       "use |a| below 0.417"]),

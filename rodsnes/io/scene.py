@@ -1702,6 +1702,30 @@ def _check_contact_reach(scene, fail):
              O.contact_exclusion, O.contact_radius, O.contact_standoff)
 
 
+# a -contact_penalty this far from the default (contact.projection.default_penalty) either way:
+# 1e20 and 1e300 on michell_contact stalled the minimiser for hours (|g| and E unchanged),
+# the penalty sweep's 1000 x took twice the iterations
+MAX_PENALTY_FACTOR = 1e6
+
+
+def _check_contact_penalty(scene, fail):
+    """A -contact_penalty more than MAX_PENALTY_FACTOR times the default, or less than its
+    inverse: the contact's stiffness out of all proportion to the rod's."""
+    from rodsnes.contact.projection import default_penalty
+    c, r = scene.contact, scene.rod
+    if not c.enabled or c.penalty is None:
+        return
+    eps, law_penetration = scene.contact_law
+    mu0 = default_penalty(min(r.EI1, r.EI2), eps, law_penetration)
+    if not mu0 / MAX_PENALTY_FACTOR <= c.penalty <= mu0 * MAX_PENALTY_FACTOR:
+        fail("-contact_penalty = %s: %.3g times the default %.3g (the penalty that keeps "
+             "-contact_penetration %g against the rod's bending stiffness), so the contact's "
+             "stiffness is out of all proportion to the rod's; give a penalty within a factor %.0e of "
+             "the default, or leave it out (-contact_penalty_adapt then raises it as the "
+             "contact presses)" % (_fmt(c.penalty), c.penalty / mu0, mu0, c.penetration,
+                                   MAX_PENALTY_FACTOR), O.contact_penalty)
+
+
 def _check_contact_mesh(scene, fail):
     """Contact needs elements no longer than CONTACT_MAX_ELEMENT contact radii."""
     c, r = scene.contact, scene.rod
@@ -1824,6 +1848,7 @@ def check_solvable(scene, memory="machine"):
         _check_imperfection(scene, fail)
         _check_contact_reach(scene, fail)
         _check_contact_mesh(scene, fail)
+        _check_contact_penalty(scene, fail)
         if _check_frame_turns(scene, fail):
             mesh = build_mesh(scene.rod, scene.bc)
             _check_element_turns(scene, mesh, fail)
