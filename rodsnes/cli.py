@@ -99,6 +99,12 @@ FP_TRAP = ("-fp_trap makes every floating-point exception abort the run, and rod
            "error'): drop it")
 
 
+def _traps(value):
+    """Whether -fp_trap with this value (None: none, which PETSc takes for true) turns the
+    trapping on."""
+    return value is None or value.lower() not in ("0", "false", "no", "off")
+
+
 def _options_file_line_problem(tokens):
     """What PETSc would refuse in one options-file line (its tokens, comment stripped)."""
     first = tokens[0]
@@ -106,7 +112,7 @@ def _options_file_line_problem(tokens):
         return None if len(tokens) == 3 else "an alias line is 'alias -new -old'"
     if not first.startswith("-") or first == "-":
         return f"'{first}' is not an option (an option starts with '-')"
-    if first == "-fp_trap":
+    if first == "-fp_trap" and _traps(tokens[1] if len(tokens) > 1 else None):
         return FP_TRAP
     more = [t for t in tokens[1:] if _is_option_token(t)]
     if more:
@@ -155,12 +161,18 @@ def command_line_problems(argv):
     """Messages for command-line words PETSc would take without a word: an option written with
     two dashes (--rod_nelem 16 was stored as '--rod_nelem' and the run used 8 elements) and a
     word that is neither an option nor the value of the option before it (a vector written
-    with spaces, a dash forgotten): both were ignored, exit 0."""
+    with spaces, a dash forgotten): both were ignored, exit 0; -fp_trap turned on here or in
+    PETSC_OPTIONS (FP_TRAP)."""
     out = []
     value_ok = False                # the word before was an option name, awaiting its value
-    for tok in argv[1:]:
-        if tok == "-fp_trap":
-            out.append(FP_TRAP)
+    words = list(argv[1:])
+    # PETSC_OPTIONS too: PETSc reads it at its start, before rodsnes could say a word
+    env = shlex.split(os.environ.get("PETSC_OPTIONS", ""))
+    for i, tok in enumerate(words + env):
+        nxt = (words + env)[i + 1] if i + 1 < len(words + env) else None
+        if tok == "-fp_trap" and _traps(None if nxt is None or _is_option_token(nxt) else nxt):
+            out.append(FP_TRAP + (" (from PETSC_OPTIONS)" if i >= len(words) else ""))
+    for tok in words:
         if _is_option_token(tok):
             if tok.startswith("--"):
                 out.append(f"'{tok}': an option takes one dash ({tok[1:]})")

@@ -42,6 +42,9 @@ NEWTON_FAILURES = 3
 # steps grows with the run (12 ms a write at 526 steps), so a write after every step would
 # cost O(steps^2); it is always written at the end, on failure and on an interruption
 SUMMARY_SHARE = 0.01
+# the smallest load increment a run takes (-load_min_step's least value): below it a load factor
+# near 1 does not change in double precision
+LOAD_RESOLUTION = 1e-12
 
 
 class Run:
@@ -210,6 +213,11 @@ class Run:
             if (step >= 1 and not last["attrs"].get("branch_switch", 0)
                     and step - 1 in output.read_steps(rdir)):
                 before = output.read_step(rdir, step - 1)
+                # a step before at the last one's load makes no secant (the predictors divide
+                # by the loads' difference): resumed without it, as from a one-step checkpoint
+                if not abs(float(last["attrs"].get("load", np.nan))
+                           - float(before["attrs"].get("load", np.nan))) > LOAD_RESOLUTION:
+                    before = None
             for s in (last, before):
                 why = None if s is None else self._unreadable_state(s)
                 if why is not None:
@@ -244,8 +252,8 @@ class Run:
                                     - 1.0).max(initial=0.0) > 1e-6:
             return "rotation quaternions not of unit length"
         dlam = attrs.get("next_increment")
-        if dlam is not None and not float(dlam) > 0.0:
-            return f"the next increment {float(dlam)!r}"
+        if dlam is not None and not float(dlam) >= LOAD_RESOLUTION:
+            return f"the next increment {float(dlam)!r} (below the load's resolution)"
         return None
 
     def _tip(self, fields):

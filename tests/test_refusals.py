@@ -179,6 +179,11 @@ REFUSALS = [
       "-contact_penalty", "1e20"),
      ["-contact_penalty = 1e+20: 2.55e+13 times the default 3.93e+06",
       "give a penalty within a factor 1e+06 of the default, or leave it out"]),
+    # load steps no run gets through: 1e9 on the Newton path ran for months, 1e300 below the
+    # load's resolution (200 steps with -load_min_step 0.01 stay fine, as 2e6 on the default
+    # path, whose increment grows)
+    ("load_steps_beyond_any_run", MATT + ("-load_steps", "1e9"),
+     ["-load_steps = 1e9: increments of 1e-09", "use at most 1e+07 load steps"]),
     ("imperfection_ten_lengths", EULER + ("-rod_imperfection", "10"),
      ["-rod_imperfection = 10 with -rod_length = 1", "10.1 times as long as the rod",
       "use |a| below 0.417"]),
@@ -1149,6 +1154,19 @@ def test_fp_trap_is_refused_on_the_command_line_and_in_a_file(capsys, tmp_path):
     (tmp_path / "trap.opts").write_text("-fp_trap\n")
     refused(capsys, tmp_path, MATT + ("-options_file", tmp_path / "trap.opts"),
             ["line 1 '-fp_trap': -fp_trap makes every floating-point exception abort the run"])
+    # switched off, it is no problem
+    from rodsnes.cli import command_line_problems, _options_file_problem
+    assert command_line_problems(["rodsnes", "-fp_trap", "0", "-rod_nelem", "4"]) == []
+    (tmp_path / "off.opts").write_text("-fp_trap false\n")
+    assert _options_file_problem(str(tmp_path / "off.opts")) is None
+
+
+def test_fp_trap_in_petsc_options_is_refused(monkeypatch):
+    """PETSC_OPTIONS=-fp_trap aborted at start-up (exit 72, no rodsnes line) as well."""
+    from rodsnes.cli import command_line_problems
+    monkeypatch.setenv("PETSC_OPTIONS", "-fp_trap -malloc_debug 0")
+    msgs = command_line_problems(["rodsnes", "-rod_nelem", "4"])
+    assert len(msgs) == 1 and msgs[0].endswith("drop it (from PETSC_OPTIONS)")
 
 
 def test_a_huge_torsional_stiffness_is_named(capsys, tmp_path):

@@ -232,20 +232,23 @@ def test_a_restart_holds_the_sliding_gauge_the_run_held(tmp_path):
     (lambda g: g.attrs.__setitem__("load", 7.0), "holds the load 7.0"),
     (lambda g: g["positions"].__setitem__((0, 0), np.nan), "holds positions that are not finite"),
     (lambda g: g["rotation"].__setitem__(slice(None), 0.0),
-     "holds rotation quaternions not of unit length")])
+     "holds rotation quaternions not of unit length"),
+    (lambda g: g.attrs.__setitem__("next_increment", 1e-300),
+     "holds the next increment 1e-300 (below the load's resolution)")])
 def test_a_damaged_last_step_is_refused(tmp_path, damage, said):
     """A result.h5 whose last step is no state rodsnes writes: refused with -restart named (a
     NaN load made the restarted run end at once 'converged', exit 0, with no step; NaN
-    positions or a zero quaternion failed the load path blaming the solver).  A complete run
-    is refused as such, not by -load_stop."""
+    positions or a zero quaternion failed the load path blaming the solver; an increment of
+    1e-300 divided by zero in the predictor).  A complete run is refused as such, not by
+    -load_stop.  (Serial: the damage is written by this process.)"""
     from rodsnes.errors import SceneError
     from rodsnes.io import results as output
+    if MPI.COMM_WORLD.size > 1:
+        pytest.skip("serial")
     staged = str(tmp_path / "staged")
     assert run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.5).ok
-    if MPI.COMM_WORLD.rank == 0:
-        with h5py.File(os.path.join(staged, "result.h5"), "r+") as f:
-            damage(f["steps"][sorted(f["steps"])[-1]])
-    MPI.COMM_WORLD.Barrier()
+    with h5py.File(os.path.join(staged, "result.h5"), "r+") as f:
+        damage(f["steps"][sorted(f["steps"])[-1]])
     with pytest.raises(SceneError) as ei:
         run_case("mattiasson", outdir=str(tmp_path / "new"), load_steps=4, restart=staged)
     assert said in str(ei.value) and "not a state rodsnes writes" in str(ei.value)
@@ -255,3 +258,20 @@ def test_a_damaged_last_step_is_refused(tmp_path, damage, said):
     with pytest.raises(SceneError, match="that run is complete"):
         run_case("mattiasson", outdir=str(tmp_path / "again"), load_steps=2, restart=done)
     assert output.read_steps(done)
+
+
+@pytest.mark.parametrize("path", ["newton", "minimize"])
+def test_a_step_before_at_the_last_ones_load_is_no_secant(tmp_path, path):
+    """The step before the last at the same load (a damaged file) made the secant predictor
+    divide by zero on either path (exit 4): the restart goes on without it, as from a one-step
+    checkpoint, to the end of the run."""
+    if MPI.COMM_WORLD.size > 1:
+        pytest.skip("serial")
+    staged = str(tmp_path / "staged")
+    assert run_case("mattiasson", outdir=staged, load_steps=4, load_stop=0.5, load_path=path).ok
+    with h5py.File(os.path.join(staged, "result.h5"), "r+") as f:
+        names = sorted(f["steps"])
+        f["steps"][names[-2]].attrs["load"] = f["steps"][names[-1]].attrs["load"]
+    resumed = run_case("mattiasson", outdir=str(tmp_path / "new"), load_steps=4, load_path=path,
+                       restart=staged)
+    assert resumed.ok and resumed.prev0 is None and resumed.problem.lam == 1.0

@@ -201,3 +201,33 @@ def test_a_plectoneme_pressed_into_a_mount_at_the_wall_goes_on(monkeypatch):
     s = run.summary(converged=ok)
     assert ok and s["stable"] is True and run.problem.lam == pytest.approx(0.847, abs=1e-12)
     assert ct.wall[0] < max(deepest) < ct.wall[1]
+
+
+@pytest.mark.mpi
+def test_the_assembled_tangent_in_the_mounts_barrier_matches_finite_differences():
+    """The pair potential's wall in the mounts' law (psi = g^2/2 + beta): with the reach moved
+    so that the deepest mount point lies halfway into the barrier (a_b < g < a_w), the
+    assembled tangent against central differences of the assembled residual, serial and on
+    2 ranks (the barrier's second derivative and the sliding end's coupling)."""
+    run = pressed(contact_model="potential")
+    ct, p = run.contact, run.problem
+    sup = ct.supports
+    a_b, a_w = ct.wall
+    r_loc = p.state.local_config()[0]
+    out = sup.evaluate(r_loc, tangent=False)
+    deep = MPI.COMM_WORLD.allreduce(max(float(g.max(initial=-np.inf)) for g in out["gap"]),
+                                    op=MPI.MAX)
+    sup.reach += a_b + 0.5 * (a_w - a_b) - deep
+    ct.kept_evaluation = None
+    out = sup.evaluate(r_loc, tangent=False)
+    gs = np.concatenate([g[np.isfinite(g)].ravel() for g in out["gap"]])
+    inside = MPI.COMM_WORLD.allreduce(int(((gs > a_b) & (gs < a_w)).sum()))
+    assert inside > 0
+    X = p.state.X
+    F = X.duplicate()
+    p.residual(None, X, F)
+    assert np.isfinite(F.norm()) and np.isfinite(p.energy())
+    J = p.layout.create_matrix(ct.extra_pattern(r_loc))
+    p.jacobian(None, X, J, J)
+    fd, Jv, _ = tangent_against_finite_differences(p, J, seed=5, h=1e-8)
+    assert (fd - Jv).norm() / Jv.norm() < 1e-7

@@ -771,6 +771,8 @@ def _case_name_from_argv(argv):
 # ----------------------------------------------------------------------------
 # read_scene
 # ----------------------------------------------------------------------------
+MAX_LOAD_STEPS = 1e7
+"""The most -load_steps (at ~1 ms a step, three hours of load steps at least)."""
 MIN_LENGTH, MAX_LENGTH = 1e-40, 1e40
 """The lengths a scene may hold (-rod_length 1e150 overflowed L^4, -contact_radius 1e-170 the
 contact law's points per element: tracebacks)."""
@@ -1122,13 +1124,14 @@ def _loads(c, rod, bc):
         c.fail("end load with -bc_start free and -bc_end free: nothing balances it, so there is "
                "no static equilibrium; support the start (-bc_start clamped or pinned)",
                O.load_end_force, O.load_end_moment, O.bc_start)
-    steps, min_step = c[O.load_steps], c[O.load_min_step]
-    if steps * min_step > 1.0:
-        # the Newton path keeps 1 / steps as its increment: 1e9 steps of 1e-9 ran for months
-        c.fail("%s asks for load increments of %s, below %s (the smallest a cut-back may take); "
-               "use at most %s load steps, or a smaller -load_min_step"
-               % (c.show(O.load_steps), _fmt(1.0 / steps), c.show(O.load_min_step),
-                  _fmt(math.floor(1.0 / min_step))), O.load_steps, O.load_min_step)
+    steps = c[O.load_steps]
+    if steps > MAX_LOAD_STEPS:
+        # 1e300 steps: increments below the load's resolution; the Newton path keeps 1 / steps
+        # as its increment (1e9 steps of 1e-9 ran for months), the minimiser grows its own
+        c.fail("%s: increments of %s, which no run of load steps gets through (each at least a "
+               "residual and a factorisation) and below 1e-12 do not change the load in double "
+               "precision; use at most %s load steps" % (c.show(O.load_steps), _fmt(1.0 / steps),
+                                                         _fmt(MAX_LOAD_STEPS)), O.load_steps)
     return Loads(end_force=F, end_force_follower=bool(c[O.load_end_force_follower]),
                  end_moment=M, gravity=g, steps=int(c[O.load_steps]),
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),

@@ -174,8 +174,11 @@ def frame_rate_bound(rod, bc=None):
     return shape + tilt + 2 * np.pi * abs(getattr(rod, "twist_turns", 0.0) or 0.0) / L
 
 
-# samples of the initial frames per node interval at most, in element_turns
+# samples of the initial frames per node interval at most, in element_turns; beyond either
+# bound the rate bound itself stands for the turn; frames sampled SAMPLE_CHUNK at a time
 MAX_TURN_SAMPLES = 1024
+MAX_TOTAL_SAMPLES = 2 ** 24
+SAMPLE_CHUNK = 2 ** 18
 
 
 def element_turns(mesh, rod=None, bc=None):
@@ -188,7 +191,10 @@ def element_turns(mesh, rod=None, bc=None):
     (and ``bc``, the mesh's), the frames are sampled between the nodes so that no two
     consecutive samples can turn by a quarter turn (frame_rate_bound; the nodes alone when
     they cannot), where the nodes alone took a ring twisted by 73 turns on 24 elements for one
-    twisted by 1 turn; beyond MAX_TURN_SAMPLES samples a node interval the bound itself."""
+    twisted by 1 turn: a node interval whose sampled path stays below half a turn takes its
+    node-to-node angle, one beyond takes the path (which the angle may have wrapped).  Beyond
+    MAX_TURN_SAMPLES samples a node interval, or MAX_TOTAL_SAMPLES in all, the bound itself
+    (rate x element length: frames turning by millions of turns)."""
     q = mesh.q_init[mesh.conn]                                  # (nelem, p+1, 4)
     dots = np.abs(np.sum(q[:, 1:] * q[:, :-1], axis=2))         # (nelem, p)
     nodal = (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=1)
@@ -199,14 +205,25 @@ def element_turns(mesh, rod=None, bc=None):
     m = int(np.ceil(rate * h / (0.5 * np.pi))) if np.isfinite(rate) else MAX_TURN_SAMPLES + 1
     if m <= 1:
         return nodal
-    if m > MAX_TURN_SAMPLES:
-        return np.full(mesh.nelem, rate * h * mesh.order)
+    p = mesh.order
+    if m > MAX_TURN_SAMPLES or mesh.nelem * p * (m + 1) > MAX_TOTAL_SAMPLES:
+        return np.full(mesh.nelem, rate * h * p)
     e = mesh.element_nodes_s()                                  # (nelem, p+1), unwrapped
-    s = (e[:, :-1, None] + (e[:, 1:, None] - e[:, :-1, None])
-         * (np.arange(m + 1) / m)[None, None, :]).ravel()
-    qs = _frames(rod, s, bc)[4].reshape(mesh.nelem, mesh.order, m + 1, 4)
-    dots = np.abs(np.sum(qs[..., 1:, :] * qs[..., :-1, :], axis=-1))
-    return (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=(1, 2))
+    node = 2.0 * np.arccos(np.minimum(dots, 1.0))               # (nelem, p): node to node
+    t = np.arange(m + 1) / m
+    out = np.empty(mesh.nelem)
+    step = max(1, SAMPLE_CHUNK // (p * (m + 1)))                # elements a chunk
+    for lo in range(0, mesh.nelem, step):
+        ec = e[lo:lo + step]
+        s = (ec[:, :-1, None] + (ec[:, 1:, None] - ec[:, :-1, None]) * t).ravel()
+        qs = _frames(rod, s, bc)[4].reshape(len(ec), p, m + 1, 4)
+        d = np.abs(np.sum(qs[..., 1:, :] * qs[..., :-1, :], axis=-1))
+        path = (2.0 * np.arccos(np.minimum(d, 1.0))).sum(axis=-1)    # (chunk, p)
+        # a node interval whose frames travel less than half a turn: its node-to-node angle
+        # is the rotation itself (what the interpolation needs); beyond, it may have wrapped
+        # and the path stands for it (at least half a turn: refused either way)
+        out[lo:lo + step] = np.where(path < np.pi, node[lo:lo + step], path).sum(axis=1)
+    return out
 
 
 def reference_length(rod, bc=None, samples=4096):
