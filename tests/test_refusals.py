@@ -200,7 +200,12 @@ REFUSALS = [
                                           "0,-1e-199,0"),
      ["the forces of the problem (EI/L^2 + loads = 1.1e-199", "outside 1e-140 .. 1e+140"]),
     ("forces_too_large_to_square", CANTILEVER + ("-rod_youngs", "1e300", "-rod_radius", "0.4"),
-     ["the forces of the problem (EI/L^2 + loads = 2.01e+298"]),
+     ["the forces of the problem (EI/L^2 + loads = 2.01e+298, most of it from the bending "
+      "stiffness (-rod_youngs, -rod_radius))"]),
+    # the largest term named: -load_twist_turns 1e300 was blamed on -rod_EI and the units
+    ("forces_of_a_twist_load", MATT + ("-load_twist_turns", "1e300"),
+     ["the forces of the problem (EI/L^2 + loads = 6.28e+300, most of it from "
+      "-load_twist_turns = 1e+300)", "or fewer turns"]),
     ("too_slender", CANTILEVER + ("-rod_radius", "1e-7", "-load_end_force", "0,-7.85e-22,0"),
      ["-rod_radius = 1e-07", "the residual's roundoff", "cannot resolve the equilibrium"]),
     ("nelem_1e9", MATT + ("-rod_nelem", "1e9"),

@@ -1473,6 +1473,29 @@ _STIFFNESSES = (("EA", (O.rod_EA,), "E pi r^2"), ("GA1", (O.rod_GA,), "k G pi r^
 """(stiffness, the options that give it directly, its formula from the material)."""
 
 
+def _force_scale_cause(scene):
+    """(what, options) of the largest term of scales.force_scale (-load_twist_turns 1e300 was
+    blamed on -rod_EI and the units)."""
+    r, ld, bc = scene.rod, scene.loads, scene.bc
+    L = r.length
+    twist = 2.0 * math.pi * r.GJ / L ** 2
+    terms = [(max(r.EI1, r.EI2) / L ** 2, "the bending stiffness (%s)" % (
+                  "-rod_EI" if {"rod_EI", "rod_EI1", "rod_EI2"} & set(scene.given)
+                  else "-rod_youngs, -rod_radius"), (O.rod_EI, O.rod_youngs)),
+             (math.hypot(*ld.end_force), _show("-load_end_force", ld.end_force),
+              (O.load_end_force,)),
+             (math.hypot(*ld.end_moment) / L, _show("-load_end_moment", ld.end_moment),
+              (O.load_end_moment,)),
+             (math.hypot(*ld.gravity) * L, _show("-load_gravity", ld.gravity), (O.load_gravity,)),
+             (twist * abs(float(getattr(bc, "end_turns", 0.0) or 0.0)),
+              _show("-bc_end_turns", float(getattr(bc, "end_turns", 0.0) or 0.0)),
+              (O.bc_end_turns,)),
+             (twist * abs(float(ld.twist_turns or 0.0)),
+              _show("-load_twist_turns", float(ld.twist_turns or 0.0)), (O.load_twist_turns,))]
+    big = max(terms, key=lambda t: t[0] if math.isfinite(t[0]) else math.inf)
+    return big[1], big[2]
+
+
 def _check_stiffness(scene, fail):
     """A stiffness that underflows to 0 (or to a subnormal) or overflows in double precision, a
     problem whose forces PETSc's norms cannot square, and a rod so slender (or a mesh so fine)
@@ -1510,12 +1533,13 @@ def _check_stiffness(scene, fail):
         return
     scale = force_scale(scene)
     if not FORCE_RANGE[0] <= scale <= FORCE_RANGE[1]:
-        fail("the forces of the problem (EI/L^2 + loads = %.3g, from %s and the loads) are outside "
+        cause, opts = _force_scale_cause(scene)
+        fail("the forces of the problem (EI/L^2 + loads = %.3g, most of it from %s) are outside "
              "%g .. %g, where PETSc's norms of the residual (sums of squares) still work in double "
              "precision; choose units that keep the stiffnesses and loads near 1 (e.g. mm and N)"
-             % (scale, "-rod_EI" if {"rod_EI", "rod_EI1", "rod_EI2"} & set(scene.given) else
-                "-rod_youngs, -rod_radius", FORCE_RANGE[0], FORCE_RANGE[1]),
-             O.rod_EI, O.rod_youngs, O.load_end_force)
+             "%s" % (scale, cause, FORCE_RANGE[0], FORCE_RANGE[1],
+                     ", or fewer turns" if O.bc_end_turns in opts or O.load_twist_turns in opts
+                     else ""), *opts)
         return
     floor = residual_floor(r)
     if floor > MAX_ROUNDOFF_SHARE * scale:
