@@ -167,9 +167,9 @@ def command_line_problems(argv):
     value_ok = False                # the word before was an option name, awaiting its value
     words = list(argv[1:])
     # PETSC_OPTIONS too: PETSc reads it at its start, before rodsnes could say a word
-    env = shlex.split(os.environ.get("PETSC_OPTIONS", ""))
-    for i, tok in enumerate(words + env):
-        nxt = (words + env)[i + 1] if i + 1 < len(words + env) else None
+    every = words + shlex.split(os.environ.get("PETSC_OPTIONS", ""))
+    for i, tok in enumerate(every):
+        nxt = every[i + 1] if i + 1 < len(every) else None
         if tok == "-fp_trap" and _traps(None if nxt is None or _is_option_token(nxt) else nxt):
             out.append(FP_TRAP + (" (from PETSC_OPTIONS)" if i >= len(words) else ""))
     for tok in words:

@@ -32,7 +32,7 @@ from rodsnes.model import plane as planes
 from rodsnes.model.scales import force_scale
 from rodsnes.model.loads import nonconservative, takes_newton_path
 from rodsnes.errors import SceneError, tell
-from rodsnes.io.scene import scene_record, record_mismatches
+from rodsnes.io.scene import MIN_LOAD_STEP, scene_record, record_mismatches
 
 # Newton steps whose linear solve failed, at least, and at least half of those tried, before
 # the run warns that its linear solver may be the cause (Run._warn_failed_newton_steps)
@@ -42,9 +42,6 @@ NEWTON_FAILURES = 3
 # steps grows with the run (12 ms a write at 526 steps), so a write after every step would
 # cost O(steps^2); it is always written at the end, on failure and on an interruption
 SUMMARY_SHARE = 0.01
-# the smallest load increment a run takes (-load_min_step's least value): below it a load factor
-# near 1 does not change in double precision
-LOAD_RESOLUTION = 1e-12
 
 
 class Run:
@@ -216,7 +213,7 @@ class Run:
                 # a step before at the last one's load makes no secant (the predictors divide
                 # by the loads' difference): resumed without it, as from a one-step checkpoint
                 if not abs(float(last["attrs"].get("load", np.nan))
-                           - float(before["attrs"].get("load", np.nan))) > LOAD_RESOLUTION:
+                           - float(before["attrs"].get("load", np.nan))) > MIN_LOAD_STEP:
                     before = None
             for s in (last, before):
                 why = None if s is None else self._unreadable_state(s)
@@ -252,7 +249,7 @@ class Run:
                                     - 1.0).max(initial=0.0) > 1e-6:
             return "rotation quaternions not of unit length"
         dlam = attrs.get("next_increment")
-        if dlam is not None and not float(dlam) >= LOAD_RESOLUTION:
+        if dlam is not None and not float(dlam) >= MIN_LOAD_STEP:
             return f"the next increment {float(dlam)!r} (below the load's resolution)"
         return None
 

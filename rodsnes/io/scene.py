@@ -37,7 +37,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from rodsnes.errors import SceneError
-from rodsnes.model.scales import force_scale, residual_floor
+from rodsnes.model.scales import force_scale, force_scale_terms, residual_floor
 
 __all__ = ["SceneError", "Rod", "BC", "Loads", "Contact", "Output", "Scene",
            "O", "OPTIONS", "read_scene", "help_text", "check_unknown_options"]
@@ -139,6 +139,11 @@ class Opt:
         if self.kind == VEC3:
             return ",".join(_fmt_petsc(x) for x in d)
         return str(d)
+
+
+MIN_LOAD_STEP = 1e-12
+"""The smallest load increment (-load_min_step's least value, a restart's stored increment at
+least): below it a load factor near 1 does not change in double precision."""
 
 
 class O:
@@ -279,8 +284,9 @@ class O:
                              "aimed at (fewer: a longer next step, more: a shorter one)", "load",
                              rng="[2,inf)", note="a number of Newton iterations")
     load_min_step = Opt(REAL, 1e-6, "smallest load-factor increment after cutbacks", "load",
-                        rng="[1e-12,1]", note="a fraction of the full load, from 1e-12 (below "
-                        "it a load factor near 1 does not change in double precision)")
+                        rng="[%g,1]" % MIN_LOAD_STEP, note="a fraction of the full load, from "
+                        "%g (below it a load factor near 1 does not change in double precision)"
+                        % MIN_LOAD_STEP)
     load_stop = Opt(REAL, 1.0, "end the run at this load factor (a long batch run in stages, "
                     "each resumed with -restart, perhaps with other settings); the load grid "
                     "of -load_steps is that of 0 -> 1", "load", rng="(0,1]",
@@ -1129,9 +1135,10 @@ def _loads(c, rod, bc):
         # 1e300 steps: increments below the load's resolution; the Newton path keeps 1 / steps
         # as its increment (1e9 steps of 1e-9 ran for months), the minimiser grows its own
         c.fail("%s: increments of %s, which no run of load steps gets through (each at least a "
-               "residual and a factorisation) and below 1e-12 do not change the load in double "
+               "residual and a factorisation) and below %g do not change the load in double "
                "precision; use at most %s load steps" % (c.show(O.load_steps), _fmt(1.0 / steps),
-                                                         _fmt(MAX_LOAD_STEPS)), O.load_steps)
+                                                         MIN_LOAD_STEP, _fmt(MAX_LOAD_STEPS)),
+               O.load_steps)
     return Loads(end_force=F, end_force_follower=bool(c[O.load_end_force_follower]),
                  end_moment=M, gravity=g, steps=int(c[O.load_steps]),
                  max_cutbacks=int(c[O.load_max_cutbacks]), min_step=float(c[O.load_min_step]),
@@ -1474,26 +1481,22 @@ _STIFFNESSES = (("EA", (O.rod_EA,), "E pi r^2"), ("GA1", (O.rod_GA,), "k G pi r^
 
 
 def _force_scale_cause(scene):
-    """(what, options) of the largest term of scales.force_scale (-load_twist_turns 1e300 was
-    blamed on -rod_EI and the units)."""
-    r, ld, bc = scene.rod, scene.loads, scene.bc
-    L = r.length
-    twist = 2.0 * math.pi * r.GJ / L ** 2
-    terms = [(max(r.EI1, r.EI2) / L ** 2, "the bending stiffness (%s)" % (
-                  "-rod_EI" if {"rod_EI", "rod_EI1", "rod_EI2"} & set(scene.given)
-                  else "-rod_youngs, -rod_radius"), (O.rod_EI, O.rod_youngs)),
-             (math.hypot(*ld.end_force), _show("-load_end_force", ld.end_force),
-              (O.load_end_force,)),
-             (math.hypot(*ld.end_moment) / L, _show("-load_end_moment", ld.end_moment),
-              (O.load_end_moment,)),
-             (math.hypot(*ld.gravity) * L, _show("-load_gravity", ld.gravity), (O.load_gravity,)),
-             (twist * abs(float(getattr(bc, "end_turns", 0.0) or 0.0)),
-              _show("-bc_end_turns", float(getattr(bc, "end_turns", 0.0) or 0.0)),
-              (O.bc_end_turns,)),
-             (twist * abs(float(ld.twist_turns or 0.0)),
-              _show("-load_twist_turns", float(ld.twist_turns or 0.0)), (O.load_twist_turns,))]
-    big = max(terms, key=lambda t: t[0] if math.isfinite(t[0]) else math.inf)
-    return big[1], big[2]
+    """(what, options) of the largest term of scales.force_scale_terms (-load_twist_turns 1e300
+    was blamed on -rod_EI and the units)."""
+    ld, bc = scene.loads, scene.bc
+    terms = force_scale_terms(scene)
+    name = max(terms, key=lambda k: terms[k] if math.isfinite(terms[k]) else math.inf)
+    if name == "bending":
+        return "the bending stiffness (%s)" % (
+            "-rod_EI" if {"rod_EI", "rod_EI1", "rod_EI2"} & set(scene.given)
+            else "-rod_youngs, -rod_radius"), (O.rod_EI, O.rod_youngs)
+    if name == "turns":
+        end = abs(float(getattr(bc, "end_turns", 0.0) or 0.0))
+        if end >= abs(float(ld.twist_turns or 0.0)):
+            return _show("-bc_end_turns", end), (O.bc_end_turns,)
+        return _show("-load_twist_turns", float(ld.twist_turns)), (O.load_twist_turns,)
+    opt = getattr(O, "load_" + name)
+    return _show(opt.flag, getattr(ld, name)), (opt,)
 
 
 def _check_stiffness(scene, fail):
@@ -1594,9 +1597,10 @@ MAX_RTOL = MAX_ATOL_SHARE
 _PETSC_RTOL = SimpleNamespace(flag="-snes_rtol")
 
 
-def _check_atol(scene, fail):
-    """-snes_atol must not be a sizeable share of the forces the equilibrium is made of, where
-    the Newton path reads it (the minimiser does not: there it is an unused option)."""
+def _check_tolerances(scene, fail):
+    """-snes_rtol (every path) and -snes_atol (where the Newton path reads it; the minimiser
+    does not: there it is an unused option) must not be a sizeable share of the forces the
+    equilibrium is made of."""
     from rodsnes.model.loads import takes_newton_path
     ld = scene.loads
     rtol = ld.rtol
@@ -1871,7 +1875,7 @@ def check_solvable(scene, memory="machine"):
     if _check_memory(scene, fail, physical_memory() if memory == "machine" else memory):
         _check_stiffness(scene, fail)
         _check_supports(scene, fail)
-        _check_atol(scene, fail)
+        _check_tolerances(scene, fail)
         _check_imperfection(scene, fail)
         _check_contact_reach(scene, fail)
         _check_contact_mesh(scene, fail)

@@ -197,7 +197,8 @@ def element_turns(mesh, rod=None, bc=None):
     (rate x element length: frames turning by millions of turns)."""
     q = mesh.q_init[mesh.conn]                                  # (nelem, p+1, 4)
     dots = np.abs(np.sum(q[:, 1:] * q[:, :-1], axis=2))         # (nelem, p)
-    nodal = (2.0 * np.arccos(np.minimum(dots, 1.0))).sum(axis=1)
+    node = 2.0 * np.arccos(np.minimum(dots, 1.0))               # (nelem, p): node to node
+    nodal = node.sum(axis=1)
     if rod is None:
         return nodal
     h = mesh.length / (mesh.nelem * mesh.order)                 # a node interval
@@ -209,7 +210,6 @@ def element_turns(mesh, rod=None, bc=None):
     if m > MAX_TURN_SAMPLES or mesh.nelem * p * (m + 1) > MAX_TOTAL_SAMPLES:
         return np.full(mesh.nelem, rate * h * p)
     e = mesh.element_nodes_s()                                  # (nelem, p+1), unwrapped
-    node = 2.0 * np.arccos(np.minimum(dots, 1.0))               # (nelem, p): node to node
     t = np.arange(m + 1) / m
     out = np.empty(mesh.nelem)
     step = max(1, SAMPLE_CHUNK // (p * (m + 1)))                # elements a chunk

@@ -5,18 +5,24 @@ import math
 import numpy as np
 
 
-def force_scale(scene):
-    """F_scale = EI/L^2 + |F| + |M|/L + |g| L + GJ 2 pi (|T_end| + |T_twist|) / L^2: the forces
-    the equilibrium is made of (the last term: the twisting moment of the prescribed turns
-    -bc_end_turns and of the twist load -load_twist_turns, over L), to which the residual is
-    compared (Run.force_scale).  hypot, not a 2-norm of squares, so that a problem scaled by
-    1e-200 keeps its scale."""
+def force_scale_terms(scene):
+    """The terms of force_scale by name: bending (EI/L^2), end_force (|F|), end_moment
+    (|M|/L), gravity (|g| L), turns (GJ 2 pi (|T_end| + |T_twist|) / L^2: the twisting moment
+    of the prescribed turns -bc_end_turns and of the twist load -load_twist_turns, over L).
+    hypot, not a 2-norm of squares, so that a problem scaled by 1e-200 keeps its scale."""
     r, ld = scene.rod, scene.loads
     L = r.length
     turns = abs(float(getattr(scene.bc, "end_turns", 0.0) or 0.0)) + abs(float(ld.twist_turns or 0.0))
-    return (max(r.EI1, r.EI2) / L ** 2 + math.hypot(*ld.end_force)
-            + math.hypot(*ld.end_moment) / L + math.hypot(*ld.gravity) * L
-            + r.GJ * 2.0 * math.pi * turns / L ** 2)
+    return {"bending": max(r.EI1, r.EI2) / L ** 2, "end_force": math.hypot(*ld.end_force),
+            "end_moment": math.hypot(*ld.end_moment) / L, "gravity": math.hypot(*ld.gravity) * L,
+            "turns": r.GJ * 2.0 * math.pi * turns / L ** 2}
+
+
+def force_scale(scene):
+    """F_scale = EI/L^2 + |F| + |M|/L + |g| L + GJ 2 pi (|T_end| + |T_twist|) / L^2
+    (force_scale_terms): the forces the equilibrium is made of, to which the residual is
+    compared (Run.force_scale)."""
+    return sum(force_scale_terms(scene).values())
 
 
 def residual_floor(rod):

@@ -178,91 +178,91 @@ class ValleyFollower:
         slope_before = m._same(g.dot(v))
         final = False           # the step back to the floor's minimum
         misses = 0              # predictors rejected in a row
+        snap = None             # the state before this point's predictor
         try:
             while out.points < MAX_POINTS:
                 cap = m._longest_step(v, most=PREDICTOR_REACH, reach=PREDICTOR_REACH)
                 s = min(s, cap)
+                if snap is not None:
+                    snap[1].destroy()       # the last point's snapshot vector (not parked)
                 snap = p.state.snapshot()
-                try:
-                    # the predictor, no deeper into contact than the line search would go
-                    allow = p.depth_allowed(depth0) if depth0 is not None else None
-                    for _ in range(10):
-                        X.copy(Xt)
-                        Xt.axpy(s, v)
-                        if bend is not None:
-                            Xt.axpy(0.5 * s * s, bend)
-                        Ep, depth = m.energy_at(Xt)
-                        if np.isfinite(Ep) and (allow is None or depth <= allow):
-                            break
-                        s *= 0.5
-                    else:
-                        out.reason = "no predictor within the contact allowance"
-                        break
-                    X.axpy(s, v)
+                # the predictor, no deeper into contact than the line search would go
+                allow = p.depth_allowed(depth0) if depth0 is not None else None
+                for _ in range(10):
+                    X.copy(Xt)
+                    Xt.axpy(s, v)
                     if bend is not None:
-                        X.axpy(0.5 * s * s, bend)
-                    ok, its, E1, depth1, gn = self._correct(v, Mv, a, b, dc, Xt, out)
-                    lower = m.descends(E0, E0 - E1)
-                    if not ok and lower and its > 0:
-                        # short of the floor, but lower: the minimiser goes on from here
-                        out.points += 1
-                        out.reason = "the corrector stopped short of the floor"
+                        Xt.axpy(0.5 * s * s, bend)
+                    Ep, depth = m.energy_at(Xt)
+                    if np.isfinite(Ep) and (allow is None or depth <= allow):
                         break
-                    if not ok or not lower:
-                        p.state.restore(snap)
-                        out.rejected += 1
-                        if final:
-                            out.reason = "the floor turns uphill"
-                            break
-                        s *= 0.25
-                        misses += 1
-                        if misses >= MISSES or s < 1e-3 * cap or not ok and its == 0:
-                            out.reason = "the corrector lost the valley"
-                            break
-                        continue
+                    s *= 0.5
+                else:
+                    out.reason = "no predictor within the contact allowance"
+                    break
+                X.axpy(s, v)
+                if bend is not None:
+                    X.axpy(0.5 * s * s, bend)
+                ok, its, E1, depth1, gn = self._correct(v, Mv, a, b, dc, Xt, out)
+                lower = m.descends(E0, E0 - E1)
+                if not ok and lower and its > 0:
+                    # short of the floor, but lower: the minimiser goes on from here
                     out.points += 1
-                    misses = 0
-                    E0, depth0 = E1, depth1
-                    if gn <= m.tol:
-                        out.reason = "gradient at tolerance"
-                        break
-                    # the direction at the new point, continued from the last
-                    old = v.copy()
-                    self._mode(m.ksp, v)
-                    turn = m.metric_dot(v, old)
-                    if turn < 0.0:
-                        v.scale(-1.0)
-                    if bend is None:
-                        bend = v.duplicate()
-                    v.copy(bend)
-                    bend.axpy(-1.0, old)
-                    bend.scale(1.0 / s)
-                    old.destroy()
-                    if abs(turn) < 0.5:
-                        out.reason = "the soft mode changed"
-                        break
+                    out.reason = "the corrector stopped short of the floor"
+                    break
+                if not ok or not lower:
+                    p.state.restore(snap)
+                    out.rejected += 1
                     if final:
-                        out.reason = "at the floor's minimum"
+                        out.reason = "the floor turns uphill"
                         break
-                    slope = m._same(g.dot(v))
-                    if slope >= 0.0:
-                        # the minimum along the floor is behind: back to where the slope, linear
-                        # between the last two points, is zero, and end there
-                        back = s * slope / (slope - slope_before)
-                        if back < 0.05 * s:
-                            out.reason = "the floor turns uphill"
-                            break
-                        v.scale(-1.0)
-                        s, final = back, True
-                        continue
-                    slope_before = slope
-                    s *= 2.0 if its <= 2 else (0.5 if its >= CORRECTOR_ITS else 1.0)
-                finally:
-                    snap[1].destroy()       # the snapshot's vector (not parked)
+                    s *= 0.25
+                    misses += 1
+                    if misses >= MISSES or s < 1e-3 * cap or not ok and its == 0:
+                        out.reason = "the corrector lost the valley"
+                        break
+                    continue
+                out.points += 1
+                misses = 0
+                E0, depth0 = E1, depth1
+                if gn <= m.tol:
+                    out.reason = "gradient at tolerance"
+                    break
+                # the direction at the new point, continued from the last
+                old = v.copy()
+                self._mode(m.ksp, v)
+                turn = m.metric_dot(v, old)
+                if turn < 0.0:
+                    v.scale(-1.0)
+                if bend is None:
+                    bend = v.duplicate()
+                v.copy(bend)
+                bend.axpy(-1.0, old)
+                bend.scale(1.0 / s)
+                old.destroy()
+                if abs(turn) < 0.5:
+                    out.reason = "the soft mode changed"
+                    break
+                if final:
+                    out.reason = "at the floor's minimum"
+                    break
+                slope = m._same(g.dot(v))
+                if slope >= 0.0:
+                    # the minimum along the floor is behind: back to where the slope, linear
+                    # between the last two points, is zero, and end there
+                    back = s * slope / (slope - slope_before)
+                    if back < 0.05 * s:
+                        out.reason = "the floor turns uphill"
+                        break
+                    v.scale(-1.0)
+                    s, final = back, True
+                    continue
+                slope_before = slope
+                s *= 2.0 if its <= 2 else (0.5 if its >= CORRECTOR_ITS else 1.0)
             else:
                 out.reason = "valley point limit"
         finally:
-            for w in (Mv, a, b, dc, Xt, v, bend):
+            for w in (Mv, a, b, dc, Xt, v, bend, snap and snap[1]):
                 if w is None:
                     continue
                 w.destroy()
