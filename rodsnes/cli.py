@@ -526,7 +526,7 @@ def _closest(word, names, prefix=""):
     return _or_list(["-" + prefix + c for c in close]) if close else ""
 
 
-# the Newton steps' solvers a user may set under a prefix (README, Options: linear solves):
+# the Newton steps' solvers a user may set under a prefix (docs/solver.md, Linear solvers and their options):
 # prefix -> the matrix they factor (BAIJ block size, whether -mat_type makes it)
 LU_PREFIXES = {"": (6, True), "planar_": (3, False), "estimate_": (6, True)}
 # preconditioners that are no solve with -ksp_type preonly (one sweep, one cycle, an incomplete
